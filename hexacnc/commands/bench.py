@@ -1,0 +1,36 @@
+"""``hexacnc bench NAME``: benchmarks that print one JSON object of measured figures."""
+from __future__ import annotations
+
+import argparse
+import importlib
+
+HELP = "run a benchmark and print its figures as JSON"
+
+#: benchmark name -> module in hexacnc.bench (HELP, configure(parser), main(args) -> int)
+BENCHES: dict[str, str] = {
+    "model": "hexacnc.bench.model",
+    "loop": "hexacnc.bench.loop",
+    "interp": "hexacnc.bench.interp",
+    "plan": "hexacnc.bench.plan",
+    "calib": "hexacnc.bench.calib",
+    "simulate": "hexacnc.bench.simulate",
+}
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="bench", metavar="NAME")
+    sub.required = True
+    for name, modname in BENCHES.items():
+        try:
+            mod = importlib.import_module(modname)
+        except ModuleNotFoundError as exc:
+            if exc.name == modname:
+                continue
+            raise
+        p = sub.add_parser(name, help=mod.HELP, description=mod.HELP)
+        mod.configure(p)
+        p.set_defaults(_bench_main=mod.main)
+
+
+def main(args: argparse.Namespace) -> int:
+    return args._bench_main(args)

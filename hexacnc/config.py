@@ -1,0 +1,545 @@
+"""Machine description: one TOML loader, read once at start.
+
+Every value is range-checked, unknown sections and keys are rejected, and every
+error names the file, the ``[section] key`` and the bad value.
+
+Public contract (more keys may be added, none renamed):
+
+* ``[geometry] base_joints_mm`` (6x3, base frame), ``platform_joints_mm``
+  (6x3, platform frame), ``strut_offset_mm`` (6: strut length at drive reading 0).
+* ``[struts] min_length_mm, max_length_mm, max_velocity_mm_s,
+  max_acceleration_mm_s2, max_jerk_mm_s3, stiffness_N_per_mm`` (6 or one for all).
+* ``[joints] base_axes, platform_axes`` (6x3 unit vectors), ``max_angle_deg``.
+* ``[carrier] mass_kg, center_of_gravity_mm`` (platform frame), gravity along
+  -z of the base frame unless ``gravity_mm_s2`` is given.
+
+Everything is stored in mm, mm/s, degrees at this interface; radians are
+derived for the inside (``*_rad`` attributes).
+"""
+from __future__ import annotations
+
+import math
+import os
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError
+
+_REQUIRED = object()
+
+#: path of the embedded default machine (simulated drives, no root needed)
+DEFAULT_CONFIG_NAME = "default.toml"
+
+
+def default_config_path() -> Path:
+    """Path of ``config/default.toml`` (repository) or the packaged copy."""
+    repo = Path(__file__).resolve().parent.parent / "config" / DEFAULT_CONFIG_NAME
+    if repo.exists():
+        return repo
+    return Path(str(resources.files("hexacnc") / "data" / DEFAULT_CONFIG_NAME))
+
+
+class Section:
+    """Range-checked getters over one TOML table; ``finish`` rejects leftovers."""
+
+    def __init__(self, path: str, name: str, table: dict[str, Any] | None):
+        self.path = path
+        self.name = name
+        self.table = dict(table or {})
+        self.used: set[str] = set()
+
+    # -- helpers ---------------------------------------------------------
+    def where(self, key: str) -> str:
+        return f"{self.path}: [{self.name}] {key}"
+
+    def error(self, key: str, msg: str) -> ConfigError:
+        return ConfigError(f"{self.where(key)}: {msg}")
+
+    def has(self, key: str) -> bool:
+        return key in self.table
+
+    def _get(self, key: str, default: Any) -> Any:
+        self.used.add(key)
+        if key in self.table:
+            return self.table[key]
+        if default is _REQUIRED:
+            raise self.error(key, "missing (required)")
+        return default
+
+    def _check_range(self, key: str, v: float, minval, maxval, above, below) -> None:
+        if not math.isfinite(v):
+            raise self.error(key, f"value {v!r} is not finite")
+        if minval is not None and v < minval:
+            raise self.error(key, f"value {v!r} is below the minimum {minval}")
+        if maxval is not None and v > maxval:
+            raise self.error(key, f"value {v!r} is above the maximum {maxval}")
+        if above is not None and v <= above:
+            raise self.error(key, f"value {v!r} must be greater than {above}")
+        if below is not None and v >= below:
+            raise self.error(key, f"value {v!r} must be less than {below}")
+
+    @staticmethod
+    def _is_number(v: Any) -> bool:
+        return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+    # -- getters ---------------------------------------------------------
+    def getfloat(self, key: str, default: Any = _REQUIRED, minval=None, maxval=None,
+                 above=None, below=None) -> float:
+        v = self._get(key, default)
+        if v is None:
+            return None  # type: ignore[return-value]
+        if not self._is_number(v):
+            raise self.error(key, f"expected a number, got {v!r}")
+        v = float(v)
+        self._check_range(key, v, minval, maxval, above, below)
+        return v
+
+    def getint(self, key: str, default: Any = _REQUIRED, minval=None, maxval=None) -> int:
+        v = self._get(key, default)
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise self.error(key, f"expected an integer, got {v!r}")
+        self._check_range(key, float(v), minval, maxval, None, None)
+        return int(v)
+
+    def getbool(self, key: str, default: Any = _REQUIRED) -> bool:
+        v = self._get(key, default)
+        if not isinstance(v, bool):
+            raise self.error(key, f"expected true or false, got {v!r}")
+        return v
+
+    def getstr(self, key: str, default: Any = _REQUIRED) -> str:
+        v = self._get(key, default)
+        if v is None:
+            return None  # type: ignore[return-value]
+        if not isinstance(v, str):
+            raise self.error(key, f"expected a string, got {v!r}")
+        return v
+
+    def getchoice(self, key: str, choices: tuple[str, ...] | list[str], default: Any = _REQUIRED) -> str:
+        v = self.getstr(key, default)
+        if v not in choices:
+            raise self.error(key, f"value {v!r} is not one of {', '.join(map(repr, choices))}")
+        return v
+
+    def getvec(self, key: str, n: int, default: Any = _REQUIRED, minval=None, maxval=None,
+               above=None, below=None, allow_scalar: bool = False) -> np.ndarray:
+        """A list of ``n`` numbers (or, with ``allow_scalar``, one number for all)."""
+        v = self._get(key, default)
+        if allow_scalar and self._is_number(v):
+            v = [v] * n
+        if not isinstance(v, (list, tuple)):
+            raise self.error(key, f"expected a list of {n} numbers"
+                             + (" or one number" if allow_scalar else "") + f", got {v!r}")
+        if len(v) != n:
+            raise self.error(key, f"expected {n} values, got {len(v)}")
+        out = np.empty(n)
+        for i, x in enumerate(v):
+            if not self._is_number(x):
+                raise self.error(key, f"element {i + 1} is {x!r}, not a number")
+            out[i] = float(x)
+            try:
+                self._check_range(key, out[i], minval, maxval, above, below)
+            except ConfigError as exc:
+                raise self.error(key, f"element {i + 1}: {str(exc).split(': ', 2)[-1]}") from None
+        return out
+
+    def getmatrix(self, key: str, rows: int, cols: int, default: Any = _REQUIRED) -> np.ndarray:
+        v = self._get(key, default)
+        if not isinstance(v, (list, tuple)) or len(v) != rows:
+            got = len(v) if isinstance(v, (list, tuple)) else repr(v)
+            raise self.error(key, f"expected {rows} rows of {cols} numbers, got {got} rows")
+        out = np.empty((rows, cols))
+        for i, row in enumerate(v):
+            if not isinstance(row, (list, tuple)) or len(row) != cols:
+                raise self.error(key, f"row {i + 1} must have {cols} numbers, got {row!r}")
+            for j, x in enumerate(row):
+                if not self._is_number(x) or not math.isfinite(float(x)):
+                    raise self.error(key, f"row {i + 1}, element {j + 1} is {x!r}, not a finite number")
+                out[i, j] = float(x)
+        return out
+
+    def getunits(self, key: str, rows: int, default: Any = _REQUIRED) -> np.ndarray:
+        """``rows`` unit 3-vectors (normalised; tolerance 1e-3 on the length)."""
+        m = self.getmatrix(key, rows, 3, default)
+        n = np.linalg.norm(m, axis=1)
+        for i in range(rows):
+            if abs(n[i] - 1.0) > 1e-3:
+                raise self.error(key, f"row {i + 1} {m[i].tolist()} is not a unit vector (length {n[i]:.6g})")
+        return m / n[:, None]
+
+    def finish(self) -> None:
+        unknown = sorted(set(self.table) - self.used)
+        if unknown:
+            raise ConfigError(f"{self.path}: [{self.name}] unknown option(s): {', '.join(unknown)}")
+
+
+# ---------------------------------------------------------------------------
+# Section data
+# ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class ThermalConfig:
+    """1-D heat model of each strut (see :mod:`hexacnc.thermal`)."""
+    segments: int = 10
+    expansion_per_K: float = 11.5e-6          #: linear expansion coefficient (steel)
+    heat_per_speed_W_s_mm: float = 0.05        #: heat input per mm/s of strut speed, W
+    conductivity_W_mK: float = 45.0
+    density_kg_m3: float = 7850.0
+    heat_capacity_J_kgK: float = 460.0
+    area_mm2: float = 1200.0                   #: conducting cross-section
+    perimeter_mm: float = 250.0                #: convective perimeter
+    convection_W_m2K: float = 8.0
+    end_conductance_W_K: float = 0.5           #: strut end to frame at each joint
+    probes: tuple[int, ...] = (0, 5)           #: segment indices carrying a sensor
+    probe_noise_K: float = 0.02
+    process_noise_K: float = 0.01
+    enabled: bool = True
+
+
+@dataclass(frozen=True)
+class SpindleConfig:
+    growth_mm_per_K: float = 0.0012            #: tool growth along the tool axis per K over reference
+    reference_temperature_C: float = 20.0
+
+
+@dataclass(frozen=True)
+class ToolConfig:
+    axis_platform: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+    tip_platform_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True)
+class KinematicsConfig:
+    fk_tolerance_mm: float = 1e-6
+    fk_max_iterations: int = 30
+    max_condition: float = 1e4                 #: Jacobian condition number counted as near-singular
+
+
+@dataclass(frozen=True)
+class CycleConfig:
+    period_s: float = 0.0005
+    max_overruns_in_row: int = 3
+    setpoint_timeout_s: float = 0.05
+    realtime_priority: int = 80
+    cpu: int = -1                              #: -1: last CPU
+    following_error_mm: float = 1.0
+    watchdog_s: float = 2.0
+
+
+@dataclass(frozen=True)
+class BusConfig:
+    interface: str = "virtual"                 #: socketcan | virtual | udp_multicast
+    channel: str = "hexacnc"
+    bitrate: int = 1_000_000
+    fd: bool = False
+    data_bitrate: int = 2_000_000
+    buses: int = 1
+    node_ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
+    layout: str = "paired"                     #: single | paired | fd
+    feedback_divider: int = 1                  #: TPDO every n-th SYNC
+    max_load: float = 0.95                     #: worst-case bus time / cycle
+    increments_per_mm: float = 10000.0
+    heartbeat_ms: int = 100
+    heartbeat_timeout_ms: int = 350
+    simulate: bool = True                      #: start the simulated drives process
+
+
+@dataclass(frozen=True)
+class DaemonConfig:
+    socket_path: str = "/tmp/hexacnc.sock"
+    tcp_port: int = 0                          #: 0: no TCP
+    tcp_token: str = ""
+    status_rate_hz: float = 20.0
+    log_level: str = "INFO"
+
+
+@dataclass(frozen=True)
+class PlannerConfig:
+    lookahead_segments: int = 200
+    default_feed_mm_min: float = 1000.0
+    rapid_feed_mm_min: float = 15000.0
+    max_angular_velocity_deg_s: float = 90.0
+    path_tolerance_mm: float = 0.01
+    sample_bound_mm: float = 0.001
+    work_offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+
+@dataclass(frozen=True)
+class MachineConfig:
+    """The whole machine description. Arrays are read-only, mm and degrees."""
+    path: str
+    name: str
+    base_joints_mm: np.ndarray          #: (6,3) base frame
+    platform_joints_mm: np.ndarray      #: (6,3) platform frame
+    strut_offset_mm: np.ndarray         #: (6,)
+    min_length_mm: np.ndarray
+    max_length_mm: np.ndarray
+    max_velocity_mm_s: np.ndarray
+    max_acceleration_mm_s2: np.ndarray
+    max_jerk_mm_s3: np.ndarray
+    stiffness_N_per_mm: np.ndarray
+    base_axes: np.ndarray               #: (6,3) unit, base frame
+    platform_axes: np.ndarray           #: (6,3) unit, platform frame
+    max_angle_deg: np.ndarray           #: (6,)
+    mass_kg: float
+    center_of_gravity_mm: np.ndarray    #: (3,) platform frame
+    gravity_mm_s2: np.ndarray           #: (3,) base frame
+    inertia_kg_mm2: np.ndarray          #: (3,3) about the COG, platform frame
+    home_pose: np.ndarray               #: (6,) x,y,z mm, a,b,c deg
+    workspace_min: np.ndarray           #: (6,) box used for sampling/planning
+    workspace_max: np.ndarray
+    tool: ToolConfig
+    spindle: SpindleConfig
+    thermal: ThermalConfig
+    kinematics: KinematicsConfig
+    cycle: CycleConfig
+    bus: BusConfig
+    daemon: DaemonConfig
+    planner: PlannerConfig
+    raw: dict = field(repr=False, default_factory=dict)
+
+    @property
+    def max_angle_rad(self) -> np.ndarray:
+        return np.radians(self.max_angle_deg)
+
+    def replace(self, **changes: Any) -> "MachineConfig":
+        """A copy with some fields replaced (used by calibration)."""
+        import dataclasses
+        return dataclasses.replace(self, **changes)
+
+
+def _freeze(a: np.ndarray) -> np.ndarray:
+    a = np.array(a, dtype=float)
+    a.setflags(write=False)
+    return a
+
+
+def _section(path: str, doc: dict, name: str, required: bool) -> Section:
+    t = doc.get(name)
+    if t is None and required:
+        raise ConfigError(f"{path}: section [{name}] is missing")
+    if t is not None and not isinstance(t, dict):
+        raise ConfigError(f"{path}: [{name}] must be a table")
+    return Section(path, name, t)
+
+
+_KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
+                   "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner")
+
+
+def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
+    """Build a :class:`MachineConfig` from a parsed TOML document."""
+    unknown = sorted(set(doc) - set(_KNOWN_SECTIONS))
+    if unknown:
+        raise ConfigError(f"{path}: unknown section(s): {', '.join('[' + u + ']' for u in unknown)}; "
+                          f"known: {', '.join(_KNOWN_SECTIONS)}")
+    sections: list[Section] = []
+
+    def sec(name: str, required: bool = False) -> Section:
+        s = _section(path, doc, name, required)
+        sections.append(s)
+        return s
+
+    m = sec("machine")
+    name = m.getstr("name", Path(path).stem)
+
+    g = sec("geometry", True)
+    base = g.getmatrix("base_joints_mm", 6, 3)
+    plat = g.getmatrix("platform_joints_mm", 6, 3)
+    off = g.getvec("strut_offset_mm", 6, minval=0.0, allow_scalar=True)
+
+    s = sec("struts", True)
+    lmin = s.getvec("min_length_mm", 6, above=0.0, allow_scalar=True)
+    lmax = s.getvec("max_length_mm", 6, above=0.0, allow_scalar=True)
+    for i in range(6):
+        if lmax[i] <= lmin[i]:
+            raise s.error("max_length_mm", f"strut {i + 1}: max {lmax[i]} must exceed min_length_mm {lmin[i]}")
+    vmax = s.getvec("max_velocity_mm_s", 6, above=0.0, allow_scalar=True)
+    amax = s.getvec("max_acceleration_mm_s2", 6, above=0.0, allow_scalar=True)
+    jmax = s.getvec("max_jerk_mm_s3", 6, above=0.0, allow_scalar=True)
+    stiff = s.getvec("stiffness_N_per_mm", 6, above=0.0, allow_scalar=True)
+
+    j = sec("joints", True)
+    base_axes = j.getunits("base_axes", 6)
+    plat_axes = j.getunits("platform_axes", 6)
+    max_angle = j.getvec("max_angle_deg", 6, above=0.0, maxval=90.0, allow_scalar=True)
+
+    c = sec("carrier", True)
+    mass = c.getfloat("mass_kg", minval=0.0)
+    cog = c.getvec("center_of_gravity_mm", 3)
+    grav = c.getvec("gravity_mm_s2", 3, [0.0, 0.0, -9810.0])
+    if c.has("inertia_kg_mm2"):
+        inertia = c.getmatrix("inertia_kg_mm2", 3, 3)
+        if not np.allclose(inertia, inertia.T) or np.any(np.linalg.eigvalsh(0.5 * (inertia + inertia.T)) < 0):
+            raise c.error("inertia_kg_mm2", "must be symmetric positive semi-definite")
+    else:
+        c.used.add("inertia_kg_mm2")
+        # a solid disc of the platform joint radius as a plausible default
+        r = float(np.mean(np.linalg.norm(plat[:, :2], axis=1))) if mass > 0 else 0.0
+        inertia = np.diag([mass * r * r / 4, mass * r * r / 4, mass * r * r / 2])
+
+    t = sec("tool")
+    axis = t.getvec("axis_platform", 3, [0.0, 0.0, 1.0])
+    if abs(float(np.linalg.norm(axis)) - 1.0) > 1e-3:
+        raise t.error("axis_platform", f"{axis.tolist()} is not a unit vector")
+    tool = ToolConfig(axis_platform=_freeze(axis / np.linalg.norm(axis)),
+                      tip_platform_mm=_freeze(t.getvec("tip_platform_mm", 3, [0.0, 0.0, 0.0])))
+
+    sp = sec("spindle")
+    spindle = SpindleConfig(growth_mm_per_K=sp.getfloat("growth_mm_per_K", 0.0012, minval=0.0, maxval=1.0),
+                            reference_temperature_C=sp.getfloat("reference_temperature_C", 20.0,
+                                                                minval=-50.0, maxval=200.0))
+
+    w = sec("workspace", True)
+    home = w.getvec("home_pose", 6)
+    wmin = w.getvec("min", 6, None) if w.has("min") else None
+    wmax = w.getvec("max", 6, None) if w.has("max") else None
+    w.used.update({"min", "max"})
+    if wmin is None:
+        wmin = home + np.array([-100.0, -100.0, -100.0, -10.0, -10.0, -10.0])
+    if wmax is None:
+        wmax = home + np.array([100.0, 100.0, 100.0, 10.0, 10.0, 10.0])
+    for i in range(6):
+        if not (wmin[i] <= home[i] <= wmax[i]):
+            raise w.error("home_pose", f"coordinate {'xyzabc'[i]}={home[i]} is outside [workspace] min/max "
+                                       f"[{wmin[i]}, {wmax[i]}]")
+
+    th = sec("thermal")
+    dflt = ThermalConfig()
+    segs = th.getint("segments", dflt.segments, minval=2, maxval=200)
+    probes = th.getvec("probes", len(th.table.get("probes", dflt.probes)) or 1, list(dflt.probes),
+                       minval=0, maxval=segs - 1)
+    thermal = ThermalConfig(
+        segments=segs,
+        expansion_per_K=th.getfloat("expansion_per_K", dflt.expansion_per_K, minval=0.0, maxval=1e-3),
+        heat_per_speed_W_s_mm=th.getfloat("heat_per_speed_W_s_mm", dflt.heat_per_speed_W_s_mm, minval=0.0),
+        conductivity_W_mK=th.getfloat("conductivity_W_mK", dflt.conductivity_W_mK, above=0.0),
+        density_kg_m3=th.getfloat("density_kg_m3", dflt.density_kg_m3, above=0.0),
+        heat_capacity_J_kgK=th.getfloat("heat_capacity_J_kgK", dflt.heat_capacity_J_kgK, above=0.0),
+        area_mm2=th.getfloat("area_mm2", dflt.area_mm2, above=0.0),
+        perimeter_mm=th.getfloat("perimeter_mm", dflt.perimeter_mm, above=0.0),
+        convection_W_m2K=th.getfloat("convection_W_m2K", dflt.convection_W_m2K, minval=0.0),
+        end_conductance_W_K=th.getfloat("end_conductance_W_K", dflt.end_conductance_W_K, minval=0.0),
+        probes=tuple(int(p) for p in probes),
+        probe_noise_K=th.getfloat("probe_noise_K", dflt.probe_noise_K, above=0.0),
+        process_noise_K=th.getfloat("process_noise_K", dflt.process_noise_K, above=0.0),
+        enabled=th.getbool("enabled", dflt.enabled),
+    )
+
+    k = sec("kinematics")
+    kin = KinematicsConfig(
+        fk_tolerance_mm=k.getfloat("fk_tolerance_mm", 1e-6, above=0.0, maxval=1.0),
+        fk_max_iterations=k.getint("fk_max_iterations", 30, minval=1, maxval=1000),
+        max_condition=k.getfloat("max_condition", 1e4, above=1.0),
+    )
+
+    cy = sec("cycle")
+    cd = CycleConfig()
+    cycle = CycleConfig(
+        period_s=cy.getfloat("period_s", cd.period_s, minval=1e-4, maxval=0.1),
+        max_overruns_in_row=cy.getint("max_overruns_in_row", cd.max_overruns_in_row, minval=1, maxval=1000),
+        setpoint_timeout_s=cy.getfloat("setpoint_timeout_s", cd.setpoint_timeout_s, above=0.0, maxval=10.0),
+        realtime_priority=cy.getint("realtime_priority", cd.realtime_priority, minval=1, maxval=99),
+        cpu=cy.getint("cpu", cd.cpu, minval=-1, maxval=1023),
+        following_error_mm=cy.getfloat("following_error_mm", cd.following_error_mm, above=0.0),
+        watchdog_s=cy.getfloat("watchdog_s", cd.watchdog_s, above=0.0, maxval=600.0),
+    )
+
+    b = sec("bus")
+    bd = BusConfig()
+    node_ids = b.getvec("node_ids", 6, list(bd.node_ids), minval=1, maxval=127)
+    if len(set(int(x) for x in node_ids)) != 6 or any(x != int(x) for x in node_ids):
+        raise b.error("node_ids", f"must be 6 distinct integers 1..127, got {node_ids.tolist()}")
+    bus = BusConfig(
+        interface=b.getchoice("interface", ("socketcan", "virtual", "udp_multicast"), bd.interface),
+        channel=b.getstr("channel", bd.channel),
+        bitrate=b.getint("bitrate", bd.bitrate, minval=10_000, maxval=1_000_000),
+        fd=b.getbool("fd", bd.fd),
+        data_bitrate=b.getint("data_bitrate", bd.data_bitrate, minval=10_000, maxval=8_000_000),
+        buses=b.getint("buses", bd.buses, minval=1, maxval=6),
+        node_ids=tuple(int(x) for x in node_ids),
+        layout=b.getchoice("layout", ("single", "paired", "fd"), bd.layout),
+        feedback_divider=b.getint("feedback_divider", bd.feedback_divider, minval=1, maxval=100),
+        max_load=b.getfloat("max_load", bd.max_load, above=0.0, maxval=1.0),
+        increments_per_mm=b.getfloat("increments_per_mm", bd.increments_per_mm, above=0.0, maxval=1e7),
+        heartbeat_ms=b.getint("heartbeat_ms", bd.heartbeat_ms, minval=1, maxval=10000),
+        heartbeat_timeout_ms=b.getint("heartbeat_timeout_ms", bd.heartbeat_timeout_ms, minval=1, maxval=60000),
+        simulate=b.getbool("simulate", bd.simulate),
+    )
+
+    d = sec("daemon")
+    dd = DaemonConfig()
+    daemon = DaemonConfig(
+        socket_path=os.path.expandvars(d.getstr("socket_path", dd.socket_path)),
+        tcp_port=d.getint("tcp_port", dd.tcp_port, minval=0, maxval=65535),
+        tcp_token=d.getstr("tcp_token", dd.tcp_token),
+        status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),
+        log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
+    )
+    if daemon.tcp_port and not daemon.tcp_token:
+        raise d.error("tcp_token", "a token is required when tcp_port is set")
+
+    p = sec("planner")
+    pd = PlannerConfig()
+    planner = PlannerConfig(
+        lookahead_segments=p.getint("lookahead_segments", pd.lookahead_segments, minval=50, maxval=10_000_000),
+        default_feed_mm_min=p.getfloat("default_feed_mm_min", pd.default_feed_mm_min, above=0.0),
+        rapid_feed_mm_min=p.getfloat("rapid_feed_mm_min", pd.rapid_feed_mm_min, above=0.0),
+        max_angular_velocity_deg_s=p.getfloat("max_angular_velocity_deg_s", pd.max_angular_velocity_deg_s,
+                                              above=0.0),
+        path_tolerance_mm=p.getfloat("path_tolerance_mm", pd.path_tolerance_mm, above=0.0),
+        sample_bound_mm=p.getfloat("sample_bound_mm", pd.sample_bound_mm, above=0.0),
+        work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
+    )
+
+    for sct in sections:
+        sct.finish()
+
+    cfg = MachineConfig(
+        path=path, name=name,
+        base_joints_mm=_freeze(base), platform_joints_mm=_freeze(plat), strut_offset_mm=_freeze(off),
+        min_length_mm=_freeze(lmin), max_length_mm=_freeze(lmax), max_velocity_mm_s=_freeze(vmax),
+        max_acceleration_mm_s2=_freeze(amax), max_jerk_mm_s3=_freeze(jmax), stiffness_N_per_mm=_freeze(stiff),
+        base_axes=_freeze(base_axes), platform_axes=_freeze(plat_axes), max_angle_deg=_freeze(max_angle),
+        mass_kg=mass, center_of_gravity_mm=_freeze(cog), gravity_mm_s2=_freeze(grav),
+        inertia_kg_mm2=_freeze(inertia),
+        home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
+        tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
+        daemon=daemon, planner=planner, raw=doc,
+    )
+    _check_geometry(cfg)
+    return cfg
+
+
+def _check_geometry(cfg: MachineConfig) -> None:
+    """Reject singular geometry and a home pose outside the limits."""
+    from .kinematics import Hexapod  # local: kinematics imports config
+    from .errors import KinematicsError
+    hx = Hexapod(cfg)
+    try:
+        hx.check_pose(cfg.home_pose)
+    except KinematicsError as exc:
+        raise ConfigError(f"{cfg.path}: [workspace] home_pose {cfg.home_pose.tolist()}: {exc}") from exc
+    cond = hx.condition(cfg.home_pose)
+    if not np.isfinite(cond) or cond > cfg.kinematics.max_condition:
+        raise ConfigError(f"{cfg.path}: [geometry] is singular or near-singular at the home pose "
+                          f"(Jacobian condition {cond:.3g} > [kinematics] max_condition "
+                          f"{cfg.kinematics.max_condition:.3g})")
+
+
+def load_config(path: str | os.PathLike | None = None) -> MachineConfig:
+    """Read and check a machine description; ``None`` gives the embedded default."""
+    p = Path(path) if path is not None else default_config_path()
+    try:
+        text = p.read_text(encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"{p}: cannot read machine description: {exc.strerror or exc}") from exc
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
+    return parse_config(doc, str(p))

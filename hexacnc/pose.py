@@ -1,0 +1,129 @@
+"""Rotations and pose conventions.
+
+Pose ``[x, y, z, a, b, c]``: x, y, z in mm, a, b, c in degrees at every
+interface, radians inside.  ``R = Rz(c) @ Ry(b) @ Rx(a)``; a platform point
+``p`` maps to the base frame as ``t + R @ p``.
+
+Angular velocity ``omega`` (base frame) and Euler rates are related by
+``omega = E(a, b, c) @ [da, db, dc]`` with
+``E = [Rz(c) Ry(b) e_x, Rz(c) e_y, e_z]``; E is singular at ``b = +-90 deg``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+_HALF_PI = 0.5 * math.pi
+
+
+def matrix_from_euler(a_rad: float, b_rad: float, c_rad: float) -> np.ndarray:
+    """Rotation matrix (3,3) ``Rz(c) @ Ry(b) @ Rx(a)``."""
+    ca, sa = math.cos(a_rad), math.sin(a_rad)
+    cb, sb = math.cos(b_rad), math.sin(b_rad)
+    cc, sc = math.cos(c_rad), math.sin(c_rad)
+    return np.array([
+        [cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa],
+        [sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa],
+        [-sb, cb * sa, cb * ca],
+    ])
+
+
+def matrices_from_euler(abc_rad: np.ndarray) -> np.ndarray:
+    """Batch version: ``abc_rad`` (N,3) radians -> (N,3,3)."""
+    abc = np.asarray(abc_rad, dtype=float)
+    ca, sa = np.cos(abc[:, 0]), np.sin(abc[:, 0])
+    cb, sb = np.cos(abc[:, 1]), np.sin(abc[:, 1])
+    cc, sc = np.cos(abc[:, 2]), np.sin(abc[:, 2])
+    R = np.empty((abc.shape[0], 3, 3))
+    R[:, 0, 0] = cc * cb
+    R[:, 0, 1] = cc * sb * sa - sc * ca
+    R[:, 0, 2] = cc * sb * ca + sc * sa
+    R[:, 1, 0] = sc * cb
+    R[:, 1, 1] = sc * sb * sa + cc * ca
+    R[:, 1, 2] = sc * sb * ca - cc * sa
+    R[:, 2, 0] = -sb
+    R[:, 2, 1] = cb * sa
+    R[:, 2, 2] = cb * ca
+    return R
+
+
+def euler_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
+    """Inverse of :func:`matrix_from_euler`; b in [-90, 90] deg (radians out)."""
+    sb = -float(R[2, 0])
+    sb = 1.0 if sb > 1.0 else (-1.0 if sb < -1.0 else sb)
+    b = math.asin(sb)
+    if abs(sb) < 1.0 - 1e-12:
+        a = math.atan2(float(R[2, 1]), float(R[2, 2]))
+        c = math.atan2(float(R[1, 0]), float(R[0, 0]))
+    else:  # gimbal lock: put everything into c
+        a = 0.0
+        c = math.atan2(-float(R[0, 1]), float(R[1, 1]))
+    return a, b, c
+
+
+def rate_matrix(a_rad: float, b_rad: float, c_rad: float) -> np.ndarray:
+    """E (3,3) with ``omega_base = E @ [da, db, dc]`` (radians)."""
+    cb, sb = math.cos(b_rad), math.sin(b_rad)
+    cc, sc = math.cos(c_rad), math.sin(c_rad)
+    return np.array([[cc * cb, -sc, 0.0],
+                     [sc * cb, cc, 0.0],
+                     [-sb, 0.0, 1.0]])
+
+
+def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:
+    """Unit quaternion ``(qx, qy, qz, qw)`` -> rotation matrix (3,3)."""
+    x, y, z, w = (float(v) for v in q)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    return np.array([
+        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+    ])
+
+
+def quaternion_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix -> unit quaternion ``(qx, qy, qz, qw)`` with qw >= 0."""
+    m = np.asarray(R, dtype=float)
+    tr = m[0, 0] + m[1, 1] + m[2, 2]
+    if tr > 0:
+        s = math.sqrt(tr + 1.0) * 2
+        q = [(m[2, 1] - m[1, 2]) / s, (m[0, 2] - m[2, 0]) / s, (m[1, 0] - m[0, 1]) / s, 0.25 * s]
+    elif m[0, 0] > m[1, 1] and m[0, 0] > m[2, 2]:
+        s = math.sqrt(1.0 + m[0, 0] - m[1, 1] - m[2, 2]) * 2
+        q = [0.25 * s, (m[0, 1] + m[1, 0]) / s, (m[0, 2] + m[2, 0]) / s, (m[2, 1] - m[1, 2]) / s]
+    elif m[1, 1] > m[2, 2]:
+        s = math.sqrt(1.0 + m[1, 1] - m[0, 0] - m[2, 2]) * 2
+        q = [(m[0, 1] + m[1, 0]) / s, 0.25 * s, (m[1, 2] + m[2, 1]) / s, (m[0, 2] - m[2, 0]) / s]
+    else:
+        s = math.sqrt(1.0 + m[2, 2] - m[0, 0] - m[1, 1]) * 2
+        q = [(m[0, 2] + m[2, 0]) / s, (m[1, 2] + m[2, 1]) / s, 0.25 * s, (m[1, 0] - m[0, 1]) / s]
+    q = np.array(q)
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def rotation_angle_between(R1: np.ndarray, R2: np.ndarray) -> float:
+    """Angle (radians) of the rotation ``R1.T @ R2``."""
+    c = (np.trace(np.asarray(R1).T @ np.asarray(R2)) - 1.0) * 0.5
+    return math.acos(max(-1.0, min(1.0, float(c))))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """Cross-product matrix: ``skew(v) @ w == cross(v, w)``."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def pose_to_rad(pose_deg) -> np.ndarray:
+    """``[x,y,z,a,b,c]`` mm/deg -> mm/rad (new array)."""
+    p = np.array(pose_deg, dtype=float)
+    p[..., 3:] = np.radians(p[..., 3:])
+    return p
+
+
+def pose_to_deg(pose_rad) -> np.ndarray:
+    """``[x,y,z,a,b,c]`` mm/rad -> mm/deg (new array)."""
+    p = np.array(pose_rad, dtype=float)
+    p[..., 3:] = np.degrees(p[..., 3:])
+    return p
