@@ -1,0 +1,48 @@
+"""Motion blocks: the interpreter's output and the planner's input.
+
+Poses are tool-tip poses ``[x, y, z, a, b, c]`` in the machine (base) frame,
+mm and degrees, with work offsets, G53 and G43 tool length already applied.
+The tool length is a distance along the platform's tool axis; the planner
+converts tool-tip poses to platform poses with it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: block kinds
+RAPID = "rapid"            #: G0
+LINE = "line"              #: G1
+ARC = "arc"                #: G2/G3 (helical allowed)
+DWELL = "dwell"            #: G4, ``seconds``
+PAUSE = "pause"            #: M0
+OPTIONAL_PAUSE = "optional_pause"  #: M1
+END = "end"                #: M2/M30
+SPINDLE = "spindle"        #: M3/M4/M5/S: ``spindle_rpm`` (signed: M4 negative, M5 zero)
+COOLANT = "coolant"        #: M7/M8/M9: ``coolant`` in {"mist", "flood", "off"}
+TOOL_CHANGE = "tool_change"  #: M6: ``tool``
+
+MOTION_KINDS = (RAPID, LINE, ARC)
+
+
+@dataclass
+class Block:
+    kind: str
+    line: int                                  #: 1-based source line
+    start: np.ndarray | None = None            #: (6,) tool-tip pose at block start
+    end: np.ndarray | None = None              #: (6,) tool-tip pose at block end
+    feed_mm_s: float | None = None             #: path feed (G94); None for rapids
+    inverse_time_s: float | None = None        #: G93: the move takes this long
+    center: np.ndarray | None = None           #: arcs: (3,) centre, machine frame
+    normal: np.ndarray | None = None           #: arcs: (3,) unit normal, counter-clockwise positive
+    turns: int = 0                             #: arcs: extra full turns (P word)
+    clockwise: bool = False                    #: arcs: G2
+    exact_stop: bool = False                   #: G61 active
+    blend_tolerance_mm: float | None = None    #: G64 P (None: as fast as possible)
+    tool_length_mm: float = 0.0                #: G43 offset along the tool axis
+    seconds: float = 0.0                       #: dwell
+    spindle_rpm: float = 0.0
+    coolant: str = "off"
+    tool: int = 0
+    extra: dict = field(default_factory=dict)
