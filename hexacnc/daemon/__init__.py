@@ -1,0 +1,1 @@
+"""The daemon: hot loop process (:mod:`.loop`), supervisor (:mod:`.core`), IPC (:mod:`.shm`), socket server."""

@@ -1,0 +1,109 @@
+"""Jerk-limited controlled stop of the struts (plain floats, no allocation).
+
+Each strut is brought from its current commanded velocity ``v`` and acceleration
+``a`` to rest by the time-optimal jerk-limited profile: every cycle the new
+acceleration is the one after which ramping the acceleration back to zero at
+``max_jerk`` ends exactly at zero velocity, clamped to the jerk and acceleration
+limits reachable in one cycle.  This is also the profile with the shortest
+stopping distance, so a strut whose commanded motion so far was feasible (it
+could still have stopped, or reversed, inside its length range) stops inside
+its length range too; the lengths are clamped to the range as a final guard.
+"""
+from __future__ import annotations
+
+import math
+
+
+def stop_accel(v: float, a: float, jmax: float, amax: float, dt: float) -> float:
+    """Acceleration (mm/s^2) for the next cycle of a jerk-limited stop from ``(v, a)``.
+
+    Discrete model (the one the drive and the guard see): ``v`` and ``a`` are
+    backward differences of the commanded lengths; the next acceleration ``x``
+    gives ``v' = v + x dt``; ramping ``x`` back to zero in steps of ``jmax dt``
+    then adds ``x|x|/(2 jmax) - x dt/2``.  ``x`` solves ``v + x dt/2 + x|x|/(2 jmax) = 0``
+    and is clamped to the jerk and acceleration bounds.
+    """
+    jdt = jmax * dt
+    lo = a - jdt
+    hi = a + jdt
+    if lo < -amax:
+        lo = -amax
+    if hi > amax:
+        hi = amax
+    xs = -v / dt                      # reach standstill in this very cycle?
+    if lo <= xs <= hi and -jdt <= xs <= jdt:
+        return xs
+    h = 0.5 * dt
+    if v <= 0.0:
+        x = jmax * (-h + math.sqrt(h * h - 2.0 * v / jmax))
+    else:
+        x = jmax * (h - math.sqrt(h * h + 2.0 * v / jmax))
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+class StrutStop:
+    """Controlled stop of six struts; ``start`` with the last three commands, ``step`` per cycle."""
+
+    def __init__(self, vmax, amax, jmax, lmin, lmax, dt: float):
+        self.vmax = [float(x) for x in vmax]
+        self.amax = [float(x) for x in amax]
+        self.jmax = [float(x) for x in jmax]
+        self.lmin = [float(x) for x in lmin]
+        self.lmax = [float(x) for x in lmax]
+        self.dt = float(dt)
+        self.L = [0.0] * 6
+        self.v = [0.0] * 6
+        self.a = [0.0] * 6
+        self.active = False
+
+    def start(self, l0, l1, l2) -> None:
+        """Begin from commands ``l0`` (last), ``l1``, ``l2`` (one and two cycles earlier), mm."""
+        dt = self.dt
+        for i in range(6):
+            self.L[i] = l0[i]
+            v = (l0[i] - l1[i]) / dt
+            a = (l0[i] - 2.0 * l1[i] + l2[i]) / (dt * dt)
+            vm = self.vmax[i]
+            am = self.amax[i]
+            self.v[i] = vm if v > vm else (-vm if v < -vm else v)
+            self.a[i] = am if a > am else (-am if a < -am else a)
+        self.active = True
+
+    def step(self, out) -> bool:
+        """Write the next six lengths (mm) into ``out``; True while any strut still moves."""
+        dt = self.dt
+        moving = False
+        for i in range(6):
+            v = self.v[i]
+            a = self.a[i]
+            if v == 0.0 and a == 0.0:
+                out[i] = self.L[i]
+                continue
+            an = stop_accel(v, a, self.jmax[i], self.amax[i], dt)
+            vn = v + an * dt
+            vm = self.vmax[i]
+            if vn > vm:
+                vn = vm
+                an = (vn - v) / dt
+            elif vn < -vm:
+                vn = -vm
+                an = (vn - v) / dt
+            L = self.L[i] + vn * dt
+            if L < self.lmin[i]:
+                L = self.lmin[i]
+                vn = an = 0.0
+            elif L > self.lmax[i]:
+                L = self.lmax[i]
+                vn = an = 0.0
+            self.L[i] = L
+            self.v[i] = vn
+            self.a[i] = an
+            out[i] = L
+            if vn != 0.0 or an != 0.0:
+                moving = True
+        self.active = moving
+        return moving
