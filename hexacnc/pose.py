@@ -110,6 +110,14 @@ def rotation_angle_between(R1: np.ndarray, R2: np.ndarray) -> float:
     return math.acos(max(-1.0, min(1.0, float(c))))
 
 
+def matrix_from_axis_angle(axis, angle_rad: float) -> np.ndarray:
+    """Rotation (3,3) by ``angle_rad`` about ``axis`` (any length, not zero)."""
+    k = np.asarray(axis, dtype=float)
+    k = k / np.linalg.norm(k)
+    K = skew(k)
+    return np.eye(3) + math.sin(angle_rad) * K + (1.0 - math.cos(angle_rad)) * (K @ K)
+
+
 def skew(v: np.ndarray) -> np.ndarray:
     """Cross-product matrix: ``skew(v) @ w == cross(v, w)``."""
     return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
