@@ -198,6 +198,7 @@ class ThermalConfig:
     probe_noise_K: float = 0.02
     process_noise_K: float = 0.01
     enabled: bool = True
+    reference_temperature_C: float = 20.0      #: strut temperature at which offsets are zero (calibration)
 
 
 @dataclass(frozen=True)
@@ -428,6 +429,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         probe_noise_K=th.getfloat("probe_noise_K", dflt.probe_noise_K, above=0.0),
         process_noise_K=th.getfloat("process_noise_K", dflt.process_noise_K, above=0.0),
         enabled=th.getbool("enabled", dflt.enabled),
+        reference_temperature_C=th.getfloat("reference_temperature_C", dflt.reference_temperature_C,
+                                            minval=-50.0, maxval=200.0),
     )
 
     k = sec("kinematics")
