@@ -238,10 +238,10 @@ class BusConfig:
     bitrate: int = 1_000_000
     fd: bool = False
     data_bitrate: int = 2_000_000
-    buses: int = 1
+    buses: int = 2                             #: 1 Mbit/s classic: 2 buses so feedback fits 0.5 ms
     node_ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
     layout: str = "paired"                     #: single | paired | fd
-    feedback_divider: int = 1                  #: TPDO every n-th SYNC
+    feedback_divider: int = 3                  #: TPDO every n-th SYNC (staggered per drive)
     max_load: float = 0.95                     #: worst-case bus time / cycle
     increments_per_mm: float = 10000.0
     heartbeat_ms: int = 100

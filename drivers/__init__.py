@@ -1,0 +1,23 @@
+"""Drive bus layer of hexacnc: CANopen CiA 402 drives on one or more CAN buses.
+
+Modules (one job each):
+
+* :mod:`drivers.layout`   - which node sits on which bus, PDO COB-IDs and mappings per layout
+* :mod:`drivers.busload`  - worst-case bus time per cycle; refuses layouts over ``[bus] max_load``
+* :mod:`drivers.canbus`   - open the python-can bus(es): socketcan, virtual, udp_multicast (echo filtered)
+* :mod:`drivers.cia402`   - CiA 402 state machine tables (tagged by transition number), EMCY texts
+* :mod:`drivers.master`   - CANopen master for the non-cyclic work (boot, SDO mapping, enable/disable)
+* :mod:`drivers.cyclic`   - the hot-path codec (prebuilt frames, ``struct``), no allocation per cycle
+* :mod:`drivers.simdrive` - simulated CiA 402 drives (separate process or in-process on ``virtual``)
+* :mod:`drivers.testing`  - run commands inside a private network namespace (cross-process bus tests)
+
+``hexapod_drive.eds`` is the object dictionary of the drives (real and simulated).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+#: path of the EDS shipped with the package
+EDS_PATH = Path(__file__).resolve().parent / "hexapod_drive.eds"
+
+__all__ = ["EDS_PATH"]
