@@ -61,7 +61,7 @@ class CycleTransform:
 
     def __init__(self, cfg, hexapod: Hexapod | None = None, period_s: float | None = None,
                  velocity_margin: float = 1.02, acceleration_margin: float = 1.05,
-                 sag: bool = True):
+                 sag: bool = True, fast: bool = True):
         hx = hexapod if hexapod is not None else Hexapod(cfg)
         self.hx = hx
         self.cfg = cfg
@@ -116,7 +116,11 @@ class CycleTransform:
         self.fail_index = -1           #: strut/joint index of the last violation
         self.fail_value = 0.0
         self._factored = False
+        self._fast = False
         self.reset_pose(hx.home_rad)
+        if fast:
+            from .cyclegen import bind_fast_path
+            bind_fast_path(self)
 
     # ------------------------------------------------------------------ setup
     def set_thermal_offsets_mm(self, growth) -> None:
@@ -152,7 +156,19 @@ class CycleTransform:
 
     # ------------------------------------------------------------------ hot path
     def command(self, x: float, y: float, z: float, a: float, b: float, c: float) -> int:
-        """Strut commands for platform pose (mm, rad). 0 or a limit code; on error cmd_mm is kept."""
+        """Strut commands for platform pose (mm, rad). 0 or a limit code; on error cmd_mm is kept.
+
+        Replaced at construction by the generated unrolled version (:mod:`hexacnc.cyclegen`)
+        unless ``fast=False``; both compute the same.
+        """
+        return self._command_generic(x, y, z, a, b, c)
+
+    def feedback(self, lengths_mm) -> int:
+        """Actual pose from measured (drive) lengths; result in ``pose_act`` (mm, rad)."""
+        return self._feedback_generic(lengths_mm)
+
+    def _command_generic(self, x: float, y: float, z: float, a: float, b: float, c: float) -> int:
+        """General path (loops, LU with partial pivoting)."""
         if not (x - x == 0.0 and y - y == 0.0 and z - z == 0.0 and a - a == 0.0 and b - b == 0.0
                 and c - c == 0.0):
             return LIMIT_INPUT
@@ -285,6 +301,7 @@ class CycleTransform:
                 else:
                     A[rr + k] = 0.0
         self._factored = True
+        self._fast = False
         return True
 
     def _solve(self, rhs, out) -> None:
@@ -335,8 +352,7 @@ class CycleTransform:
             sz = z + r20 * px + r21 * py + r22 * pz - bz
             out[i] = math.sqrt(sx * sx + sy * sy + sz * sz)
 
-    def feedback(self, lengths_mm) -> int:
-        """Actual pose from measured (drive) lengths; result in ``pose_act`` (mm, rad)."""
+    def _feedback_generic(self, lengths_mm) -> int:
         if not self._factored:
             return FK_NOT_CONVERGED
         Lg = self._Lgeo

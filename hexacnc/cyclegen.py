@@ -1,0 +1,232 @@
+"""Unrolled hot path for :class:`hexacnc.transform.CycleTransform`.
+
+At start-up the machine's constants (joint positions, axes, limits, the LU
+pivot order at the home pose) are folded into straight-line Python source,
+compiled once, and bound to the transform.  Everything per cycle then lives in
+local variables: no loops, no containers, no attribute chains.  Zero constants
+(joints in the z = 0 plane, say) drop their terms.
+
+If a pivot of the fixed-order LU becomes small (far from home, near a
+singularity) the generated code hands the cycle to the general routine with
+partial pivoting, so the result never depends on the pivot order.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def _lin(terms: list[tuple[str, float]]) -> str:
+    """``c1*v1 + c2*v2 ...`` with zero constants dropped and unit constants simplified."""
+    out = []
+    for var, c in terms:
+        if c == 0.0:
+            continue
+        if c == 1.0:
+            out.append(f"+{var}")
+        elif c == -1.0:
+            out.append(f"-{var}")
+        else:
+            out.append(f"+{var}*{c!r}")
+    if not out:
+        return "0.0"
+    s = "".join(out)
+    return s[1:] if s.startswith("+") else s
+
+
+def static_pivot_order(J: np.ndarray) -> list[int]:
+    """Row order of partial pivoting on ``J`` (perm[k] = original row at position k)."""
+    A = np.array(J, dtype=float)
+    perm = list(range(6))
+    for k in range(6):
+        p = k + int(np.argmax(np.abs(A[k:, k])))
+        if p != k:
+            A[[k, p]] = A[[p, k]]
+            perm[k], perm[p] = perm[p], perm[k]
+        A[k + 1:, k:] -= np.outer(A[k + 1:, k] / A[k, k], A[k, k:])
+    return perm
+
+
+def generate_source(ct) -> str:
+    """Source of ``command(self, x, y, z, a, b, c)`` and ``feedback(self, lengths)``."""
+    hx = ct.hx
+    Jt = hx.jacobian_twist_rad(hx.home_rad)
+    Jt[:, 3:] /= hx.char_length_mm
+    perm = static_pivot_order(Jt)
+    pos = [perm.index(i) for i in range(6)]
+    sc = ct._scale
+    minp = ct._min_pivot
+    L: list[str] = []
+    w = L.append
+    w("def command(self, x, y, z, a, b, c):")
+    w("    if not (x - x == 0.0 and y - y == 0.0 and z - z == 0.0 and a - a == 0.0 and b - b == 0.0 and c - c == 0.0):")
+    w("        return 6")
+    w("    ca = cos(a); sa = sin(a); cb = cos(b); sb = sin(b); cc = cos(c); sc = sin(c)")
+    w("    r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa")
+    w("    r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa")
+    w("    r20 = -sb; r21 = cb * sa; r22 = cb * ca")
+    w("    pc = self.pose_cmd; pc[0] = x; pc[1] = y; pc[2] = z; pc[3] = a; pc[4] = b; pc[5] = c")
+    ax, ay, az = ct._axis
+    w("    g = self.spindle_growth_mm")
+    w("    if g != 0.0:")
+    w(f"        x -= g * ({_lin([('r00', ax), ('r01', ay), ('r02', az)])})")
+    w(f"        y -= g * ({_lin([('r10', ax), ('r11', ay), ('r12', az)])})")
+    w(f"        z -= g * ({_lin([('r20', ax), ('r21', ay), ('r22', az)])})")
+    w("    Lm = self.length_mm")
+    for i in range(6):
+        px, py, pz = ct._p[i]
+        bx, by, bz = ct._b[i]
+        ex, ey, ez = ct._ab[i]
+        qx, qy, qz = ct._ap[i]
+        k = pos[i]
+        w(f"    # strut {i + 1} (LU row {k})")
+        w(f"    rx = {_lin([('r00', px), ('r01', py), ('r02', pz)])}")
+        w(f"    ry = {_lin([('r10', px), ('r11', py), ('r12', pz)])}")
+        w(f"    rz = {_lin([('r20', px), ('r21', py), ('r22', pz)])}")
+        w(f"    sx = x + rx - {bx!r}; sy = y + ry - {by!r}; sz = z + rz - {bz!r}")
+        w("    li = sqrt(sx * sx + sy * sy + sz * sz)")
+        w(f"    Lm[{i}] = li")
+        w(f"    if li < {ct._lmin[i]!r} or li > {ct._lmax[i]!r}:")
+        w(f"        self.fail_index = {i}; self.fail_value = li; return 1")
+        w("    ux = sx / li; uy = sy / li; uz = sz / li")
+        w(f"    cj = {_lin([('ux', ex), ('uy', ey), ('uz', ez)])}")
+        w(f"    if cj < {ct._cos_max[i]!r}:")
+        w(f"        self.fail_index = {i}; self.fail_value = cj; return 2")
+        wx = _lin([('r00', qx), ('r01', qy), ('r02', qz)])
+        wy = _lin([('r10', qx), ('r11', qy), ('r12', qz)])
+        wz = _lin([('r20', qx), ('r21', qy), ('r22', qz)])
+        w(f"    cj = -(ux * ({wx}) + uy * ({wy}) + uz * ({wz}))")
+        w(f"    if cj < {ct._cos_max[i]!r}:")
+        w(f"        self.fail_index = {i + 6}; self.fail_value = cj; return 2")
+        w(f"    a{k}0 = ux; a{k}1 = uy; a{k}2 = uz")
+        w(f"    a{k}3 = (ry * uz - rz * uy) * {sc!r}; a{k}4 = (rz * ux - rx * uz) * {sc!r}; "
+          f"a{k}5 = (rx * uy - ry * ux) * {sc!r}")
+    # LU with the static pivot order
+    w("    # LU factorisation, fixed pivot order; small pivot -> general routine")
+    for k in range(6):
+        w(f"    if -{minp!r} < a{k}{k} < {minp!r}:")
+        w("        return self._command_generic(pc[0], pc[1], pc[2], a, b, c)")
+        if k < 5:
+            w(f"    iv = 1.0 / a{k}{k}")
+        for r in range(k + 1, 6):
+            w(f"    m{r}{k} = a{r}{k} * iv")
+            if k + 1 < 6:
+                w("    " + "; ".join(f"a{r}{cc} -= m{r}{k} * a{k}{cc}" for cc in range(k + 1, 6)))
+    # store factors for feedback
+    names = [f"m{r}{k}" for k in range(6) for r in range(k + 1, 6)] + \
+            [f"a{k}{cc}" for k in range(6) for cc in range(k, 6)]
+    w("    F = self._lu_fast")
+    w("    " + "; ".join(f"F[{j}] = {n}" for j, n in enumerate(names)))
+    w("    self._factored = True; self._fast = True")
+    # sag
+    w("    sag = self.sag_mm")
+    w("    if self.sag_enabled:")
+    Fx, Fy, Fz = ct._F
+    cx, cy, cz = ct._cog
+    w(f"        gx = {_lin([('r00', cx), ('r01', cy), ('r02', cz)])}")
+    w(f"        gy = {_lin([('r10', cx), ('r11', cy), ('r12', cz)])}")
+        # wrench (rotation rows scaled like J's columns)
+    w(f"        gz = {_lin([('r20', cx), ('r21', cy), ('r22', cz)])}")
+    w(f"        w0 = {Fx!r}; w1 = {Fy!r}; w2 = {Fz!r}")
+    w(f"        w3 = (gy * {Fz!r} - gz * {Fy!r}) * {sc!r}")
+    w(f"        w4 = (gz * {Fx!r} - gx * {Fz!r}) * {sc!r}")
+    w(f"        w5 = (gx * {Fy!r} - gy * {Fx!r}) * {sc!r}")
+    # U^T z = w
+    for i in range(6):
+        terms = " ".join(f"- a{j}{i} * z{j}" for j in range(i))
+        w(f"        z{i} = (w{i} {terms}) / a{i}{i}")
+    # L^T y = z
+    for i in range(5, -1, -1):
+        terms = " ".join(f"- m{j}{i} * y{j}" for j in range(i + 1, 6))
+        w(f"        y{i} = z{i} {terms}")
+    w("        f = self.force_N")
+    for k in range(6):
+        w(f"        f[{perm[k]}] = y{k}; sag[{perm[k]}] = y{k} * {ct._inv_k[perm[k]]!r}")
+    # guard and commands
+    w("    th = self.thermal_mm; cmd = self.cmd_mm; p1 = self._prev; p2 = self._prev2")
+    for i in range(6):
+        w(f"    v{i} = Lm[{i}] - sag[{i}] - th[{i}]")
+    w("    if self._have_prev >= 2:")
+    for i in range(6):
+        w(f"        d1 = v{i} - p1[{i}]")
+        w(f"        if d1 > {ct._dl_max[i]!r} or d1 < -{ct._dl_max[i]!r}:")
+        w(f"            self.fail_index = {i}; self.fail_value = d1 / {ct.dt!r}; return 3")
+        w(f"        d2 = d1 - p1[{i}] + p2[{i}]")
+        w(f"        if d2 > {ct._ddl_max[i]!r} or d2 < -{ct._ddl_max[i]!r}:")
+        w(f"            self.fail_index = {i}; self.fail_value = d2 / {ct.dt * ct.dt!r}; return 4")
+    w("    else:")
+    w("        self._have_prev += 1")
+    for i in range(6):
+        w(f"    p2[{i}] = p1[{i}]; p1[{i}] = v{i}; cmd[{i}] = v{i}")
+    w("    return 0")
+    w("")
+    # ---------------------------------------------------------------- feedback
+    w("def feedback(self, lengths):")
+    w("    if not self._fast:")
+    w("        return self._feedback_generic(lengths)")
+    w("    sag = self.sag_mm; th = self.thermal_mm")
+    for i in range(6):
+        w(f"    t{i} = lengths[{i}] + sag[{i}] + th[{i}]")
+    w("    X = self.pose_act; last = self._last; h1 = self._h1; h2 = self._h2")
+    w("    n = self._nhist")
+    w("    if n >= 3:")
+    for j in range(6):
+        w(f"        X{j} = 3.0 * last[{j}] - 3.0 * h1[{j}] + h2[{j}]")
+    w("    elif n == 2:")
+    for j in range(6):
+        w(f"        X{j} = 2.0 * last[{j}] - h1[{j}]")
+    w("    else:")
+    w("        " + "; ".join(f"X{j} = last[{j}]" for j in range(6)))
+    w("    F = self._lu_fast")
+    w("    " + "; ".join(f"{n} = F[{j}]" for j, n in enumerate(names)))
+    w(f"    tol = {ct._tol!r}")
+    w("    it = 0")
+    w("    while True:")
+    w("        ca = cos(X3); sa = sin(X3); cb = cos(X4); sb = sin(X4); cc = cos(X5); sc = sin(X5)")
+    w("        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa")
+    w("        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa")
+    w("        r20 = -sb; r21 = cb * sa; r22 = cb * ca")
+    for i in range(6):
+        px, py, pz = ct._p[i]
+        bx, by, bz = ct._b[i]
+        w(f"        sx = X0 + {_lin([('r00', px), ('r01', py), ('r02', pz)])} - {bx!r}")
+        w(f"        sy = X1 + {_lin([('r10', px), ('r11', py), ('r12', pz)])} - {by!r}")
+        w(f"        sz = X2 + {_lin([('r20', px), ('r21', py), ('r22', pz)])} - {bz!r}")
+        w(f"        e{i} = t{i} - sqrt(sx * sx + sy * sy + sz * sz)")
+    w("        res = max(abs(e0), abs(e1), abs(e2), abs(e3), abs(e4), abs(e5))")
+    w(f"        if res <= tol or it >= {ct._max_iter} or res != res:")
+    w("            break")
+    # forward with L on permuted rhs
+    for i in range(6):
+        terms = " ".join(f"- m{i}{j} * q{j}" for j in range(i))
+        w(f"        q{i} = e{perm[i]} {terms}")
+    for i in range(5, -1, -1):
+        terms = " ".join(f"- a{i}{j} * d{j}" for j in range(i + 1, 6))
+        w(f"        d{i} = (q{i} {terms}) / a{i}{i}")
+    w(f"        ox = d3 * {sc!r}; oy = d4 * {sc!r}; oz = d5 * {sc!r}")
+    w("        da = (cc * ox + sc * oy) / cb")
+    w("        X0 += d0; X1 += d1; X2 += d2; X3 += da; X4 += cc * oy - sc * ox; X5 += oz + sb * da")
+    w("        it += 1")
+    w("    self.fk_iterations = it; self.fk_residual_mm = res")
+    w("    if not res <= tol:")
+    w("        " + "; ".join(f"X[{j}] = last[{j}]" for j in range(6)))
+    w("        self._nhist = 1")
+    w("        return 7")
+    w("    " + "; ".join(f"h2[{j}] = h1[{j}]; h1[{j}] = last[{j}]; last[{j}] = X{j}; X[{j}] = X{j}"
+                         for j in range(6)))
+    w("    if n < 3:")
+    w("        self._nhist = n + 1")
+    w("    return 0")
+    return "\n".join(L) + "\n"
+
+
+def bind_fast_path(ct) -> str:
+    """Compile the generated source and bind ``command``/``feedback`` to ``ct``; returns the source."""
+    src = generate_source(ct)
+    ns: dict = {"cos": math.cos, "sin": math.sin, "sqrt": math.sqrt}
+    exec(compile(src, f"<hexacnc cycle {ct.cfg.name}>", "exec"), ns)
+    ct._lu_fast = [0.0] * 36
+    ct.command = ns["command"].__get__(ct)
+    ct.feedback = ns["feedback"].__get__(ct)
+    return src
