@@ -67,6 +67,7 @@ S_STRUT_VEL = 36        #: 6: commanded strut velocity, mm/s
 S_BUS_LOAD = 42         #: worst-case bus load of the layout (fraction of the period)
 S_FK_RES = 43           #: last FK residual, mm
 S_PERIOD = 44           #: configured period, s
+S_FAULT_VALUE = 45      #: F_LIMIT: CycleTransform.fail_value
 N_STATUS = 64
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)

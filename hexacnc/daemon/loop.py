@@ -1,0 +1,581 @@
+"""The hot loop: a process that runs only the fixed-period cycle.
+
+Started by the supervisor (:mod:`hexacnc.daemon.core`) with the ``spawn`` start
+method, so nothing of the supervisor (threads, sockets, the planner) lives here.
+Per cycle, on plain floats and preallocated lists:
+
+1. sleep until ``SPIN_NS`` before the absolute deadline (``time.monotonic_ns``), spin to it;
+2. ``io.poll`` - feedback frames (positions, statuswords, heartbeats, EMCY) of the previous SYNC;
+3. supervision: heartbeat age, EMCY, drive state, following error of each strut;
+4. next setpoint from the shared ring (hold the last pose when empty after an END row);
+5. ``CycleTransform.command`` (IK, sag, thermal, length/joint/velocity/acceleration guard);
+6. drive increments -> ``io.send`` (targets, then SYNC);
+7. ``CycleTransform.feedback`` (FK of the measured lengths) and the status block.
+
+A fault switches to the controlled stop (:class:`~hexacnc.daemon.stopgen.StrutStop`:
+jerk-limited per strut, from the commanded motion to standstill), then the drives
+are disabled by controlword and the fault latched until ``CMD_RESET``.
+
+The bus object ``io`` is duck-typed (see :class:`IOProtocol`); :mod:`hexacnc.daemon.busio`
+builds it from ``drivers.cyclic`` and boots the drives before the loop starts.
+"""
+from __future__ import annotations
+
+import gc
+import logging
+import math
+import os
+import time
+from typing import Protocol
+
+from ..transform import CycleTransform, OK as CT_OK
+from . import shm as S
+from .faults import (F_DEADLINE, F_DRIVE, F_EMCY, F_ENABLE, F_FOLLOWING, F_HEARTBEAT, F_LIMIT,
+                     F_NONE, F_SETPOINT, F_SUPERVISOR, F_BUS, F_TEST, fault_code_name)
+from .stopgen import StrutStop
+
+log = logging.getLogger("hexacnc.loop")
+
+#: wake up this long before a deadline and spin the rest (ns)
+SPIN_NS = 100_000
+#: publish the status block every n cycles (and on every state change)
+PUBLISH_EVERY = 8
+#: supervisor silence that counts as dead (ns)
+SUPERVISOR_TIMEOUT_NS = 3_000_000_000
+#: time allowed for the CiA 402 enable walk (ns)
+ENABLE_TIMEOUT_NS = 2_000_000_000
+#: a strut command step below this (mm per cycle) counts as standstill
+STANDSTILL_MM = 1e-7
+
+# CiA 402 controlwords / statusword masks (values from CiA 402-2; the tables live in drivers.cia402)
+CW_DISABLE_VOLTAGE = 0x0000
+CW_SHUTDOWN = 0x0006
+CW_SWITCH_ON = 0x0007
+CW_ENABLE_OPERATION = 0x000F
+CW_FAULT_RESET = 0x0080
+
+# test-only command: stall the loop for arg microseconds once (deadline-burst test)
+CMD_STALL = 16
+
+
+class IOProtocol(Protocol):
+    """What the loop needs from the bus codec (all lists preallocated, length 6)."""
+    target: list        #: int increments, written by the loop before send()
+    pos: list           #: int increments from TPDO1
+    pos_count: list     #: int, TPDO1 frames received per drive
+    statusword: list    #: int, from TPDO2 (-1 until the first)
+    hb_ns: list         #: int, monotonic ns of the last heartbeat (0: none yet)
+    emcy_count: list    #: int, EMCY frames received per drive
+    emcy_code: list     #: int, last EMCY error code
+    bus_load: float     #: worst-case load of the layout (fraction of the period)
+
+    def poll(self, now_ns: int) -> int: ...
+    def send(self) -> int: ...
+    def set_controlword(self, i: int, cw: int) -> None: ...
+    def emcy_text(self, i: int) -> str: ...
+    def close(self) -> None: ...
+
+
+def _op_enabled(sw: int) -> bool:
+    return sw >= 0 and (sw & 0x6F) == 0x27
+
+
+def _next_cw(sw: int, prev_cw: int) -> int:
+    """Controlword that moves a drive with statusword ``sw`` one step towards Operation Enabled."""
+    if sw < 0:
+        return CW_SHUTDOWN
+    if sw & 0x08:                                  # fault: rising edge on bit 7 (transition 15)
+        return CW_FAULT_RESET if prev_cw != CW_FAULT_RESET else CW_DISABLE_VOLTAGE
+    if (sw & 0x4F) == 0x40:                        # switch on disabled -> 2
+        return CW_SHUTDOWN
+    if (sw & 0x6F) == 0x21:                        # ready to switch on -> 3
+        return CW_SWITCH_ON
+    if (sw & 0x6F) == 0x23:                        # switched on -> 4
+        return CW_ENABLE_OPERATION
+    if (sw & 0x6F) == 0x07:                        # quick stop active -> 12 (disable voltage)
+        return CW_DISABLE_VOLTAGE
+    return CW_ENABLE_OPERATION
+
+
+class HotLoop:
+    """The cycle. ``run()`` returns when told to shut down."""
+
+    def __init__(self, cfg, sh: S.Shared, io: IOProtocol, ct: CycleTransform | None = None,
+                 priv: dict | None = None, period_s: float | None = None):
+        self.cfg = cfg
+        self.sh = sh
+        self.io = io
+        self.ct = ct if ct is not None else CycleTransform(cfg, period_s=period_s)
+        self.priv = priv or {}
+        self.period_ns = int(round((period_s or cfg.cycle.period_s) * 1e9))
+        self.dt = self.period_ns * 1e-9
+        cy = cfg.cycle
+        bus = cfg.bus
+        self.ipm = float(bus.increments_per_mm)
+        self.off = [float(v) for v in cfg.strut_offset_mm]
+        self.hb_timeout_ns = int(bus.heartbeat_timeout_ms * 1_000_000)
+        self.follow_mm = float(cy.following_error_mm)
+        self.max_in_row = int(cy.max_overruns_in_row)
+        self.sp_timeout_ns = int(cy.setpoint_timeout_s * 1e9)
+        self.stop = StrutStop(cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,
+                              cfg.min_length_mm, cfg.max_length_mm, self.dt)
+        self.lmin = [float(v) for v in cfg.min_length_mm]
+        self.lmax = [float(v) for v in cfg.max_length_mm]
+        # preallocated state
+        self.out = [0.0] * 6          # strut command this cycle, mm
+        self.l0 = [0.0] * 6           # command history (last, one before, two before)
+        self.l1 = [0.0] * 6
+        self.l2 = [0.0] * 6
+        self.act = [0.0] * 6          # measured lengths, mm
+        self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
+        self.cw = [-1] * 6            # last controlword requested per drive
+        self.emcy_seen = [0] * 6
+        self.follow_max = [0.0] * 6
+        self.state = S.ST_BOOT
+        self.fault = F_NONE
+        self.fault_strut = 0
+        self.fault_arg = 0
+        self.fault_text = ""
+        self.after_stop = S.ST_IDLE   # state once the controlled stop is done
+        self.streaming = False
+        self.starve_ns = 0
+        self.enable_t0 = 0
+        self.line = 0
+        self.cmd_seen = 0
+        self.exit_after = -1
+        self.resync = False
+
+    # ------------------------------------------------------------------ slow path helpers
+    def _lengths_from_pos(self, out) -> None:
+        io = self.io
+        for i in range(6):
+            out[i] = io.pos[i] / self.ipm + self.off[i]
+
+    def seed_from_feedback(self) -> None:
+        """Standstill at the measured position: command = actual, guards and FK re-seeded."""
+        from ..kinematics import Hexapod
+        self._lengths_from_pos(self.act)
+        hx = self.ct.hx
+        ct = self.ct
+        # slow-path FK from the home pose (numpy), then the hot path takes over
+        geo = [self.act[i] + ct.sag_mm[i] + ct.thermal_mm[i] for i in range(6)]
+        res = hx.forward(geo)
+        X = [float(res.pose[0]), float(res.pose[1]), float(res.pose[2]),
+             math.radians(res.pose[3]), math.radians(res.pose[4]), math.radians(res.pose[5])]
+        ct._have_prev = 0
+        code = ct.command(*X)
+        if code != CT_OK:
+            log.error("hot loop: measured position is outside the limits: %s", ct.describe(code))
+        # the sag depends on the pose: one more FK pass with the sag at this pose
+        ct.reset_pose(X)
+        ct.feedback(self.act)
+        X = list(ct.pose_act)
+        ct._have_prev = 0
+        ct.command(*X)
+        ct.reset(ct.cmd_mm)
+        ct.reset_pose(X)
+        for i in range(6):
+            self.hold[i] = X[i]
+            self.out[i] = ct.cmd_mm[i]
+            self.l0[i] = self.l1[i] = self.l2[i] = ct.cmd_mm[i]
+        self.streaming = False
+
+    def _rehold_from(self, lengths) -> None:
+        """After a stop: hold the pose whose commands are ``lengths`` (FK), guards at standstill."""
+        ct = self.ct
+        ct.feedback(lengths)          # pose of the commanded lengths
+        X = ct.pose_act
+        for i in range(6):
+            self.hold[i] = X[i]
+        ct.command(X[0], X[1], X[2], X[3], X[4], X[5])
+        ct.reset(lengths)
+        for i in range(6):
+            self.out[i] = lengths[i]
+        self.streaming = False
+
+    def _fault(self, code: int, strut: int, arg: int) -> None:
+        """Latch a fault and start the controlled stop (first fault wins)."""
+        if self.fault == F_NONE:
+            self.fault = code
+            self.fault_strut = strut
+            self.fault_arg = arg
+            self.fault_text = ""
+        if self.state in (S.ST_IDLE, S.ST_RUNNING):
+            self.stop.start(self.l0, self.l1, self.l2)
+            self.state = S.ST_STOPPING
+        self.after_stop = S.ST_FAULT
+
+    def _disable(self) -> None:
+        for i in range(6):
+            self.io.set_controlword(i, CW_DISABLE_VOLTAGE)
+            self.cw[i] = CW_DISABLE_VOLTAGE
+
+    def _command(self, code: int, arg: int, now: int) -> None:
+        st = self.state
+        if code == S.CMD_STOP:
+            self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
+            if st in (S.ST_IDLE, S.ST_RUNNING):
+                self.stop.start(self.l0, self.l1, self.l2)
+                self.state = S.ST_STOPPING
+                self.after_stop = S.ST_IDLE
+        elif code == S.CMD_RESET:
+            if st in (S.ST_FAULT, S.ST_DISABLED):
+                self.fault = F_NONE
+                self.fault_strut = self.fault_arg = 0
+                self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
+                self.state = S.ST_BOOT
+                self.enable_t0 = now
+                for i in range(6):
+                    self.emcy_seen[i] = self.io.emcy_count[i]
+                    self.follow_max[i] = 0.0
+        elif code in (S.CMD_SHUTDOWN, S.CMD_DISABLE):
+            self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
+            if st in (S.ST_IDLE, S.ST_RUNNING):
+                self.stop.start(self.l0, self.l1, self.l2)
+                self.state = S.ST_STOPPING
+                self.after_stop = S.ST_DISABLED
+            elif st in (S.ST_BOOT,):
+                self._disable()
+                self.state = S.ST_DISABLED
+            if code == S.CMD_SHUTDOWN:
+                self.exit_after = 1
+        elif code == S.CMD_FAULT_TEST:
+            self._fault(F_TEST, 0, arg)
+        elif code == CMD_STALL:
+            time.sleep(arg * 1e-6)
+
+    def publish(self, t0: int) -> None:
+        sh = self.sh
+        h = sh.h
+        s = sh.s
+        ct = self.ct
+        h[S.H_STATUS_SEQ] += 1
+        h[S.H_STATE] = self.state
+        h[S.H_FAULT] = self.fault
+        h[S.H_FAULT_STRUT] = self.fault_strut
+        h[S.H_FAULT_ARG] = self.fault_arg
+        h[S.H_LINE] = self.line
+        pc = ct.pose_cmd
+        pa = ct.pose_act
+        out = self.out
+        act = self.act
+        io = self.io
+        fm = self.follow_max
+        l0 = self.l0
+        l1 = self.l1
+        inv_dt = 1.0 / self.dt
+        for i in range(6):
+            s[S.S_POSE_CMD + i] = pc[i]
+            s[S.S_POSE_ACT + i] = pa[i]
+            s[S.S_STRUT_CMD + i] = out[i]
+            s[S.S_STRUT_ACT + i] = act[i]
+            s[S.S_FOLLOW_MAX + i] = fm[i]
+            s[S.S_STRUT_VEL + i] = (l0[i] - l1[i]) * inv_dt
+            h[S.H_STATUSWORDS + i] = io.statusword[i]
+            h[S.H_DRIVE_STATE + i] = 1 if _op_enabled(io.statusword[i]) else 0
+        s[S.S_FK_RES] = ct.fk_residual_mm
+        h[S.H_STATUS_SEQ] += 1
+
+    # ------------------------------------------------------------------ the cycle
+    def run(self, max_cycles: int = -1) -> int:
+        sh = self.sh
+        h = sh.h
+        ring = sh.ring
+        hist_late = sh.hist_late
+        hist_comp = sh.hist_comp
+        io = self.io
+        ct = self.ct
+        stop = self.stop
+        out = self.out
+        act = self.act
+        hold = self.hold
+        l0 = self.l0
+        l1 = self.l1
+        l2 = self.l2
+        off = self.off
+        ipm = self.ipm
+        inv_ipm = 1.0 / ipm
+        target = io.target
+        pos = io.pos
+        hb_ns = io.hb_ns
+        emcy_count = io.emcy_count
+        emcy_seen = self.emcy_seen
+        statusword = io.statusword
+        follow_max = self.follow_max
+        follow_lim = self.follow_mm
+        hb_to = self.hb_timeout_ns
+        period = self.period_ns
+        max_in_row = self.max_in_row
+        sp_timeout = self.sp_timeout_ns
+        mono = time.monotonic_ns
+        sleep = time.sleep
+        spin = SPIN_NS
+        mask = S.RING_ROWS - 1
+        ROW = S.ROW
+        lmin = self.lmin
+        lmax = self.lmax
+        ST_IDLE, ST_RUNNING, ST_STOPPING, ST_FAULT, ST_DISABLED, ST_BOOT = (
+            S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING, S.ST_FAULT, S.ST_DISABLED, S.ST_BOOT)
+
+        s_bus = getattr(io, "bus_load", 0.0)
+        sh.s[S.S_BUS_LOAD] = s_bus
+        sh.s[S.S_PERIOD] = self.dt
+        h[S.H_PID] = os.getpid()
+        ppid = os.getppid()
+        overruns = 0
+        in_row = 0
+        max_row = 0
+        lat_max = 0
+        comp_max = 0
+        cycles = 0
+        last_state = -1
+        self.cmd_seen = h[S.H_CMD_SEQ]
+        self.enable_t0 = mono()
+        for i in range(6):
+            emcy_seen[i] = emcy_count[i]
+
+        gc.collect()
+        gc.freeze()
+        gc.disable()
+        deadline = mono() + period
+        try:
+            while True:
+                # ---------------------------------------------------------- wait
+                rem = deadline - mono()
+                if rem > spin:
+                    sleep((rem - spin) * 1e-9)
+                while mono() < deadline:
+                    pass
+                t0 = mono()
+                h[S.H_LOOP_BEAT_NS] = t0
+                # ---------------------------------------------------------- feedback in
+                io.poll(t0)
+                for i in range(6):
+                    act[i] = pos[i] * inv_ipm + off[i]
+                seq = h[S.H_CMD_SEQ]
+                if seq != self.cmd_seen:
+                    self.cmd_seen = seq
+                    self._command(h[S.H_CMD], h[S.H_CMD_ARG], t0)
+                    h[S.H_CMD_ACK] = seq
+                state = self.state
+                # ---------------------------------------------------------- supervision
+                if state == ST_RUNNING or state == ST_IDLE:
+                    for i in range(6):
+                        hb = hb_ns[i]
+                        if t0 - hb > hb_to:
+                            self._fault(F_HEARTBEAT, i + 1, (t0 - hb) // 1_000_000 if hb else -1)
+                            break
+                        if emcy_count[i] != emcy_seen[i]:
+                            emcy_seen[i] = emcy_count[i]
+                            self._fault(F_EMCY, i + 1, io.emcy_code[i])
+                            break
+                        sw = statusword[i]
+                        if (sw & 0x6F) != 0x27:
+                            self._fault(F_DRIVE, i + 1, sw)
+                            break
+                        e = act[i] - l0[i]
+                        if e < 0.0:
+                            e = -e
+                        if e > follow_max[i]:
+                            follow_max[i] = e
+                        if e > follow_lim:
+                            self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
+                            break
+                    state = self.state
+                # ---------------------------------------------------------- setpoint + transform
+                if state == ST_RUNNING or state == ST_IDLE:
+                    r = h[S.H_RING_R]
+                    if r < h[S.H_RING_W]:
+                        b = (r & mask) * ROW
+                        hold[0] = ring[b]
+                        hold[1] = ring[b + 1]
+                        hold[2] = ring[b + 2]
+                        hold[3] = ring[b + 3]
+                        hold[4] = ring[b + 4]
+                        hold[5] = ring[b + 5]
+                        self.line = int(ring[b + 6])
+                        self.streaming = not (int(ring[b + 7]) & S.FLAG_END)
+                        h[S.H_RING_R] = r + 1
+                        self.starve_ns = 0
+                        if state == ST_IDLE:
+                            state = self.state = ST_RUNNING
+                        if not self.streaming:
+                            h[S.H_END_SEEN] = r + 1
+                    elif self.streaming:
+                        d = l0[0] - l1[0]
+                        moving = False
+                        for i in range(6):
+                            d = l0[i] - l1[i]
+                            if d > STANDSTILL_MM or d < -STANDSTILL_MM:
+                                moving = True
+                        if moving:
+                            h[S.H_UNDERRUNS] += 1
+                            self._fault(F_SETPOINT, 0, 1)
+                        elif self.starve_ns == 0:
+                            self.starve_ns = t0
+                        elif t0 - self.starve_ns > sp_timeout:
+                            self._fault(F_SETPOINT, 0, 2)
+                        state = self.state
+                    elif state == ST_RUNNING:
+                        state = self.state = ST_IDLE
+                if state == ST_RUNNING or state == ST_IDLE:
+                    code = ct.command(hold[0], hold[1], hold[2], hold[3], hold[4], hold[5])
+                    if code == CT_OK:
+                        cm = ct.cmd_mm
+                        for i in range(6):
+                            out[i] = cm[i]
+                    else:
+                        self._fault(F_LIMIT, ct.fail_index + 1, code)
+                        sh.s[S.S_FAULT_VALUE] = ct.fail_value
+                        state = self.state
+                if state == ST_STOPPING:
+                    if not stop.step(out):
+                        if self.after_stop == ST_IDLE:
+                            self._rehold_from(out)
+                            state = self.state = ST_IDLE
+                        else:
+                            self._disable()
+                            state = self.state = self.after_stop
+                elif state == ST_FAULT or state == ST_DISABLED or state == ST_BOOT:
+                    # drives without torque: follow the actual position so re-enabling is smooth
+                    for i in range(6):
+                        v = act[i]
+                        out[i] = lmin[i] if v < lmin[i] else (lmax[i] if v > lmax[i] else v)
+                    if state == ST_BOOT:
+                        all_on = True
+                        for i in range(6):
+                            sw = statusword[i]
+                            if not _op_enabled(sw):
+                                all_on = False
+                                cw = _next_cw(sw, self.cw[i])
+                                if cw != self.cw[i]:
+                                    io.set_controlword(i, cw)
+                                    self.cw[i] = cw
+                        if all_on:
+                            for i in range(6):
+                                io.set_controlword(i, CW_ENABLE_OPERATION)
+                                self.cw[i] = CW_ENABLE_OPERATION
+                            self.seed_from_feedback()
+                            self.resync = True
+                            for i in range(6):
+                                emcy_seen[i] = emcy_count[i]
+                            state = self.state = ST_IDLE
+                            h[S.H_READY] = 1
+                        elif t0 - self.enable_t0 > ENABLE_TIMEOUT_NS:
+                            bad = 0
+                            for i in range(6):
+                                if not _op_enabled(statusword[i]):
+                                    bad = i + 1
+                                    break
+                            self.fault = F_ENABLE
+                            self.fault_strut = bad
+                            self.fault_arg = statusword[bad - 1] if bad else 0
+                            self._disable()
+                            state = self.state = ST_FAULT
+                            if h[S.H_READY] == 0:
+                                h[S.H_READY] = -1
+                # ---------------------------------------------------------- out to the bus
+                for i in range(6):
+                    v = out[i]
+                    target[i] = round((v - off[i]) * ipm)
+                    l2[i] = l1[i]
+                    l1[i] = l0[i]
+                    l0[i] = v
+                if io.send() != 0 and state != ST_FAULT and self.fault == F_NONE:
+                    self._fault(F_BUS, 0, 1)
+                # ---------------------------------------------------------- feedback: FK
+                if state != ST_BOOT:
+                    ct.feedback(act)
+                # ---------------------------------------------------------- statistics
+                t1 = mono()
+                late = t0 - deadline
+                comp = t1 - t0
+                k = late // 1000
+                hist_late[k if k < 4095 else 4095] += 1
+                k = comp // 1000
+                hist_comp[k if k < 4095 else 4095] += 1
+                if late > lat_max:
+                    lat_max = late
+                    h[S.H_LAT_MAX_NS] = late
+                if comp > comp_max:
+                    comp_max = comp
+                    h[S.H_COMP_MAX_NS] = comp
+                cycles += 1
+                h[S.H_CYCLES] = cycles
+                deadline += period
+                if self.resync:             # a slow-path cycle (enable, reseed): realign, no overrun
+                    self.resync = False
+                    if t1 > deadline:
+                        deadline = t1 + period
+                elif t1 > deadline:
+                    missed = (t1 - deadline) // period + 1
+                    deadline += (missed - 1) * period
+                    overruns += missed
+                    in_row += missed
+                    h[S.H_OVERRUNS] = overruns
+                    if in_row > max_row:
+                        max_row = in_row
+                        h[S.H_MAX_IN_ROW] = max_row
+                    if in_row > max_in_row and (self.state == ST_RUNNING or self.state == ST_IDLE):
+                        self._fault(F_DEADLINE, 0, in_row)
+                else:
+                    in_row = 0
+                if self.state != last_state or cycles % PUBLISH_EVERY == 0:
+                    last_state = self.state
+                    self.publish(t0)
+                    if (cycles & 1023) == 0:
+                        self._check_supervisor(t0, ppid)
+                        self.resync = True
+                if self.exit_after > 0 and self.state in (ST_DISABLED, ST_FAULT):
+                    self.exit_after += 1
+                    if self.exit_after > 20:
+                        break
+                if cycles == max_cycles:
+                    break
+        finally:
+            gc.enable()
+            gc.unfreeze()
+        self.publish(mono())
+        h[S.H_EXIT] = 1
+        return 0
+
+    def _check_supervisor(self, now: int, ppid: int) -> None:
+        beat = self.sh.h[S.H_SUP_BEAT_NS]
+        gone = os.getppid() != ppid
+        if beat and now - beat > SUPERVISOR_TIMEOUT_NS:
+            gone = True
+        if gone:
+            if self.state in (S.ST_IDLE, S.ST_RUNNING):
+                self._fault(F_SUPERVISOR, 0, (now - beat) // 1_000_000 if beat else -1)
+            if self.exit_after < 0:
+                self.exit_after = 1     # nobody left to reset us: stop, disable, exit
+
+
+def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: str = "") -> str:
+    """Human-readable cause of a fault (slow path)."""
+    name = fault_code_name(code)
+    if code == F_HEARTBEAT:
+        return (f"lost heartbeat of drive {strut}" + (f" ({arg} ms since the last one)" if arg >= 0
+                                                       else " (none received)"))
+    if code == F_EMCY:
+        return f"EMCY from drive {strut}: 0x{arg & 0xFFFF:04X}" + (f" {emcy_text}" if emcy_text else "")
+    if code == F_FOLLOWING:
+        return f"following error of strut {strut}: {arg / 1000.0:.3f} mm over the limit"
+    if code == F_LIMIT:
+        return f"setpoint outside limits: {detail}" if detail else f"setpoint outside limits (code {arg})"
+    if code == F_DEADLINE:
+        return f"missed-deadline burst: {arg} cycles in a row over the period"
+    if code == F_SETPOINT:
+        return ("dead setpoint source: setpoint ring ran empty while moving" if arg == 1
+                else "dead setpoint source: no setpoint within [cycle] setpoint_timeout_s")
+    if code == F_DRIVE:
+        return f"drive {strut} left Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
+    if code == F_SUPERVISOR:
+        return f"supervisor silent for {arg} ms"
+    if code == F_BUS:
+        return "bus send failed"
+    if code == F_ENABLE:
+        return f"drive {strut} did not reach Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
+    if code == F_TEST:
+        return "test fault"
+    return name

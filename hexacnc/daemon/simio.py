@@ -1,0 +1,87 @@
+"""In-process stand-in for the bus codec: six drives as plain-float models.
+
+Used by the loop's unit tests (no bus, no second process) and nothing else; the
+product path is :mod:`hexacnc.daemon.busio` with ``drivers.simdrive``.  Each drive
+follows its target with a one-cycle transport delay and a first-order lag
+(``tau_s``) under a velocity limit, walks the CiA 402 states by controlword, and
+can be told to fail: ``hb_lost``, ``emcy(code)``, ``stuck`` (stops following).
+"""
+from __future__ import annotations
+
+
+class SimIO:
+    def __init__(self, cfg, period_s: float | None = None, tau_s: float = 0.002, start_pos=None):
+        self.dt = float(period_s or cfg.cycle.period_s)
+        self.tau_s = tau_s
+        self.ipm = float(cfg.bus.increments_per_mm)
+        self.vmax = [float(v) * 1.2 for v in cfg.max_velocity_mm_s]
+        self.target = [0] * 6
+        self.pos = [0] * 6
+        self.pos_count = [0] * 6
+        self.statusword = [0x0240] * 6          # switch on disabled
+        self.hb_ns = [0] * 6
+        self.emcy_count = [0] * 6
+        self.emcy_code = [0] * 6
+        self.bus_load = 0.0
+        self.frames_tx = 0
+        self._x = [0.0] * 6                     # drive positions, mm of reading
+        if start_pos is not None:
+            for i in range(6):
+                self._x[i] = float(start_pos[i])
+        for i in range(6):
+            self.pos[i] = round(self._x[i] * self.ipm)
+        self._latched = [None] * 6
+        self._cw = [0] * 6
+        self.hb_lost = [False] * 6
+        self.stuck = [False] * 6
+        self.sent = []                          # (targets) history for tests, bounded by the test
+
+    def set_controlword(self, i: int, cw: int) -> None:
+        self._cw[i] = cw
+        sw = self.statusword[i]
+        if cw == 0x80 and sw & 0x08:
+            self.statusword[i] = 0x0240
+        elif cw == 0x0000:
+            self.statusword[i] = 0x0240 | (sw & 0x08)
+        elif sw & 0x08:
+            return
+        elif cw == 0x06:
+            self.statusword[i] = 0x0221
+        elif cw == 0x07 and (sw & 0x6F) in (0x21, 0x27):
+            self.statusword[i] = 0x0233 if False else 0x0223
+        elif cw == 0x0F and (sw & 0x6F) in (0x23, 0x27):
+            self.statusword[i] = 0x0237
+            self._latched[i] = None
+
+    def emcy(self, i: int, code: int) -> None:
+        self.emcy_code[i] = code
+        self.emcy_count[i] += 1
+        self.statusword[i] = 0x0208 | 0x0200
+
+    def poll(self, now_ns: int) -> int:
+        dt = self.dt
+        a = dt / (self.tau_s + dt)
+        for i in range(6):
+            if not self.hb_lost[i]:
+                self.hb_ns[i] = now_ns
+            t = self._latched[i]
+            if t is not None and (self.statusword[i] & 0x6F) == 0x27 and not self.stuck[i]:
+                step = (t / self.ipm - self._x[i]) * a
+                lim = self.vmax[i] * dt
+                step = lim if step > lim else (-lim if step < -lim else step)
+                self._x[i] += step
+            self.pos[i] = round(self._x[i] * self.ipm)
+            self.pos_count[i] += 1
+        return 6
+
+    def send(self) -> int:
+        for i in range(6):
+            self._latched[i] = self.target[i]
+        self.frames_tx += 4
+        return 0
+
+    def emcy_text(self, i: int) -> str:
+        return f"simulated EMCY 0x{self.emcy_code[i]:04X}"
+
+    def close(self) -> None:
+        pass
