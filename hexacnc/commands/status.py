@@ -1,0 +1,159 @@
+"""``hexacnc status``: the running daemon's state, poses, struts, fault and cycle statistics.
+
+``--json`` prints the status reply as one JSON object (non-finite numbers as
+null); ``--watch`` subscribes and redraws at ``[daemon] status_rate_hz`` (or
+``--rate``), one JSON object per line with ``--json``.  Exit code 0 when the
+daemon answered, 6 when it cannot be reached.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from typing import Any, TextIO
+
+from ..errors import HexacncError
+from .send import EXIT_CONNECTION, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration
+
+HELP = "show the running daemon's state, poses, struts and cycle statistics"
+
+#: reply keys that are protocol framing, not status
+_FRAMING = ("id", "ok", "stream", "seq", "dropped", "sub", "rate_hz", "role")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    add_connection_args(parser)
+    parser.add_argument("--json", action="store_true", help="print JSON (one object; one per line with --watch)")
+    parser.add_argument("--watch", action="store_true", help="keep showing the status until Ctrl-C")
+    parser.add_argument("--rate", type=float, default=None, metavar="HZ",
+                        help="--watch update rate (default: [daemon] status_rate_hz of the daemon)")
+    parser.add_argument("--count", type=int, default=0, metavar="N",
+                        help="--watch: stop after N updates (0: until Ctrl-C)")
+
+
+def json_safe(obj: Any) -> Any:
+    """Strict-JSON copy: NaN/inf -> None, bytes -> hex."""
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {str(k): json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (bytes, bytearray)):
+        return obj.hex()
+    return obj
+
+
+def _vec(v: Any, digits: int = 3) -> str:
+    if not isinstance(v, (list, tuple)):
+        return "-" if v is None else str(v)
+    parts = []
+    for x in v:
+        if isinstance(x, (int, float)) and not isinstance(x, bool):
+            parts.append(f"{x:.{digits}f}" if math.isfinite(x) else "nan")
+        else:
+            parts.append(str(x))
+    return "[" + ", ".join(parts) + "]"
+
+
+def _cycle_text(cy: Any) -> list[str]:
+    if not isinstance(cy, dict):
+        return [f"  {cy}"] if cy is not None else []
+    lines = []
+    for k, v in cy.items():
+        if isinstance(v, dict):
+            inner = ", ".join(f"{ik} {iv:.4g}" if isinstance(iv, float) else f"{ik} {iv}" for ik, iv in v.items())
+            lines.append(f"  {k}: {inner}")
+        elif isinstance(v, float):
+            lines.append(f"  {k}: {v:.6g}")
+        else:
+            lines.append(f"  {k}: {v}")
+    return lines
+
+
+def format_status(st: dict) -> str:
+    """Human-readable multi-line status."""
+    out = [f"state      {st.get('state', '?')}"]
+    pr = st.get("progress")
+    if isinstance(pr, dict) and (pr.get("name") or pr.get("percent") is not None):
+        pct = pr.get("percent")
+        pct_s = f"{pct:.1f} %" if isinstance(pct, (int, float)) and math.isfinite(pct) else "-"
+        out.append(f"program    {pr.get('name') or '-'}  line {pr.get('line', st.get('line'))}  {pct_s}  "
+                   f"left {fmt_duration(pr.get('time_left_s'))}")
+    else:
+        out.append(f"line       {st.get('line')}")
+    out.append(f"pose_cmd   {_vec(st.get('pose_cmd'))}   (x y z mm, a b c deg)")
+    out.append(f"pose_act   {_vec(st.get('pose_act'))}")
+    out.append(f"struts_cmd {_vec(st.get('struts_cmd_mm'))} mm")
+    out.append(f"struts_act {_vec(st.get('struts_act_mm'))} mm")
+    f = st.get("fault")
+    if f:
+        out.append(f"fault      {f}")
+    cy = st.get("cycle", st.get("cycle_stats"))
+    if cy is not None:
+        out.append("cycle")
+        out.extend(_cycle_text(cy))
+    shown = {"state", "progress", "line", "pose_cmd", "pose_act", "struts_cmd_mm", "struts_act_mm", "fault",
+             "cycle", "cycle_stats", *_FRAMING}
+    for k, v in st.items():
+        if k not in shown:
+            out.append(f"{k:<10} {v}")
+    return "\n".join(out)
+
+
+def _strip(msg: dict) -> dict:
+    return {k: v for k, v in msg.items() if k not in _FRAMING}
+
+
+def main(args: argparse.Namespace) -> int:
+    from ..daemon import protocol as P
+    out: TextIO = sys.stdout
+    try:
+        client = connect(args, "hexacnc status")
+    except P.ConnectionLost as exc:
+        print(f"hexacnc status: {exc}", file=sys.stderr)
+        return EXIT_CONNECTION
+    except P.DaemonError as exc:
+        print(f"hexacnc status: the daemon refused the connection: {exc}", file=sys.stderr)
+        return EXIT_CONNECTION
+    except HexacncError as exc:
+        print(f"hexacnc status: {exc}", file=sys.stderr)
+        return EXIT_LOCAL
+    with client:
+        try:
+            if not args.watch:
+                st = _strip(client.call("status"))
+                if args.json:
+                    out.write(json.dumps(json_safe(st), sort_keys=True) + "\n")
+                else:
+                    out.write(format_status(st) + "\n")
+                return EXIT_OK
+            fields = {} if args.rate is None else {"rate_hz": args.rate}
+            first = client.call("subscribe", **fields)
+            sub = first.get("sub", first.get("id"))
+            tty = out.isatty() and not args.json
+            n = 0
+            msg: dict | None = first
+            while True:
+                if msg is not None and msg.get("id") == sub and msg.get("ok"):
+                    st = _strip(msg)
+                    if args.json:
+                        out.write(json.dumps(json_safe(st), sort_keys=True) + "\n")
+                    elif tty:
+                        out.write("\x1b[H\x1b[J" + format_status(st) + "\n")
+                    else:
+                        out.write(format_status(st) + "\n\n")
+                    out.flush()
+                    n += 1
+                    if args.count and n >= args.count:
+                        return EXIT_OK
+                msg = client.next_message(None)
+        except KeyboardInterrupt:
+            return EXIT_OK
+        except P.DaemonError as exc:
+            print(f"hexacnc status: {exc}", file=sys.stderr)
+            return EXIT_CONNECTION
+        except P.ConnectionLost as exc:
+            print(f"hexacnc status: {exc}", file=sys.stderr)
+            return EXIT_CONNECTION
