@@ -256,6 +256,8 @@ class DaemonConfig:
     tcp_token: str = ""
     status_rate_hz: float = 20.0
     log_level: str = "INFO"
+    max_clients: int = 32                      #: simultaneous socket clients
+    max_message_bytes: int = 16 * 1024 * 1024  #: largest protocol message accepted
 
 
 @dataclass(frozen=True)
@@ -482,6 +484,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         tcp_token=d.getstr("tcp_token", dd.tcp_token),
         status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),
         log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
+        max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
+        max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
     )
     if daemon.tcp_port and not daemon.tcp_token:
         raise d.error("tcp_token", "a token is required when tcp_port is set")
