@@ -579,3 +579,43 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
     if code == F_TEST:
         return "test fault"
     return name
+
+
+
+def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, log_level: str,
+             report, sim_args: dict | None = None) -> None:
+    """Body of the hot process: boot the bus, take privileges, run the cycle.
+
+    ``report(kind, payload)`` sends one message to the supervisor ("ready" or "error").
+    """
+    import sys
+    logging.basicConfig(level=getattr(logging, str(log_level).upper(), logging.INFO), stream=sys.stderr,
+                        format="%(asctime)s hexacnc[hot %(process)d] %(levelname)s %(message)s")
+    sh = S.Shared(shm_name)
+    from . import busio, rt
+    io = None
+    try:
+        io = busio.open_io(cfg, io_mode, period_s, sim_args or {})
+    except Exception as exc:
+        log.error("hot loop: bus start failed: %s", exc)
+        sh.h[S.H_READY] = -1
+        report("error", f"{type(exc).__name__}: {exc}")
+        sh.close()
+        return
+    priv = rt.acquire(cfg.cycle.realtime_priority, cfg.cycle.cpu, want_fifo=realtime)
+    sh.h[S.H_PRIV_FIFO] = 1 if priv["sched_fifo"] else 0
+    sh.h[S.H_PRIV_MLOCK] = 1 if priv["mlockall"] else 0
+    sh.h[S.H_PRIV_AFFINITY] = priv["affinity_cpu"] + 1
+    report("ready", {"privileges": priv, "bus_load": getattr(io, "bus_load", 0.0),
+                     "io_info": getattr(io, "info", {})})
+    loop = HotLoop(cfg, sh, io, priv=priv, period_s=period_s)
+    try:
+        loop.run()
+    finally:
+        try:
+            io.close()
+        finally:
+            n = sh.h[S.H_CYCLES]
+            sh.h[S.H_STATE] = S.ST_EXITED
+            sh.close()
+    log.info("hot loop: exited after %d cycles", n)

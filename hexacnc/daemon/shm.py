@@ -114,6 +114,13 @@ class Shared:
             self.shm = shared_memory.SharedMemory(create=True, size=SIZE)
         else:
             self.shm = shared_memory.SharedMemory(name=name)
+            # attaching registers the segment with this process's resource tracker, which would
+            # unlink it when this process exits; the creator owns it
+            try:
+                from multiprocessing import resource_tracker
+                resource_tracker.unregister(self.shm._name, "shared_memory")  # type: ignore[attr-defined]
+            except Exception:
+                pass
         self.owner = create
         buf = self.shm.buf
         self.h = buf[_OFF_HEADER:_OFF_STATUS].cast("q")

@@ -1,0 +1,571 @@
+"""The supervisor: the daemon's public API in the main process.
+
+Process structure (one machine):
+
+* **supervisor** (this module, the ``hexacnc run`` process): parses and plans programs, feeds
+  setpoint rows into the shared ring from a feeder thread, answers the socket server, reads the
+  status block, pets the systemd watchdog.  Nothing here is real-time.
+* **hot loop** (:mod:`hexacnc.daemon.loop`, a ``spawn`` child): boots the drives, then runs only
+  the cycle.  Talks to the supervisor through one shared-memory segment (:mod:`.shm`).
+* **simulated drives** (``drivers.simdrive``, another child) when ``[bus] simulate``.
+
+API (used by :mod:`hexacnc.daemon.server`): :meth:`Daemon.load_program`, :meth:`pause`,
+:meth:`resume`, :meth:`stop`, :meth:`reset`, :meth:`status`, :meth:`wait`, :meth:`hello`,
+:meth:`close`, plus :meth:`move_to` (platform pose) for tests and tools.
+"""
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import pickle
+import select
+import subprocess
+import sys
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .. import __version__
+from ..errors import BusError, HexacncError, KinematicsError, PlanError
+from ..kinematics import Hexapod
+from ..transform import CycleTransform
+from . import shm as S
+from .faults import F_EMCY, F_LIMIT, F_NONE, fault_code_name
+from .feed import ArraySource, point_to_point
+from .loop import fault_message
+
+log = logging.getLogger("hexacnc.daemon")
+
+#: rows kept queued in the ring while streaming (seconds of motion)
+FEED_AHEAD_S = 0.2
+#: feeder thread period
+FEED_PERIOD_S = 0.002
+#: how long the hot process may take to boot the bus and enable the drives
+BOOT_TIMEOUT_S = 30.0
+
+
+class HotProcess:
+    """Handle of the hot loop subprocess (``python -m hexacnc.daemon.hot``)."""
+
+    def __init__(self, args: dict):
+        r, w = os.pipe()
+        try:
+            self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc.daemon.hot", str(w)],
+                                         stdin=subprocess.PIPE, pass_fds=(w,), close_fds=True)
+        finally:
+            os.close(w)
+        self._r = r
+        self.pid = self.proc.pid
+        try:
+            self.proc.stdin.write(pickle.dumps(args))
+            self.proc.stdin.close()
+        except BrokenPipeError:
+            pass
+
+    def wait_report(self, timeout_s: float):
+        """The ready/error message, or None on timeout or exit."""
+        buf = b""
+        t_end = time.monotonic() + timeout_s
+        try:
+            while time.monotonic() < t_end:
+                rd, _, _ = select.select([self._r], [], [], 0.05)
+                if rd:
+                    chunk = os.read(self._r, 65536)
+                    if not chunk:
+                        break
+                    buf += chunk
+                    if buf.endswith(b"\n"):
+                        return json.loads(buf)
+                elif self.proc.poll() is not None:
+                    break
+            return None
+        finally:
+            os.close(self._r)
+
+    def is_alive(self) -> bool:
+        return self.proc.poll() is None
+
+    def join(self, timeout_s: float) -> None:
+        try:
+            self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            pass
+
+    def terminate(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+
+
+def _spawn_hot(args: dict) -> HotProcess:
+    return HotProcess(args)
+
+
+@dataclass
+class Job:
+    """One queued motion: a program or a point-to-point move."""
+    name: str
+    source: object                    #: ArraySource-like: next_rows, pause, resume, stop, progress
+    start_rad: np.ndarray             #: platform pose the first row starts from (mm, rad)
+    end_rad: np.ndarray               #: platform pose of the END row
+    blocks: int = 0
+    duration_s: float = 0.0
+    end_index: int = -1               #: ring index after the END row, once pushed
+    started: bool = False
+    extra: dict = field(default_factory=dict)
+
+
+class Daemon:
+    """Supervisor of the hot loop. ``Daemon(cfg).start()``; or use as a context manager."""
+
+    def __init__(self, cfg, *, io_mode: str = "auto", period_s: float | None = None,
+                 realtime: bool = True, start: bool = True, log_level: str | None = None):
+        self.cfg = cfg
+        self.period_s = float(period_s or cfg.cycle.period_s)
+        self.io_mode = io_mode
+        self.realtime = realtime
+        self.log_level = log_level or cfg.daemon.log_level
+        self.hx = Hexapod(cfg)
+        self._ct_text = CycleTransform(cfg, self.hx, period_s=self.period_s)  # slow path: describe()
+        self.sh: S.Shared | None = None
+        self.hot: HotProcess | None = None
+        self.sim = None
+        self.info: dict = {}
+        self.lock = threading.RLock()
+        self.cv = threading.Condition(self.lock)
+        self.queue: deque[Job] = deque()
+        self.current: Job | None = None
+        self.last_program: dict | None = None
+        self.stop_requested = False
+        self.closed = False
+        self._feeder: threading.Thread | None = None
+        self._stats_cache: tuple[float, dict] = (0.0, {})
+        self._last_fault_logged = 0
+        self._notifier = None
+        if start:
+            self.start()
+
+    # ------------------------------------------------------------------ life cycle
+    def start(self, timeout_s: float = BOOT_TIMEOUT_S) -> "Daemon":
+        from . import busio
+        mode = busio.resolve_mode(self.cfg, self.io_mode)
+        self.info["io_mode"] = mode
+        self.sh = S.Shared(create=True)
+        try:
+            self.sim = busio.start_simulation(self.cfg, mode, self.period_s)
+            self.hot = _spawn_hot({"cfg": self.cfg, "shm": self.sh.name, "io_mode": mode,
+                                   "period_s": self.period_s, "realtime": self.realtime,
+                                   "log_level": self.log_level, "sim_args": busio.child_args(self.sim)})
+            t_end = time.monotonic() + timeout_s
+            msg = self.hot.wait_report(timeout_s)
+            if msg is None or msg[0] != "ready":
+                why = msg[1] if msg else ("hot loop process died" if not self.hot.is_alive()
+                                          else f"no answer within {timeout_s:g} s")
+                raise BusError(f"daemon start failed: {why}")
+            self.info.update(msg[1])
+            # wait for the CiA 402 walk to Operation Enabled (inside the loop)
+            while time.monotonic() < t_end:
+                r = self.sh.h[S.H_READY]
+                if r == 1:
+                    break
+                if r == -1 or not self.hot.is_alive():
+                    h, s = self.sh.read_status()
+                    raise BusError("daemon start failed: " + fault_message(
+                        h[S.H_FAULT], h[S.H_FAULT_STRUT], h[S.H_FAULT_ARG]))
+                time.sleep(0.01)
+            else:
+                raise BusError(f"daemon start failed: drives not enabled within {timeout_s:g} s")
+        except BaseException:
+            self._teardown()
+            raise
+        self.sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
+        self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
+        self._feeder.start()
+        log.info("daemon ready: %s drives enabled, cycle %.3f ms, io %s", self.cfg.name,
+                 self.period_s * 1e3, mode)
+        return self
+
+    def __enter__(self) -> "Daemon":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Controlled stop, drives disabled, processes ended, shared memory released."""
+        if self.closed:
+            return
+        self.closed = True
+        if self.sh is not None and self.hot is not None and self.hot.is_alive():
+            self.sh.command(S.CMD_SHUTDOWN)
+            self.hot.join(timeout_s)
+        if self._feeder is not None:
+            self._feeder.join(1.0)
+        self._teardown()
+
+    def _teardown(self) -> None:
+        from . import busio
+        if self.hot is not None:
+            if self.hot.is_alive():
+                self.hot.terminate()
+                self.hot.join(2.0)
+            self.hot = None
+        if self.sim is not None:
+            busio.stop_simulation(self.sim)
+            self.sim = None
+        if self.sh is not None:
+            self.sh.close()
+            self.sh = None
+
+    @property
+    def alive(self) -> bool:
+        return self.hot is not None and self.hot.is_alive()
+
+    # ------------------------------------------------------------------ feeding
+    def _feed_loop(self) -> None:
+        sh = self.sh
+        ahead = max(50, int(FEED_AHEAD_S / self.period_s))
+        while not self.closed and sh is not None:
+            try:
+                sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
+                self._feed_once(sh, ahead)
+            except Exception:       # never let the feeder die silently: the loop would fault
+                log.exception("feeder error")
+            time.sleep(FEED_PERIOD_S)
+
+    def _feed_once(self, sh: S.Shared, ahead: int) -> None:
+        with self.lock:
+            hstate = sh.h[S.H_STATE]
+            if hstate == S.ST_FAULT or hstate == S.ST_DISABLED:
+                if self.current is not None or self.queue:
+                    self._abort_jobs("fault" if hstate == S.ST_FAULT else "drives disabled")
+                self._log_fault_once()
+                return
+            job = self.current
+            if job is None:
+                if not self.queue or hstate not in (S.ST_IDLE,):
+                    return
+                job = self.queue[0]
+                pose = self._pose_cmd_rad()
+                if float(np.max(np.abs(pose - job.start_rad))) > 1e-6:
+                    # the machine is not where the job was planned from (e.g. after a stop)
+                    self.queue.popleft()
+                    self._abort_jobs("the machine moved since the job was planned; send it again")
+                    return
+                self.queue.popleft()
+                self.current = job
+                job.started = True
+                log.info("start %s (%d blocks, %.2f s)", job.name, job.blocks, job.duration_s)
+                self.cv.notify_all()
+            src = job.source
+            if job.end_index < 0:
+                need = ahead - sh.ring_fill()
+                if need > 0:
+                    rows = src.next_rows(need)
+                    if len(rows):
+                        sh.push_rows(rows)
+                    if src.finished:
+                        job.end_index = sh.h[S.H_RING_W]
+            elif sh.h[S.H_END_SEEN] >= job.end_index and hstate == S.ST_IDLE:
+                line, pct, left = src.progress()
+                self.last_program = {"name": job.name, "line": line, "percent": 100.0 if not src.stopping
+                                     else pct, "time_left_s": 0.0, "stopped": bool(src.stopping)}
+                self.current = None
+                if self.stop_requested:
+                    self.queue.clear()
+                    self.stop_requested = False
+                log.info("%s %s", "stopped" if src.stopping else "finished", job.name)
+                self.cv.notify_all()
+
+    def _abort_jobs(self, why: str) -> None:
+        if self.current is not None:
+            line, pct, left = self.current.source.progress()
+            self.last_program = {"name": self.current.name, "line": line, "percent": pct,
+                                 "time_left_s": left, "aborted": why}
+            log.warning("%s aborted at line %d: %s", self.current.name, line, why)
+        self.current = None
+        self.queue.clear()
+        self.stop_requested = False
+        if self.sh is not None:
+            self.sh.h[S.H_RING_R]   # the hot loop discards queued rows itself on fault/stop
+        self.cv.notify_all()
+
+    def _log_fault_once(self) -> None:
+        h = self.sh.h
+        n = h[S.H_CYCLES] if h[S.H_FAULT] else 0
+        if h[S.H_FAULT] and self._last_fault_logged == 0:
+            self._last_fault_logged = n or 1
+            f = self._fault_dict(self.sh.read_status())
+            log.error("FAULT %s: %s", f["code"], f["message"])
+        elif not h[S.H_FAULT]:
+            self._last_fault_logged = 0
+
+    # ------------------------------------------------------------------ helpers
+    def _pose_cmd_rad(self) -> np.ndarray:
+        h, s = self.sh.read_status()
+        return np.array(s[S.S_POSE_CMD:S.S_POSE_CMD + 6])
+
+    def _planned_start(self) -> np.ndarray:
+        """Where the next queued job will start: the end of the last queued one, or now."""
+        if self.queue:
+            return self.queue[-1].end_rad.copy()
+        if self.current is not None:
+            return self.current.end_rad.copy()
+        return self._pose_cmd_rad()
+
+    def _require_motion_ok(self) -> None:
+        if self.sh is None or not self.alive:
+            raise HexacncError("the daemon is not running")
+        st = self.sh.h[S.H_STATE]
+        if st == S.ST_FAULT:
+            raise HexacncError("the daemon is in fault: reset first ("
+                               + self._fault_dict(self.sh.read_status())["message"] + ")")
+        if st == S.ST_DISABLED:
+            raise HexacncError("the drives are disabled: reset to enable them")
+        if st == S.ST_STOPPING or self.stop_requested:
+            raise HexacncError("a stop is in progress; wait for idle")
+
+    def _queue(self, job: Job) -> None:
+        with self.lock:
+            self._require_motion_ok()
+            self.queue.append(job)
+            self.cv.notify_all()
+
+    # ------------------------------------------------------------------ public API
+    def hello(self) -> dict:
+        import can
+        import canopen
+        import numpy
+        return {"machine": self.cfg.name, "versions": {"hexacnc": __version__, "numpy": numpy.__version__,
+                                                       "python-can": can.__version__,
+                                                       "canopen": canopen.__version__},
+                "cycle_period_s": self.period_s, "io": self.info.get("io_mode"),
+                "bus_layout": self.cfg.bus.layout, "privileges": self.info.get("privileges")}
+
+    def move_to(self, pose_deg, feed_mm_s: float, name: str = "move_to") -> dict:
+        """Queue a straight jerk-limited move of the **platform** pose to ``pose_deg`` (mm/deg)."""
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+            rows = point_to_point(self.cfg, self.hx, start, pose_deg, float(feed_mm_s), self.period_s)
+            job = Job(name=name, source=ArraySource(self.cfg, self.hx, rows, self.period_s, name),
+                      start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
+                      duration_s=(len(rows) - 1) * self.period_s)
+            self._queue(job)
+        return {"blocks": 1, "duration_s": job.duration_s}
+
+    def queue_rows(self, rows, name: str = "rows", check: bool = True) -> dict:
+        """Queue precomputed rows (N, 8) that start at the current pose (tests, tools)."""
+        from .feed import check_rows
+        rows = np.asarray(rows, dtype=float)
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+            if check:
+                check_rows(self.cfg, self.hx, np.vstack([np.r_[start, 0, 0][None, :], rows]), self.period_s)
+            job = Job(name=name, source=ArraySource(self.cfg, self.hx, rows, self.period_s, name),
+                      start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
+                      duration_s=(len(rows) - 1) * self.period_s)
+            self._queue(job)
+        return {"blocks": 1, "duration_s": job.duration_s}
+
+    def load_program(self, text: str, name: str) -> dict:
+        """Parse, plan and check the whole program, then queue it. Raises GcodeError/PlanError."""
+        from . import program as prog
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+        plan = prog.plan_program(self.cfg, self.hx, text, name, start, self.period_s)
+        job = Job(name=name, source=plan.source, start_rad=start, end_rad=plan.end_rad,
+                  blocks=plan.blocks, duration_s=plan.duration_s)
+        with self.lock:
+            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                raise HexacncError("another motion was queued while this program was planned; send it again")
+            self._queue(job)
+        return {"blocks": plan.blocks, "duration_s": plan.duration_s}
+
+    def pause(self) -> dict:
+        with self.lock:
+            if self.current is None:
+                raise HexacncError("nothing to pause: no program is running")
+            self.current.source.pause()
+        return self.status()
+
+    def resume(self) -> dict:
+        with self.lock:
+            if self.current is None or not getattr(self.current.source, "paused", False):
+                raise HexacncError("nothing to resume: not paused")
+            self._require_motion_ok()
+            self.current.source.resume()
+        return self.status()
+
+    def set_feed_override(self, factor: float) -> None:
+        with self.lock:
+            if self.current is not None:
+                self.current.source.set_feed_override(factor)
+
+    def stop(self) -> dict:
+        """Controlled stop: decelerate along the path (jerk-limited), drop the queue, stay enabled."""
+        with self.lock:
+            if self.sh is None:
+                raise HexacncError("the daemon is not running")
+            self.queue.clear()
+            if self.current is not None:
+                self.stop_requested = True
+                self.current.source.stop()
+            elif self.sh.h[S.H_STATE] == S.ST_RUNNING:
+                self.sh.command(S.CMD_STOP)
+            self.cv.notify_all()
+        return self.status()
+
+    def reset(self, timeout_s: float = 5.0) -> dict:
+        """Clear a fault: fault reset and re-enable by controlword; returns the status."""
+        with self.lock:
+            if self.sh is None or not self.alive:
+                raise HexacncError("the daemon is not running")
+            st = self.sh.h[S.H_STATE]
+            if st not in (S.ST_FAULT, S.ST_DISABLED):
+                return self.status()
+            self._abort_jobs("reset")
+            self.last_program = None
+            self.sh.h[S.H_READY] = 0
+            self.sh.command(S.CMD_RESET)
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            st = self.sh.h[S.H_STATE]
+            if st == S.ST_IDLE and self.sh.h[S.H_READY] == 1:
+                break
+            time.sleep(0.01)
+        st = self.status()
+        if st["state"] == "fault":
+            raise HexacncError(f"reset failed: {st['fault']['message']}")
+        return st
+
+    def inject_fault(self, code: int = 0) -> None:
+        """Tests: latch an internal fault (controlled stop follows)."""
+        from .faults import F_TEST
+        self.sh.command(S.CMD_FAULT_TEST, code or F_TEST)
+
+    def stall_loop_us(self, us: int) -> None:
+        """Tests: make the hot loop sleep once for ``us`` microseconds (deadline burst)."""
+        from .loop import CMD_STALL
+        self.sh.command(CMD_STALL, int(us))
+
+    # ------------------------------------------------------------------ status
+    def _fault_dict(self, hs) -> dict | None:
+        h, s = hs
+        code = h[S.H_FAULT]
+        if code == F_NONE:
+            return None
+        detail = ""
+        strut = h[S.H_FAULT_STRUT]
+        emcy = ""
+        if code == F_LIMIT:
+            ct = self._ct_text
+            ct.fail_index = strut - 1
+            ct.fail_value = s[S.S_FAULT_VALUE]
+            detail = ct.describe(h[S.H_FAULT_ARG])
+        elif code == F_EMCY:
+            try:
+                from drivers import cia402
+                emcy = cia402.emcy_text(h[S.H_FAULT_ARG])
+            except (ImportError, AttributeError):
+                emcy = ""
+        return {"code": fault_code_name(code),
+                "message": fault_message(code, strut, h[S.H_FAULT_ARG], emcy, detail),
+                "strut": strut or None, "line": h[S.H_LINE] or None}
+
+    def cycle_stats(self) -> dict:
+        now = time.monotonic()
+        t, cached = self._stats_cache
+        if now - t < 0.05 and cached:
+            return cached
+        sh = self.sh
+        h = sh.h
+        lat = S.percentiles_us(sh.hist_late.tolist())
+        comp = S.percentiles_us(sh.hist_comp.tolist())
+        cycles = h[S.H_CYCLES]
+        out = {
+            "period_s": self.period_s, "cycles": cycles,
+            "lateness_us": {"median": lat[0], "p99": lat[1], "p999": lat[2], "max": h[S.H_LAT_MAX_NS] / 1e3},
+            "compute_us": {"median": comp[0], "p99": comp[1], "p999": comp[2], "max": h[S.H_COMP_MAX_NS] / 1e3},
+            "overruns": h[S.H_OVERRUNS],
+            "overrun_pct": 100.0 * h[S.H_OVERRUNS] / cycles if cycles else 0.0,
+            "max_overruns_in_row": h[S.H_MAX_IN_ROW],
+            "underruns": h[S.H_UNDERRUNS],
+            "bus_load": sh.s[S.S_BUS_LOAD],
+            "ring_fill": sh.ring_fill(),
+            "privileges": self.info.get("privileges"),
+        }
+        self._stats_cache = (now, out)
+        return out
+
+    def status(self) -> dict:
+        if self.sh is None:
+            return {"state": "fault", "fault": {"code": "not_running", "message": "the daemon is not running"}}
+        hs = self.sh.read_status()
+        h, s = hs
+        hstate = h[S.H_STATE]
+        with self.lock:
+            job = self.current
+            if hstate == S.ST_FAULT:
+                state = "fault"
+            elif hstate == S.ST_STOPPING or self.stop_requested:
+                state = "stopping"
+            elif job is not None and getattr(job.source, "paused", False):
+                state = "paused"
+            elif job is not None or self.queue or hstate == S.ST_RUNNING:
+                state = "running"
+            else:
+                state = "idle"
+            if job is not None:
+                line, pct, left = job.source.progress()
+                prog = {"name": job.name, "line": line, "percent": round(pct, 2), "time_left_s": round(left, 3),
+                        "queued": len(self.queue)}
+            else:
+                prog = dict(self.last_program) if self.last_program else None
+        if not self.alive and state != "fault":
+            state = "fault"
+        pc = s[S.S_POSE_CMD:S.S_POSE_CMD + 6]
+        pa = s[S.S_POSE_ACT:S.S_POSE_ACT + 6]
+        fault = self._fault_dict(hs)
+        if fault is None and not self.alive and not self.closed:
+            fault = {"code": "loop_exited", "message": "the hot loop process is not running", "strut": None,
+                     "line": None}
+        return {
+            "state": state,
+            "drives_enabled": hstate in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING),
+            "loop_state": S.STATE_NAMES.get(hstate, str(hstate)),
+            "pose_cmd": pc[:3] + [math.degrees(v) for v in pc[3:]],
+            "pose_act": pa[:3] + [math.degrees(v) for v in pa[3:]],
+            "struts_cmd_mm": s[S.S_STRUT_CMD:S.S_STRUT_CMD + 6],
+            "struts_act_mm": s[S.S_STRUT_ACT:S.S_STRUT_ACT + 6],
+            "following_error_max_mm": s[S.S_FOLLOW_MAX:S.S_FOLLOW_MAX + 6],
+            "statuswords": h[S.H_STATUSWORDS:S.H_STATUSWORDS + 6],
+            "line": h[S.H_LINE],
+            "fault": fault,
+            "cycle": self.cycle_stats(),
+            "program": prog,
+        }
+
+    def wait(self, timeout_s: float) -> dict:
+        """Block until idle (no motion queued or running) or fault, or the timeout; returns the status."""
+        t_end = time.monotonic() + max(0.0, float(timeout_s))
+        while True:
+            st = self.status()
+            if st["state"] in ("idle", "fault"):
+                return st
+            left = t_end - time.monotonic()
+            if left <= 0:
+                st["timeout"] = True
+                return st
+            with self.cv:
+                self.cv.wait(min(left, 0.02))

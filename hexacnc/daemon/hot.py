@@ -1,0 +1,34 @@
+"""``python -m hexacnc.daemon.hot FD``: the hot loop process.
+
+Started by the supervisor with :mod:`subprocess` (a fresh interpreter: nothing of the
+supervisor - threads, sockets, the planner, the parent's ``__main__`` - is imported here).
+Reads its arguments as one pickle from stdin, reports "ready"/"error" as one JSON line on
+the pipe ``FD``, then runs :func:`hexacnc.daemon.loop.hot_main`.
+"""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import sys
+
+
+def main() -> int:
+    fd = int(sys.argv[1])
+    args = pickle.load(sys.stdin.buffer)
+    sys.stdin.close()
+    out = os.fdopen(fd, "w")
+
+    def report(kind: str, payload) -> None:
+        out.write(json.dumps([kind, payload], default=str) + "\n")
+        out.flush()
+        out.close()
+
+    from .loop import hot_main
+    hot_main(args["cfg"], args["shm"], args["io_mode"], args["period_s"], args["realtime"],
+             args["log_level"], report, args.get("sim_args"))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
