@@ -102,8 +102,17 @@ def fmt_duration(s: Any) -> str:
     return f"{h}:{m:02d}:{sec:02d}" if h else f"{m}:{sec:02d}"
 
 
+def progress_of(st: dict) -> dict:
+    """The status' program progress map (``progress``, or the daemon's ``program``), or {}."""
+    for key in ("progress", "program"):
+        pr = st.get(key)
+        if isinstance(pr, dict):
+            return pr
+    return {}
+
+
 def _progress(st: dict) -> tuple[float | None, Any, Any]:
-    pr = st.get("progress") if isinstance(st.get("progress"), dict) else {}
+    pr = progress_of(st)
     pct = pr.get("percent")
     try:
         pct = float(pct) if pct is not None else None
@@ -166,7 +175,10 @@ def _fault_text(st: dict) -> str:
 
 def _finished(st: dict, blocks: Any) -> bool:
     """Did the program we queued run to its end (judged from the final status)?"""
-    res = st.get("result") or st.get("last_result") or (st.get("progress") or {}).get("result")
+    pr = progress_of(st)
+    if pr.get("stopped") or pr.get("aborted"):
+        return False
+    res = st.get("result") or st.get("last_result") or pr.get("result")
     if isinstance(res, str):
         return res in ("finished", "done", "complete", "completed")
     pct, _, _ = _progress(st)

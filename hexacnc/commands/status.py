@@ -14,7 +14,7 @@ import sys
 from typing import Any, TextIO
 
 from ..errors import HexacncError
-from .send import EXIT_CONNECTION, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration
+from .send import EXIT_CONNECTION, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration, progress_of
 
 HELP = "show the running daemon's state, poses, struts and cycle statistics"
 
@@ -75,8 +75,8 @@ def _cycle_text(cy: Any) -> list[str]:
 def format_status(st: dict) -> str:
     """Human-readable multi-line status."""
     out = [f"state      {st.get('state', '?')}"]
-    pr = st.get("progress")
-    if isinstance(pr, dict) and (pr.get("name") or pr.get("percent") is not None):
+    pr = progress_of(st)
+    if pr.get("name") or pr.get("percent") is not None:
         pct = pr.get("percent")
         pct_s = f"{pct:.1f} %" if isinstance(pct, (int, float)) and math.isfinite(pct) else "-"
         out.append(f"program    {pr.get('name') or '-'}  line {pr.get('line', st.get('line'))}  {pct_s}  "
@@ -88,13 +88,16 @@ def format_status(st: dict) -> str:
     out.append(f"struts_cmd {_vec(st.get('struts_cmd_mm'))} mm")
     out.append(f"struts_act {_vec(st.get('struts_act_mm'))} mm")
     f = st.get("fault")
-    if f:
+    if isinstance(f, dict):
+        where = "".join(f" {k} {f[k]}" for k in ("strut", "line") if f.get(k) is not None)
+        out.append(f"fault      {f.get('code', '')}: {f.get('message', '')}{(' (' + where.strip() + ')') if where else ''}")
+    elif f:
         out.append(f"fault      {f}")
     cy = st.get("cycle", st.get("cycle_stats"))
     if cy is not None:
         out.append("cycle")
         out.extend(_cycle_text(cy))
-    shown = {"state", "progress", "line", "pose_cmd", "pose_act", "struts_cmd_mm", "struts_act_mm", "fault",
+    shown = {"state", "progress", "program", "line", "pose_cmd", "pose_act", "struts_cmd_mm", "struts_act_mm", "fault",
              "cycle", "cycle_stats", *_FRAMING}
     for k, v in st.items():
         if k not in shown:

@@ -209,14 +209,15 @@ def _int_or_none(v: Any) -> int | None:
         return None
 
 
-def error_from_exception(exc: BaseException, req_id: int | None, state: str | None = None) -> dict:
+def error_from_exception(exc: BaseException, req_id: int | None, state: str | None = None,
+                         op: str | None = None) -> dict:
     """Map a daemon exception to an error reply with a stable code.
 
     ``GcodeError`` -> gcode/unsupported with line and column; ``PlanError`` ->
     limit (or gcode/unsupported when the planner says so) with line and the
     limit's name; other ``HexacncError`` -> the exception's ``code`` attribute
-    when it is one of :data:`ERROR_CODES`, else busy/fault by daemon ``state``,
-    else refused; anything else -> internal.
+    when it is one of :data:`ERROR_CODES`, else fault / busy by daemon ``state``,
+    invalid_state for pause/resume/reset, else refused; anything else -> internal.
     """
     if isinstance(exc, GcodeError):
         raw = getattr(exc, "code", None)
@@ -236,6 +237,8 @@ def error_from_exception(exc: BaseException, req_id: int | None, state: str | No
             code = LIMIT
         elif state == "fault":
             code = FAULT
+        elif op in ("pause", "resume", "reset"):
+            code = INVALID_STATE
         elif state in ("running", "paused", "stopping"):
             code = BUSY
         else:

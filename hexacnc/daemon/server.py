@@ -467,7 +467,7 @@ class SocketServer:
             except Exception as exc:
                 if not isinstance(exc, HexacncError):
                     log.exception("Daemon call for op %s failed", req.op)
-                out = P.error_from_exception(exc, req.id, self._state_or_none())
+                out = P.error_from_exception(exc, req.id, self._state_or_none(), req.op)
             self._results.put((conn, out))
             self._wake()
         self._motion_pool.submit(job)
