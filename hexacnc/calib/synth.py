@@ -1,0 +1,176 @@
+"""Seeded generator of measurement sets with a hidden effect (for tests and benchmarks).
+
+A "true" machine is the configured one with random manufacturing errors
+(joint positions, strut offsets).  Poses are drawn inside the workspace within
+limits; the instrument sees them through an optional registration frame with
+Gaussian noise.  One effect from the catalog (or none) acts on the struts with
+a random magnitude; the physics is simulated directly (exact joint geometry
+for ``joint_offset``, a polynomial spool/lead map for ``strut_nonlinearity``),
+not through the identification model's linearised bases.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..kinematics import Hexapod
+from ..pose import matrices_from_euler
+from .measurements import Measurements, write_measurements
+from .model import CAUSES, T_REF_C, Context, cause_model, measure, strut_geometry
+
+MEASURE_SETS = {"xyzabc": "xyzabc", "xyz": "xyz", "z": "z", "ab": "ab", "xyzab": "xyzab"}
+
+
+@dataclass
+class SynthSet:
+    fit: Measurements
+    holdout: Measurements
+    effect: str                      #: "none" or a cause name
+    effect_params: dict = field(default_factory=dict)
+    magnitude_mm: float = 0.0        #: RMS of the effect on the struts (per-strut mean removed)
+    theta_true: np.ndarray | None = None
+    frame_true: np.ndarray | None = None
+    noise_mm: float = 0.0
+    noise_deg: float = 0.0
+
+
+def sample_poses(cfg, rng: np.random.Generator, n: int, shrink: float = 0.9) -> np.ndarray:
+    """n reachable poses (mm/deg), uniform in the workspace box (shrunk about home), within limits."""
+    hx = Hexapod(cfg)
+    lo = np.asarray(cfg.workspace_min, dtype=float)
+    hi = np.asarray(cfg.workspace_max, dtype=float)
+    home = np.asarray(cfg.home_pose, dtype=float)
+    lo = home + shrink * (lo - home)
+    hi = home + shrink * (hi - home)
+    out = []
+    while sum(len(o) for o in out) < n:
+        P = lo + (hi - lo) * rng.random((4 * n, 6))
+        ok = ~hx.batch_violations(P)
+        out.append(P[ok])
+    return np.vstack(out)[:n]
+
+
+def _effect_lengths(effect: str, params: np.ndarray, ctx: Context, X: np.ndarray, base, plat) -> np.ndarray:
+    """Physical strut-length change (N,6) mm of a hidden effect at true poses X (rad)."""
+    if effect == "joint_offset":   # exact: pivot d_i off the first axis along the strut's perpendicular part
+        _, _, s, L = strut_geometry(base, plat, X)
+        a = ctx.joint_axis1
+        sa = np.einsum("nki,ki->nk", s, a)
+        sperp = np.sqrt(np.maximum(L * L - sa * sa, 0.0))
+        Leff = np.sqrt(np.maximum(L * L - 2 * params[None] * sperp + params[None] ** 2, 0.0))
+        return L - Leff       # reading-side length = true |s| minus what the drive must add
+    if effect == "strut_nonlinearity":   # spool-like quadratic plus cubic lead error, in reading units
+        # (the best straight line over the stroke removed: a pure gain error is strut_scale)
+        t = (ctx.q - ctx.q_center) / ctx.q_half
+        return params[None, :6] * (t * t - 1.0 / 3.0) + params[None, 6:] * (t ** 3 - 0.6 * t)
+    cm = cause_model(effect, ctx)
+    B = cm.build(ctx, X, base, plat)
+    return np.einsum("nik,k->ni", B, params)
+
+
+def _random_params(effect: str, rng, ctx: Context) -> np.ndarray:
+    if effect in ("elastic_sag", "thermal_expansion"):
+        return np.array([1.0])
+    if effect == "session_offset":
+        return rng.normal(size=6 * (len(ctx.sessions) - 1))
+    if effect == "strut_nonlinearity":
+        return rng.normal(size=12)
+    return rng.normal(size=6)
+
+
+def _readings(effect, params, ctx_fn, X, base, plat, off, n_iter: int = 6):
+    """Readings q such that o + q + effect(q, X) = |s| (fixed point; effects are small)."""
+    _, _, _, L = strut_geometry(base, plat, X)
+    q = L - off
+    for _ in range(n_iter):
+        ctx = ctx_fn(q)
+        dl = _effect_lengths(effect, params, ctx, X, base, plat) if effect != "none" else 0.0
+        q = L - off - dl
+    return q
+
+
+def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: int = 60,
+             measure_set: str = "xyzabc", noise_mm: float = 0.005, noise_deg: float = 0.0005,
+             magnitude_range: tuple[float, float] = (10.0, 40.0), joint_sigma_mm: float = 0.5,
+             offset_sigma_mm: float = 1.0, registration: bool = False, sessions: int = 3) -> SynthSet:
+    """One seeded fit + holdout pair.  ``magnitude_range`` is in units of ``noise_mm``."""
+    if effect != "none" and effect not in CAUSES:
+        raise ValueError(f"unknown effect {effect!r}")
+    rng = np.random.default_rng(seed)
+    hx = Hexapod(cfg)
+    theta = hx.parameters().copy()
+    theta[:36] += rng.normal(0.0, joint_sigma_mm, 36)
+    theta[36:] += rng.normal(0.0, offset_sigma_mm, 6)
+    base, plat, off = theta[:18].reshape(6, 3), theta[18:36].reshape(6, 3), theta[36:]
+    frame = None
+    if registration:
+        frame = np.r_[rng.normal(0, 200, 3), rng.normal(0, 0.2, 3), rng.normal(0, 50, 3), rng.normal(0, 0.05, 3)]
+    n = n_fit + n_holdout
+    P = sample_poses(cfg, rng, n)
+    X = P.copy()
+    X[:, 3:] = np.radians(X[:, 3:])
+    sess = None
+    if effect == "session_offset" or sessions > 1:
+        labels = [f"s{k + 1}" for k in range(max(1, sessions))]
+        sess = np.array([labels[min(len(labels) - 1, k * len(labels) // n_fit)] for k in range(n_fit)]
+                        + [labels[k % len(labels)] for k in range(n_holdout)], dtype=object)
+    T = None
+    if effect == "thermal_expansion":
+        drift = np.cumsum(rng.normal(0, 0.4, n)) + rng.uniform(19, 24)
+        T = drift[:, None] + rng.normal(0, 0.5, (n, 6)) + rng.normal(0, 1.0, 6)[None]
+    payload = None
+    if effect == "elastic_sag":
+        payload = np.where(rng.random(n) < 0.5, 0.0, rng.uniform(0.0, 2.0 * max(cfg.mass_kg, 10.0), n))
+    # fit and holdout rows are one stream (backlash direction follows the row order of each file)
+    parts = []
+    for rows in (slice(0, n_fit), slice(n_fit, n)):
+        m = Measurements("<synthetic>", np.zeros((rows.stop - rows.start, 6)), np.zeros((rows.stop - rows.start, 6)))
+        m.session = None if sess is None else sess[rows]
+        m.T_strut = None if T is None else T[rows]
+        m.payload_kg = None if payload is None else payload[rows]
+        parts.append(m)
+    ctx_fit0 = Context(cfg, parts[0], noise_mm, noise_deg)
+    params = np.zeros(1)
+    mag = 0.0
+    if effect != "none":
+        params = _random_params(effect, rng, ctx_fit0)
+        # scale to a random magnitude: RMS of the effect on the struts, per-strut mean removed
+        target = rng.uniform(*magnitude_range) * noise_mm
+        _, _, _, L = strut_geometry(base, plat, X[:n_fit])
+        parts[0].q = L - off
+        c0 = Context(cfg, parts[0], noise_mm, noise_deg)
+        dl = _effect_lengths(effect, params, c0, X[:n_fit], base, plat)
+        dl = dl - dl.mean(axis=0)
+        scale = target / max(float(np.sqrt(np.mean(dl ** 2))), 1e-12)
+        params = params * scale
+        mag = target
+    for m, rows in zip(parts, (slice(0, n_fit), slice(n_fit, n))):
+        Xr = X[rows]
+
+        def ctx_fn(q, m=m):
+            m.q = q
+            return Context(cfg, m, noise_mm, noise_deg, fit_sessions=ctx_fit0.sessions)
+        m.q = _readings(effect, params, ctx_fn, Xr, base, plat, off)
+        y = measure(Xr, frame)
+        y[:, :3] += rng.normal(0, noise_mm, (len(Xr), 3))
+        y[:, 3:] += rng.normal(0, noise_deg, (len(Xr), 3))
+        keep = np.array([c in MEASURE_SETS.get(measure_set, measure_set) for c in "xyzabc"])
+        if not keep.any():
+            raise ValueError(f"measure set {measure_set!r} names no coordinate of xyzabc")
+        y[:, ~keep] = np.nan
+        m.y = y
+        m.lines = np.arange(2, len(Xr) + 2)
+    names = cause_model(effect, ctx_fit0).names if effect not in ("none",) else []
+    ep = {}
+    if effect == "strut_nonlinearity":
+        ep = {f"quad{i + 1}_mm": float(params[i]) for i in range(6)}
+        ep.update({f"cubic{i + 1}_mm": float(params[6 + i]) for i in range(6)})
+    elif effect != "none":
+        ep = {nm: float(v) for nm, v in zip(names, params)}
+    return SynthSet(parts[0], parts[1], effect, ep, mag, theta, frame, noise_mm, noise_deg)
+
+
+def write_set(s: SynthSet, fit_path, holdout_path) -> None:
+    write_measurements(fit_path, s.fit)
+    write_measurements(holdout_path, s.holdout)
