@@ -46,3 +46,5 @@ class Block:
     coolant: str = "off"
     tool: int = 0
     extra: dict = field(default_factory=dict)
+    #: G94 moves with no X/Y/Z change: the programmed feed as an angular rate (F is deg/min then)
+    feed_deg_s: float | None = None
