@@ -1,0 +1,321 @@
+"""Hot-path codec of the drive bus: prebuilt frames and ``struct`` codecs, one call per cycle each way.
+
+Used by the daemon's hot loop (alone in its process, no canopen Network attached to the same bus
+objects while cycling: detach the master first, see :meth:`drivers.master.Master.detach`)::
+
+    io = CyclicIO(buses, cfg.bus, limits_inc=limits_inc(cfg))
+    rc = io.send(targets_inc)          # RPDO1 targets (+ changed controlwords) + SYNC (+ master heartbeat)
+    ev = io.poll()                     # non-blocking drain: feedback, statusword, heartbeats, EMCY
+    io.pos_inc[i], io.status[i], io.last_heartbeat_s[i], io.emcy (deque)
+
+Neither call raises for bus trouble or bad frames: ``send`` returns ``SEND_*`` bits, ``poll`` ``EV_*``
+bits. Nothing is allocated per cycle except what python-can forces (received ``can.Message``
+objects, the udp_multicast datagram).
+
+Units: drive positions in increments, ``inc = round((strut_length_mm - strut_offset_mm) *
+increments_per_mm)``, int32; strut index 0..5 in ``[bus] node_ids`` order.
+"""
+from __future__ import annotations
+
+import collections
+import struct
+import time
+from typing import Sequence
+
+import can
+
+from . import cia402
+from .layout import MASTER_NODE_ID, SYNC_COB_ID, plan_layout
+
+# -- send() result bits ------------------------------------------------------------------------
+SEND_OK = 0
+SEND_LIMIT = 1          #: a target was outside the drive limits: NOTHING was sent this cycle
+SEND_BUS_ERROR = 2      #: a bus refused a frame (python-can error); the others were still tried
+
+# -- poll() event bits -------------------------------------------------------------------------
+EV_FEEDBACK = 1 << 0    #: position actual updated (TPDO1)
+EV_STATUS = 1 << 1      #: a statusword changed (TPDO2)
+EV_HEARTBEAT = 1 << 2   #: a drive heartbeat arrived
+EV_EMCY = 1 << 3        #: an EMCY was queued in ``emcy`` (error reset EMCYs too)
+EV_BOOTUP = 1 << 4      #: a drive sent boot-up: it was reset (power loss, watchdog)
+EV_NMT = 1 << 5         #: a drive's heartbeat reports a state other than OPERATIONAL
+EV_BAD_FRAME = 1 << 6   #: a frame of a known COB-ID had a wrong length
+EV_OVERFLOW = 1 << 7    #: the drain stopped at ``max_frames`` with frames left
+EV_BUS_ERROR = 1 << 8   #: a bus raised on receive
+
+EVENT_NAMES = {EV_FEEDBACK: "feedback", EV_STATUS: "status", EV_HEARTBEAT: "heartbeat", EV_EMCY: "emcy",
+               EV_BOOTUP: "bootup", EV_NMT: "nmt", EV_BAD_FRAME: "bad frame", EV_OVERFLOW: "overflow",
+               EV_BUS_ERROR: "bus error"}
+
+NMT_OPERATIONAL = 5
+
+_I32 = struct.Struct("<i")
+_U16 = struct.Struct("<H")
+_U8 = struct.Struct("<B")
+_EMCY = struct.Struct("<HB5s")
+
+_K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY = 0, 1, 2, 3
+INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
+
+
+def length_to_increments(length_mm: float, offset_mm: float, increments_per_mm: float) -> int:
+    """Drive reading in increments of a strut length (mm)."""
+    return round((length_mm - offset_mm) * increments_per_mm)
+
+
+def increments_to_length(inc: int, offset_mm: float, increments_per_mm: float) -> float:
+    """Strut length (mm) of a drive reading in increments."""
+    return inc / increments_per_mm + offset_mm
+
+
+def limits_inc(cfg) -> tuple[list[int], list[int]]:
+    """(min, max) drive positions in increments from ``[struts] min/max_length_mm`` (MachineConfig).
+
+    Rounded inwards, so an increment inside the limits is a length inside the limits.
+    """
+    import math
+    k = cfg.bus.increments_per_mm
+    lo = [math.ceil((float(cfg.min_length_mm[i]) - float(cfg.strut_offset_mm[i])) * k - 1e-9) for i in range(6)]
+    hi = [math.floor((float(cfg.max_length_mm[i]) - float(cfg.strut_offset_mm[i])) * k + 1e-9) for i in range(6)]
+    return lo, hi
+
+
+def event_text(ev: int) -> str:
+    return ", ".join(name for bit, name in EVENT_NAMES.items() if ev & bit) or "none"
+
+
+class CyclicIO:
+    """Per-cycle frames of the configured layout on ``buses`` (one bus object per ``[bus] buses``).
+
+    ``limits_inc``: (min list, max list) increments; a target outside is never sent.
+    ``controlword``: the controlword the drives are assumed to hold already (the master left them
+    there); in the ``paired``/``fd`` layouts a controlword is sent (RPDO2) only when it changes,
+    in ``single`` it is part of every RPDO1.
+    """
+
+    def __init__(self, buses: can.BusABC | Sequence[can.BusABC], bus_cfg,
+                 limits_inc: tuple[Sequence[int], Sequence[int]] | None = None,
+                 controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005):
+        if isinstance(buses, can.BusABC):
+            buses = [buses]
+        self.plan = plan = plan_layout(bus_cfg)
+        if len(buses) != plan.buses:
+            raise ValueError(f"CyclicIO: {len(buses)} bus objects for [bus] buses = {plan.buses}")
+        n = len(plan.nodes)
+        self.n = n
+        self.buses = list(buses)
+        lo, hi = limits_inc if limits_inc is not None else ([INT32_MIN] * n, [INT32_MAX] * n)
+        self._lo = [max(INT32_MIN, int(v)) for v in lo]
+        self._hi = [min(INT32_MAX, int(v)) for v in hi]
+        # state filled by poll()
+        now = time.monotonic()
+        self.pos_inc: list[int] = [0] * n
+        self.pos_time_s: list[float] = [0.0] * n          #: monotonic time of the last TPDO1
+        self.status: list[int] = [0] * n
+        self.status_time_s: list[float] = [0.0] * n
+        self.last_heartbeat_s: list[float] = [now] * n    #: monotonic; starts at construction
+        self.nmt_state: list[int] = [-1] * n
+        self.emcy: collections.deque = collections.deque(maxlen=64)  #: (strut, code, register, data, t_s)
+        self.bootups = 0
+        self.frames_sent = 0
+        self.frames_received = 0
+        self.cycles = 0
+        # controlwords
+        self.controlword: list[int] = [int(controlword)] * n
+        self._cw_sent: list[int] = [int(controlword)] * n
+        self._cw_msgs: list[tuple[can.BusABC, can.Message] | None] = [None] * n
+        for nd in plan.nodes:
+            if nd.rpdo2_cob_id is not None:
+                self._cw_msgs[nd.index] = (self.buses[nd.bus], can.Message(
+                    arbitration_id=nd.rpdo2_cob_id, data=bytearray(2), is_extended_id=False))
+        # cyclic frames, per bus: [(msg, ((strut, offset), ...), has_controlword)]
+        self._tx: list[tuple[can.BusABC, list, can.Message]] = []
+        for b in range(plan.buses):
+            frames = []
+            for f in plan.frames:
+                if f.bus == b:
+                    msg = can.Message(arbitration_id=f.cob_id, data=bytearray(f.length), is_extended_id=False,
+                                      is_fd=f.fd, bitrate_switch=f.fd)
+                    frames.append((msg, f.slots, f.has_controlword))
+            sync = can.Message(arbitration_id=SYNC_COB_ID, data=bytearray(plan.sync_length), is_extended_id=False)
+            self._tx.append((self.buses[b], frames, sync))
+        self._sync_counter = 0
+        self._sync_overflow = plan.sync_counter_overflow
+        # master heartbeat (consumed by the drives, 0x1016)
+        self._hb_msg = can.Message(arbitration_id=0x700 + MASTER_NODE_ID, data=bytearray([NMT_OPERATIONAL]),
+                                   is_extended_id=False)
+        self._hb_every = max(1, round(bus_cfg.heartbeat_ms * 1e-3 / period_s))
+        self._hb_count = 0
+        # receive dispatch
+        self._rx: dict[int, tuple[int, int]] = {}
+        for nd in plan.nodes:
+            self._rx[nd.tpdo1_cob_id] = (_K_POS, nd.index)
+            self._rx[nd.tpdo2_cob_id] = (_K_STATUS, nd.index)
+            self._rx[0x700 + nd.node_id] = (_K_HEARTBEAT, nd.index)
+            self._rx[0x080 + nd.node_id] = (_K_EMCY, nd.index)
+        self._hb_timeout_s = bus_cfg.heartbeat_timeout_ms * 1e-3
+
+    # -- transmit -----------------------------------------------------------------------------
+    def set_controlword(self, strut: int, controlword: int) -> None:
+        """Controlword for one drive, sent with the next :meth:`send` (only if changed)."""
+        self.controlword[strut] = controlword
+
+    def set_all_controlwords(self, controlword: int) -> None:
+        for i in range(self.n):
+            self.controlword[i] = controlword
+
+    def send(self, targets_inc: Sequence[int], controlwords: Sequence[int] | None = None) -> int:
+        """Send this cycle's targets (int32 increments, strut order) then SYNC on every bus.
+
+        Returns ``SEND_OK`` or ``SEND_*`` bits. With a target outside the limits nothing at all
+        is sent (the drives keep the last target) and ``SEND_LIMIT`` is returned.
+        """
+        lo, hi = self._lo, self._hi
+        for i in range(self.n):
+            t = targets_inc[i]
+            if t < lo[i] or t > hi[i]:
+                return SEND_LIMIT
+        cw = self.controlword
+        if controlwords is not None:
+            for i in range(self.n):
+                cw[i] = controlwords[i]
+        rc = SEND_OK
+        sent = 0
+        # controlword events first (asynchronous RPDO2: applied on reception)
+        cw_sent = self._cw_sent
+        for i in range(self.n):
+            if cw[i] != cw_sent[i]:
+                ent = self._cw_msgs[i]
+                if ent is not None:
+                    _U16.pack_into(ent[1].data, 0, cw[i])
+                    try:
+                        ent[0].send(ent[1])
+                        sent += 1
+                    except can.CanError:
+                        rc |= SEND_BUS_ERROR
+                        continue
+                cw_sent[i] = cw[i]
+        if self._sync_overflow:
+            self._sync_counter = self._sync_counter % self._sync_overflow + 1
+        self._hb_count += 1
+        beat = self._hb_count >= self._hb_every
+        if beat:
+            self._hb_count = 0
+        pack_i32 = _I32.pack_into
+        pack_u16 = _U16.pack_into
+        for bus, frames, sync in self._tx:
+            try:
+                for msg, slots, has_cw in frames:
+                    data = msg.data
+                    for i, off in slots:
+                        pack_i32(data, off, targets_inc[i])
+                        if has_cw:
+                            pack_u16(data, off - 2, cw[i])
+                    bus.send(msg)
+                    sent += 1
+                if self._sync_overflow:
+                    sync.data[0] = self._sync_counter
+                bus.send(sync)
+                sent += 1
+                if beat:
+                    bus.send(self._hb_msg)
+                    sent += 1
+            except can.CanError:
+                rc |= SEND_BUS_ERROR
+        self.frames_sent += sent
+        self.cycles += 1
+        return rc
+
+    # -- receive ------------------------------------------------------------------------------
+    def poll(self, max_frames: int = 256) -> int:
+        """Drain received frames without blocking; returns ``EV_*`` bits (0: nothing new)."""
+        ev = 0
+        now = time.monotonic()
+        rx = self._rx
+        count = 0
+        for bus in self.buses:
+            recv = bus.recv
+            for _ in range(max_frames):
+                try:
+                    msg = recv(0.0)
+                except (can.CanError, OSError, ValueError):
+                    ev |= EV_BUS_ERROR
+                    break
+                if msg is None:
+                    break
+                count += 1
+                hit = rx.get(msg.arbitration_id)
+                if hit is None or msg.is_remote_frame:
+                    continue
+                kind, i = hit
+                data = msg.data
+                if kind == _K_POS:
+                    if len(data) < 4:
+                        ev |= EV_BAD_FRAME
+                        continue
+                    self.pos_inc[i] = _I32.unpack_from(data)[0]
+                    self.pos_time_s[i] = now
+                    ev |= EV_FEEDBACK
+                elif kind == _K_STATUS:
+                    if len(data) < 2:
+                        ev |= EV_BAD_FRAME
+                        continue
+                    sw = _U16.unpack_from(data)[0]
+                    if sw != self.status[i]:
+                        ev |= EV_STATUS
+                    self.status[i] = sw
+                    self.status_time_s[i] = now
+                elif kind == _K_HEARTBEAT:
+                    if len(data) < 1:
+                        ev |= EV_BAD_FRAME
+                        continue
+                    st = data[0] & 0x7F
+                    self.last_heartbeat_s[i] = now
+                    self.nmt_state[i] = st
+                    ev |= EV_HEARTBEAT
+                    if st == 0:
+                        self.bootups += 1
+                        ev |= EV_BOOTUP
+                    elif st != NMT_OPERATIONAL:
+                        ev |= EV_NMT
+                else:  # EMCY
+                    if len(data) < 8:
+                        ev |= EV_BAD_FRAME
+                        continue
+                    code, reg, extra = _EMCY.unpack_from(data)
+                    self.emcy.append((i, code, reg, extra, now))
+                    ev |= EV_EMCY
+            else:
+                ev |= EV_OVERFLOW
+        self.frames_received += count
+        return ev
+
+    # -- supervision helpers (cheap, for the cycle) --------------------------------------------
+    def heartbeat_lost(self, now: float | None = None) -> int:
+        """Bitmask of struts (bit i) whose heartbeat is older than ``[bus] heartbeat_timeout_ms``."""
+        t = time.monotonic() if now is None else now
+        lim = self._hb_timeout_s
+        mask = 0
+        for i in range(self.n):
+            if t - self.last_heartbeat_s[i] > lim:
+                mask |= 1 << i
+        return mask
+
+    def feedback_stale(self, max_age_s: float, now: float | None = None) -> int:
+        """Bitmask of struts whose last position feedback is older than ``max_age_s`` (or absent)."""
+        t = time.monotonic() if now is None else now
+        mask = 0
+        for i in range(self.n):
+            if t - self.pos_time_s[i] > max_age_s:
+                mask |= 1 << i
+        return mask
+
+    def states(self) -> list[int]:
+        """CiA 402 state per strut from the last statuswords (slow path: allocates)."""
+        return [cia402.state_from_status(s) for s in self.status]
+
+    def all_in_state(self, state: int) -> bool:
+        for s in self.status:
+            if cia402.state_from_status(s) != state:
+                return False
+        return True
