@@ -12,6 +12,7 @@ Public contract (more keys may be added, none renamed):
 * ``[joints] base_axes, platform_axes`` (6x3 unit vectors), ``max_angle_deg``.
 * ``[carrier] mass_kg, center_of_gravity_mm`` (platform frame), gravity along
   -z of the base frame unless ``gravity_mm_s2`` is given.
+* ``[tools] length_mm = {"1" = 62.5}``: tool lengths (mm along the tool axis) for G43 H.
 
 Everything is stored in mm, mm/s, degrees at this interface; radians are
 derived for the inside (``*_rad`` attributes).
@@ -272,6 +273,12 @@ class PlannerConfig:
 
 
 @dataclass(frozen=True)
+class ToolTableConfig:
+    """``[tools] length_mm = {"1" = 62.5, ...}``: tool number -> length along the tool axis (G43 H)."""
+    length_mm: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
 class MachineConfig:
     """The whole machine description. Arrays are read-only, mm and degrees."""
     path: str
@@ -303,6 +310,7 @@ class MachineConfig:
     bus: BusConfig
     daemon: DaemonConfig
     planner: PlannerConfig
+    tools: ToolTableConfig = field(default_factory=ToolTableConfig)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -331,7 +339,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 
 
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
-                   "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner")
+                   "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -503,6 +511,19 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
     )
 
+    tl = sec("tools")
+    lengths = tl._get("length_mm", {})
+    if not isinstance(lengths, dict):
+        raise tl.error("length_mm", f"expected a table of tool number = length, got {lengths!r}")
+    tool_len: dict[int, float] = {}
+    for key, v in lengths.items():
+        if not str(key).isdigit() or not 1 <= int(key) <= 99999:
+            raise tl.error("length_mm", f"tool number {key!r} must be an integer 1..99999")
+        if not Section._is_number(v) or not math.isfinite(float(v)) or not -1000.0 <= float(v) <= 1000.0:
+            raise tl.error("length_mm", f"tool {key}: length {v!r} must be a number in [-1000, 1000] mm")
+        tool_len[int(key)] = float(v)
+    tools = ToolTableConfig(length_mm=tool_len)
+
     for sct in sections:
         sct.finish()
 
@@ -516,7 +537,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         inertia_kg_mm2=_freeze(inertia),
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
-        daemon=daemon, planner=planner, raw=doc,
+        daemon=daemon, planner=planner, tools=tools, raw=doc,
     )
     _check_geometry(cfg)
     return cfg
