@@ -469,3 +469,18 @@ def test_client_class_roundtrip(served):
         assert ei.value.code == "gcode" and ei.value.line == 1
     with pytest.raises(P.ConnectionLost):
         P.Client.unix(os.path.join(os.path.dirname(srv.socket_path), "nothing.sock"))
+
+
+def test_wait_sent_right_after_program_covers_that_program(served):
+    """Pipelined program + wait: the wait must not return 'idle' before the program was even loaded."""
+    srv, d = served
+    a, b = Raw(srv.socket_path), Raw(srv.socket_path)
+    a.send_obj({"id": 1, "op": "program", "text": "SLOWLOAD\n" + "G1 X1\n" * 10, "name": "slow"})
+    a.send_obj({"id": 2, "op": "wait", "timeout_s": 20.0})
+    time.sleep(0.05)
+    b.send_obj({"id": 3, "op": "wait", "timeout_s": 20.0})      # an observer's wait as well
+    got = {m["id"]: m for m in (a.recv(10.0), a.recv(10.0))}
+    assert got[1]["ok"] and got[1]["blocks"] == 11
+    assert got[2]["state"] == "idle" and got[2]["result"] == "finished" and got[2]["timed_out"] is False
+    w = b.recv(10.0)
+    assert w["result"] == "finished"

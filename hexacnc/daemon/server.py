@@ -129,6 +129,12 @@ class SocketServer:
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._motion_pool: ThreadPoolExecutor | None = None
+        # motion ops submitted (selector thread) / completed (worker): a "wait" first lets the
+        # motion ops received before it complete, so "program" then "wait" back to back waits
+        # for that program even though the program's reply has not been sent yet
+        self._motion_cv = threading.Condition()
+        self._motion_submitted = 0
+        self._motion_done = 0
         self._wait_pool: ThreadPoolExecutor | None = None
         self.stats = {"accepted": 0, "refused": 0, "requests": 0, "errors": 0, "closed_bad": 0,
                       "stream_sent": 0, "stream_dropped": 0}
@@ -461,6 +467,7 @@ class SocketServer:
     def _submit_motion(self, conn: _Conn, req: P.Request, call: Callable[[], Any],
                        reply: Callable[[Any], dict]) -> None:
         def job() -> None:
+            out: dict
             try:
                 result = call()
                 out = reply(result)
@@ -468,8 +475,14 @@ class SocketServer:
                 if not isinstance(exc, HexacncError):
                     log.exception("Daemon call for op %s failed", req.op)
                 out = P.error_from_exception(exc, req.id, self._state_or_none(), req.op)
+            finally:
+                with self._motion_cv:
+                    self._motion_done += 1
+                    self._motion_cv.notify_all()
             self._results.put((conn, out))
             self._wake()
+        with self._motion_cv:
+            self._motion_submitted += 1
         self._motion_pool.submit(job)
 
     def _op_program(self, conn: _Conn, req: P.Request) -> None:
@@ -512,10 +525,18 @@ class SocketServer:
         daemon = self.daemon
         stop = self._stop
 
+        with self._motion_cv:
+            after = self._motion_submitted
+
         def job() -> None:
             deadline = time.monotonic() + timeout_s
             out: dict | None = None
             try:
+                with self._motion_cv:           # motion ops received before this wait come first
+                    while self._motion_done < after and not stop.is_set() and conn.alive:
+                        self._motion_cv.wait(min(_WAIT_SLICE_S, max(0.0, deadline - time.monotonic())) or 0.01)
+                        if time.monotonic() >= deadline:
+                            break
                 while True:
                     left = deadline - time.monotonic()
                     st = daemon.wait(max(0.0, min(_WAIT_SLICE_S, left)))
