@@ -1,0 +1,103 @@
+"""Run commands inside a private network namespace, for cross-process bus tests over udp_multicast.
+
+The namespace is created with ``unshare -n`` (``unshare -rn`` when not root), then
+``ip link set lo up multicast on`` and ``ip route add 224.0.0.0/4 dev lo``: multicast stays on the
+namespace's own loopback, nothing reaches the host's network and no other test run interferes.
+Inside, ``HEXACNC_NETNS=1`` is set.
+
+Pattern for a pytest test that must run inside (it re-runs itself there)::
+
+    from drivers.testing import netns_or_rerun
+
+    @pytest.mark.netns
+    def test_cross_process(request):
+        if not netns_or_rerun(request):     # outside: ran inside a fresh namespace (or skipped)
+            return
+        ...                                 # inside the namespace: udp_multicast is private
+"""
+from __future__ import annotations
+
+import functools
+import os
+import shutil
+import subprocess
+import sys
+from typing import Sequence
+
+ENV_FLAG = "HEXACNC_NETNS"
+_SETUP = ("ip link set lo up multicast on && ip route add 224.0.0.0/4 dev lo && "
+          f"export {ENV_FLAG}=1 && exec \"$@\"")
+REPO_ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def inside_netns() -> bool:
+    """True inside a namespace made by this module."""
+    return os.environ.get(ENV_FLAG) == "1"
+
+
+def _unshare_prefix() -> list[str]:
+    return ["unshare", "-n"] if os.geteuid() == 0 else ["unshare", "-rn"]
+
+
+@functools.lru_cache(maxsize=1)
+def netns_unavailable_reason() -> str | None:
+    """None if a private network namespace with multicast on lo can be made here, else why not."""
+    if sys.platform != "linux":
+        return "network namespaces need Linux"
+    for tool in ("unshare", "ip"):
+        if shutil.which(tool) is None:
+            return f"'{tool}' is not installed"
+    try:
+        r = subprocess.run(_unshare_prefix() + ["sh", "-c", _SETUP, "netns", "true"],
+                           capture_output=True, text=True, timeout=10)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"unshare failed: {exc}"
+    if r.returncode != 0:
+        return f"unshare -n not permitted: {(r.stderr or r.stdout).strip()[:300]}"
+    return None
+
+
+def netns_command(argv: Sequence[str]) -> list[str]:
+    """``argv`` wrapped to run inside a fresh namespace (lo up, multicast routed to lo)."""
+    return _unshare_prefix() + ["sh", "-c", _SETUP, "netns"] + list(argv)
+
+
+def run_in_netns(argv: Sequence[str], *, timeout_s: float = 120.0, env: dict | None = None,
+                 cwd: str | None = None) -> subprocess.CompletedProcess:
+    """Run ``argv`` in a fresh namespace; stdout and stderr captured (text). Never raises on exit code."""
+    e = dict(os.environ if env is None else env)
+    e["PYTHONPATH"] = REPO_ROOT + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
+    try:
+        return subprocess.run(netns_command(argv), capture_output=True, text=True, timeout=timeout_s,
+                              env=e, cwd=cwd or REPO_ROOT)
+    except subprocess.TimeoutExpired as exc:
+        out = exc.stdout.decode() if isinstance(exc.stdout, bytes) else (exc.stdout or "")
+        err = exc.stderr.decode() if isinstance(exc.stderr, bytes) else (exc.stderr or "")
+        return subprocess.CompletedProcess(list(argv), -9, out, err + f"\n[timed out after {timeout_s:g} s]")
+
+
+def run_pytest_in_netns(node_ids: Sequence[str], *, timeout_s: float = 120.0,
+                        extra_args: Sequence[str] = ()) -> subprocess.CompletedProcess:
+    """Run pytest on ``node_ids`` (e.g. ``request.node.nodeid``) inside a fresh namespace."""
+    argv = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *extra_args, *node_ids]
+    return run_in_netns(argv, timeout_s=timeout_s)
+
+
+def netns_or_rerun(request, timeout_s: float = 120.0) -> bool:
+    """In a pytest test: True when already inside a namespace (go on); otherwise re-run this very
+    test inside a fresh one, fail with its output if it failed, and return False. Skips cleanly
+    when namespaces are unavailable."""
+    import pytest
+
+    if inside_netns():
+        return True
+    reason = netns_unavailable_reason()
+    if reason is not None:
+        pytest.skip(f"cross-process bus test needs a private network namespace: {reason}")
+    r = run_pytest_in_netns([request.node.nodeid], timeout_s=timeout_s)
+    tail = (r.stdout[-6000:] + "\n" + r.stderr[-3000:]).strip()
+    if r.returncode == 5:
+        pytest.fail(f"test not collected inside the namespace:\n{tail}")
+    if r.returncode != 0:
+        pytest.fail(f"inside the network namespace the test failed (exit {r.returncode}):\n{tail}")
+    return False
