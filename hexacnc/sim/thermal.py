@@ -1,0 +1,331 @@
+"""Thermal drift end to end: a warming machine, the observer, the cycle transform.
+
+The simulated machine ("truth") differs from the observer's model on purpose:
+
+* each strut is a finer 1-D heat model (``truth_segments``, default 40 against
+  ``[thermal] segments``);
+* its friction heat is not uniform: it falls linearly from the drive (base) end
+  to the platform end, ``heat_profile_ratio`` (3:1) - the model assumes uniform;
+* its heat input is ``truth_heat_ratio`` (1.15) times what the model assumes.
+
+Inputs: strut speeds from a program (:mod:`hexacnc.sim.program`: a synthetic
+milling program, exact-stop trapezoid profile) repeated under a varying feed
+override (phases), an ambient temperature that creeps and oscillates (HVAC),
+and a frame that follows the ambient with a long time constant.  The spindle
+housing warms while the spindle runs; the spindle shaft (what grows) follows the
+housing with a lag.
+
+Sensors, all with white Gaussian noise: per strut the ``[thermal] probes``
+segments (``probe_noise_K``), one ambient and one frame sensor (same noise), one
+spindle-housing probe (``spindle_probe_noise_K``).  The observer
+(:class:`hexacnc.thermal.ThermalObserver`) runs at ``1/dt_s`` (10 Hz, as in the
+daemon) and its offsets go into :class:`hexacnc.transform.CycleTransform`
+exactly as the daemon sets them; the spindle growth from the probe goes to
+``set_spindle_growth_mm``.  Drift is the tool-tip error at the measuring pose
+(home): strut commands from the transform plus the true thermal growth, through
+forward kinematics, against the commanded tool tip.
+
+Calibration: the true heat coefficient is chosen (by linearity of the heat
+equation, then a 1-D root search) so that the uncompensated peak z drift is
+``target_drift_um`` (45 um, the seed's scenario).
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import brentq
+
+from ..kinematics import Hexapod
+from ..pose import matrix_from_euler, pose_to_rad
+from ..thermal import ThermalObserver, discretise, spindle_growth_mm, strut_heat_model
+from ..transform import CycleTransform
+from .program import synthetic_program, trajectory
+
+#: seed-like 2.5 h schedule: (minutes, feed override, spindle on)
+DEFAULT_PHASES = ((20, 1.0, True), (15, 0.6, True), (20, 1.3, True), (10, 0.0, False),
+                  (25, 1.0, True), (20, 0.8, True), (15, 1.2, True), (5, 0.0, False), (20, 1.0, True))
+
+
+@dataclass
+class ThermalScenario:
+    duration_s: float = 9000.0
+    dt_s: float = 0.1                       #: observer / daemon thermal rate
+    phases: tuple = DEFAULT_PHASES          #: repeated to cover duration_s
+    program_lines: int = 300
+    truth_segments: int = 40
+    truth_heat_ratio: float = 1.15          #: true heat / modelled heat
+    heat_profile_ratio: float = 3.0         #: true source density base end / platform end
+    target_drift_um: float = 45.0           #: uncompensated peak |z| drift to calibrate to
+    heat_per_speed_W_s_mm: float | None = None   #: true coefficient; None: calibrate
+    ambient_creep_K: float = 0.4            #: ambient rise over the run
+    ambient_swing_K: float = 0.15           #: HVAC oscillation amplitude
+    ambient_period_s: float = 1800.0
+    frame_tau_s: float = 7200.0
+    spindle_rise_K: float = 8.0
+    spindle_tau_s: float = 900.0
+    spindle_shaft_lag_s: float = 300.0
+    spindle_probe_noise_K: float = 0.05
+    sample_every_s: float = 10.0            #: drift evaluation / output series
+    seed: int = 1
+    T0_C: float = 20.0
+
+
+def _phase_arrays(sc: ThermalScenario, n: int):
+    t = np.arange(n) * sc.dt_s
+    ov = np.zeros(n)
+    sp = np.zeros(n, dtype=bool)
+    t0 = 0.0
+    k = 0
+    while t0 < sc.duration_s:
+        mins, f, on = sc.phases[k % len(sc.phases)]
+        sel = (t >= t0) & (t < t0 + mins * 60.0)
+        ov[sel] = f
+        sp[sel] = on
+        t0 += mins * 60.0
+        k += 1
+    return ov, sp
+
+
+def strut_speed_profile(cfg, sc: ThermalScenario, n: int):
+    """Mean |strut speed| (n,6) per step from the repeated program under the override phases."""
+    tr = trajectory(cfg, synthetic_program(cfg, sc.program_lines, seed=sc.seed), dt_s=0.01)
+    travel = np.concatenate([np.zeros((1, 6)), np.cumsum(np.abs(np.diff(tr.lengths_mm, axis=0)), axis=0)])
+    Tc = tr.t_s[-1]
+    Dtot = travel[-1]
+    ov, spindle_on = _phase_arrays(sc, n)
+    tau = np.concatenate([[0.0], np.cumsum(ov * sc.dt_s)])          # program time at step edges
+    cyc = np.floor(tau / Tc)
+    r = tau - cyc * Tc
+    D = cyc[:, None] * Dtot[None, :] + np.stack([np.interp(r, tr.t_s, travel[:, i]) for i in range(6)], 1)
+    speed = np.diff(D, axis=0) / sc.dt_s
+    return speed, ov, spindle_on, tr
+
+
+def _simulate_linear(models, dt, inputs, T0):
+    """Run 6 strut models; inputs (n,6,3); returns mean T (n,6) and T at every segment (n,6,nseg)."""
+    disc = [discretise(m.A, m.B, dt) for m in models]
+    Ad = np.stack([d[0] for d in disc])
+    Bd = np.stack([d[1] for d in disc])
+    n = inputs.shape[0]
+    nseg = models[0].n
+    T = np.full((6, nseg), T0, dtype=float)
+    out = np.empty((n, 6, nseg))
+    # B u for all steps at once, then the recursion
+    Bu = np.einsum("ijk,nik->nij", Bd, inputs)
+    for k in range(n):
+        T = np.einsum("ijk,ik->ij", Ad, T) + Bu[k]
+        out[k] = T
+    return out
+
+
+def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
+    """Run the scenario; returns the JSON-ready figures (see :func:`summary_keys`)."""
+    sc = sc or ThermalScenario()
+    wall0 = time.perf_counter()
+    rng = np.random.default_rng(sc.seed)
+    n = int(round(sc.duration_s / sc.dt_s))
+    t = (np.arange(n) + 1) * sc.dt_s
+    speed, override, spindle_on, tr = strut_speed_profile(cfg, sc, n)
+
+    hx = Hexapod(cfg)
+    lengths = hx.lengths(cfg.home_pose)
+    nseg = sc.truth_segments
+    prof = np.linspace(sc.heat_profile_ratio, 1.0, nseg)      # base end (segment 0) -> platform end
+    unit_cfg = dataclasses.replace(cfg.thermal, heat_per_speed_W_s_mm=1.0)
+    truth = [strut_heat_model(unit_cfg, float(L), segments=nseg, source_profile=prof) for L in lengths]
+
+    # environment
+    Ta = sc.T0_C + sc.ambient_creep_K * t / sc.duration_s + sc.ambient_swing_K * np.sin(
+        2 * math.pi * t / sc.ambient_period_s)
+    a_f = math.exp(-sc.dt_s / sc.frame_tau_s)
+    Tf = np.empty(n)
+    x = sc.T0_C
+    for k in range(n):
+        x = a_f * x + (1 - a_f) * Ta[k]
+        Tf[k] = x
+    # spindle housing and shaft (first order each)
+    a_s = math.exp(-sc.dt_s / sc.spindle_tau_s)
+    a_l = math.exp(-sc.dt_s / sc.spindle_shaft_lag_s)
+    Tsp = np.empty(n)
+    Tsh = np.empty(n)
+    hsg, shf = sc.T0_C, sc.T0_C
+    for k in range(n):
+        tgt = Ta[k] + (sc.spindle_rise_K if spindle_on[k] else 0.0)
+        hsg = a_s * hsg + (1 - a_s) * tgt
+        shf = a_l * shf + (1 - a_l) * hsg
+        Tsp[k] = hsg
+        Tsh[k] = shf
+
+    # truth by superposition: unit heat part + environment part
+    u_heat = np.zeros((n, 6, 3))
+    u_heat[:, :, 0] = np.abs(speed)
+    u_env = np.zeros((n, 6, 3))
+    u_env[:, :, 1] = Ta[:, None]
+    u_env[:, :, 2] = Tf[:, None]
+    T_heat = _simulate_linear(truth, sc.dt_s, u_heat, 0.0)
+    T_env = _simulate_linear(truth, sc.dt_s, u_env, sc.T0_C)
+    Cg = np.stack([m.C for m in truth])                     # (6, nseg) mm/K
+    Tref = cfg.thermal.reference_temperature_C
+    g_heat = np.einsum("nij,ij->ni", T_heat, Cg)            # growth per W/(mm/s)
+    g_env = np.einsum("nij,ij->ni", T_env - Tref, Cg)
+
+    # tool-tip map at the measuring pose (home), linear, for the calibration
+    X = pose_to_rad(cfg.home_pose)
+    R = matrix_from_euler(*X[3:])
+    tip = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    axis = np.asarray(cfg.tool.axis_platform, dtype=float)
+    Jtip = hx.jacobian_twist_rad(X, tip)
+    tip_of_dL = np.linalg.inv(Jtip)[:3]                     # (3,6) tool-tip shift per strut growth
+    g_sp_true = np.array([spindle_growth_mm(v, cfg) for v in Tsh])
+    sp_shift = np.outer(g_sp_true, R @ axis)                # (n,3) tool tip moves along the tool axis
+
+    def zpeak(h):
+        dz = (g_heat * h + g_env) @ tip_of_dL[2] + sp_shift[:, 2]
+        return float(np.max(np.abs(dz)))
+
+    if sc.heat_per_speed_W_s_mm is None:
+        target = sc.target_drift_um * 1e-3
+        if zpeak(0.0) >= target:
+            h_true = 0.0
+        else:
+            hi = 1.0
+            while zpeak(hi) < target and hi < 1e4:
+                hi *= 2
+            h_true = brentq(lambda h: zpeak(h) - target, 0.0, hi, xtol=1e-6)
+    else:
+        h_true = float(sc.heat_per_speed_W_s_mm)
+    h_model = h_true / sc.truth_heat_ratio
+    growth_true = g_heat * h_true + g_env                   # (n,6) mm
+    T_true = T_heat * h_true + T_env                        # (n,6,nseg)
+
+    # probes: observer segment centres located on the truth grid
+    mcfg = cfg.replace(thermal=dataclasses.replace(cfg.thermal, heat_per_speed_W_s_mm=h_model))
+    obs = ThermalObserver(mcfg, sc.dt_s)
+    centres = obs.models[0].segment_centres_mm() / obs.models[0].length_mm
+    pidx = [min(nseg - 1, int(c * nseg)) for c in centres[list(obs.probes)]]
+    noise = cfg.thermal.probe_noise_K
+    probes = T_true[:, :, pidx] + rng.normal(0.0, noise, (n, 6, len(pidx)))
+    Ta_meas = Ta + rng.normal(0.0, noise, n)
+    Tf_meas = Tf + rng.normal(0.0, noise, n)
+    Tsp_meas = Tsp + rng.normal(0.0, sc.spindle_probe_noise_K, n)
+    obs.reset(np.full(6, sc.T0_C))          # the daemon starts the estimate at the probe mean
+    obs.reset(np.full((6, obs.n), float(np.mean(probes[0]))))
+
+    every = max(1, int(round(sc.sample_every_s / sc.dt_s)))
+    ct_c = CycleTransform(cfg)
+    ct_u = CycleTransform(cfg)
+    home_tip = cfg.home_pose[:3] + R @ tip
+    rows = []
+    est = np.empty((n, 6))
+    for k in range(n):
+        est[k] = obs.update(speed[k], Ta_meas[k], Tf_meas[k], probes[k])
+        if (k + 1) % every == 0 or k == n - 1:
+            g_sp_est = spindle_growth_mm(Tsp_meas[k], cfg)
+            out = []
+            for ct, comp in ((ct_u, False), (ct_c, True)):
+                ct.set_thermal_offsets_mm(est[k] if comp else np.zeros(6))
+                ct.set_spindle_growth_mm(g_sp_est if comp else 0.0)
+                code = _command_at_rest(ct, X)
+                if code != 0:
+                    raise RuntimeError(f"measuring pose rejected by the transform: {ct.describe(code)}")
+                L_act = np.array(ct.cmd_mm) + np.array(ct.sag_mm) + growth_true[k]
+                fk = hx.forward(L_act, cfg.home_pose)
+                Xa = pose_to_rad(fk.pose)
+                Ra = matrix_from_euler(*Xa[3:])
+                tip_act = Xa[:3] + Ra @ (tip + g_sp_true[k] * axis)
+                out.append((tip_act - home_tip) * 1e3)
+            dT = float(np.mean(T_true[k].mean(axis=1)) - Tf[k])
+            rows.append([t[k], *out[0], *out[1], dT, float(np.mean(growth_true[k]) * 1e3),
+                         float(np.mean(est[k]) * 1e3), g_sp_true[k] * 1e3, override[k]])
+            if progress:
+                progress(k + 1, n)
+    S = np.array(rows)
+    z_u, z_c = S[:, 3], S[:, 6]
+    d3_u = np.linalg.norm(S[:, 1:4], axis=1)
+    d3_c = np.linalg.norm(S[:, 4:7], axis=1)
+    peak_u, peak_c = float(np.max(np.abs(z_u))), float(np.max(np.abs(z_c)))
+    err_g = (est - growth_true) * 1e3
+    probes_desc = {
+        "per_strut": len(obs.probes), "segments": list(obs.probes),
+        "positions_fraction_of_length_from_base": [round(float(centres[p]), 4) for p in obs.probes],
+        "noise_K": noise, "ambient_and_frame_sensor_noise_K": noise,
+        "spindle_probe": 1, "spindle_probe_noise_K": sc.spindle_probe_noise_K, "total_sensors": 6 * len(obs.probes) + 3,
+    }
+    return {
+        "scenario": "from cold, varying feed override, spindle phases",
+        "duration_h": sc.duration_s / 3600.0,
+        "observer_rate_hz": 1.0 / sc.dt_s,
+        "speed_source": (f"synthetic {sc.program_lines}-line milling program (hexacnc.sim.program), exact-stop "
+                         f"trapezoid profile, {tr.duration_s:.1f} s per pass, repeated under feed override phases"),
+        "mean_strut_speed_mm_s": float(np.mean(np.abs(speed))),
+        "heat_per_speed_W_s_mm": {"true": h_true, "model": h_model},
+        "model_mismatch": {"truth_segments": nseg, "model_segments": obs.n, "truth_heat_ratio": sc.truth_heat_ratio,
+                           "truth_heat_profile_base_to_platform": sc.heat_profile_ratio},
+        "probes": probes_desc,
+        "peak_drift_z_um": {"uncompensated": peak_u, "compensated": peak_c},
+        "peak_drift_3d_um": {"uncompensated": float(d3_u.max()), "compensated": float(d3_c.max())},
+        "reduction_pct": 100.0 * (1.0 - peak_c / peak_u) if peak_u > 0 else 0.0,
+        "final_drift_z_um": {"uncompensated": float(z_u[-1]), "compensated": float(z_c[-1])},
+        "strut_frame_dT_K": {"peak": float(S[:, 7].max()), "final": float(S[:, 7][-1])},
+        "strut_growth_estimate_error_um": {"rms": float(np.sqrt(np.mean(err_g ** 2))),
+                                           "max_after_10min": float(np.max(np.abs(err_g[int(600 / sc.dt_s):])))},
+        "spindle_growth_peak_um": float(np.max(np.abs(g_sp_true)) * 1e3),
+        "wall_time_s": time.perf_counter() - wall0,
+        "series": {
+            "columns": ["t_s", "dx_uncomp_um", "dy_uncomp_um", "dz_uncomp_um", "dx_comp_um", "dy_comp_um",
+                        "dz_comp_um", "strut_frame_dT_K", "mean_growth_true_um", "mean_growth_est_um",
+                        "spindle_growth_um", "override"],
+            "rows": [[round(float(v), 5) for v in r] for r in S],
+        },
+    }
+
+
+def _command_at_rest(ct: CycleTransform, X) -> int:
+    """Command a pose the machine rests at (re-seed the velocity guard: offsets jump between samples)."""
+    from ..transform import LIMIT_ACCELERATION, LIMIT_VELOCITY
+    code = ct.command(*X)
+    if code in (LIMIT_VELOCITY, LIMIT_ACCELERATION):
+        ct.reset([ct.length_mm[i] - ct.sag_mm[i] - ct.thermal_mm[i] for i in range(6)])
+        code = ct.command(*X)
+    return code
+
+
+def plot(result: dict, path: str) -> None:
+    """Figure-6-like plot: z drift with and without compensation, strut-frame dT."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    S = np.array(result["series"]["rows"])
+    tm = S[:, 0] / 60.0
+    fig, (ax1, ax2) = plt.subplots(2, 1, figsize=(7.0, 5.2), sharex=True,
+                                   gridspec_kw={"height_ratios": [2.2, 1]})
+    ax1.plot(tm, S[:, 3], label="uncompensated", color="tab:red")
+    ax1.plot(tm, S[:, 6], label="compensated (observer + spindle probe)", color="tab:blue")
+    ax1.axhline(0, color="0.6", lw=0.6)
+    ax1.set_ylabel("tool z drift (um)")
+    r = result
+    ax1.set_title(f"Thermal drift, {r['duration_h']:.1f} h: peak {r['peak_drift_z_um']['uncompensated']:.1f} -> "
+                  f"{r['peak_drift_z_um']['compensated']:.1f} um ({r['reduction_pct']:.0f} % less)", fontsize=10)
+    ax1.legend(fontsize=8)
+    ax1.grid(alpha=0.3)
+    ax2.plot(tm, S[:, 7], color="tab:orange", label="mean strut - frame")
+    ax2b = ax2.twinx()
+    ax2b.step(tm, S[:, 11], color="0.5", lw=0.7, where="post")
+    ax2b.set_ylabel("feed override", color="0.5", fontsize=8)
+    ax2.set_ylabel("dT (K)")
+    ax2.set_xlabel("time (min)")
+    ax2.grid(alpha=0.3)
+    fig.tight_layout()
+    _save(fig, path)
+    plt.close(fig)
+
+
+def _save(fig, path: str) -> None:
+    import os
+    tmp = f"{path}.tmp.png"
+    fig.savefig(tmp, dpi=80)
+    os.replace(tmp, path)
