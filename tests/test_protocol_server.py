@@ -454,6 +454,11 @@ def test_tcp_needs_token_and_listens_on_loopback_only(cfg, sockdir):
         cl.close()
         with pytest.raises(P.DaemonError):
             P.Client.tcp(port, "nope")
+        # a silent TCP client does not hold a slot for ever
+        srv.auth_timeout_s = 0.3
+        c = Raw(tcp=("127.0.0.1", port))
+        assert _err(c.recv(3.0))["code"] == "unauthorized"
+        assert c.closed_within(3.0)
     d.close()
 
 
@@ -484,3 +489,26 @@ def test_wait_sent_right_after_program_covers_that_program(served):
     assert got[2]["state"] == "idle" and got[2]["result"] == "finished" and got[2]["timed_out"] is False
     w = b.recv(10.0)
     assert w["result"] == "finished"
+
+
+def test_per_client_subscription_cap(served):
+    srv, d = served
+    c = Raw(srv.socket_path)
+    for i in range(8):
+        assert c.req("subscribe", rate_hz=1.0)["ok"]
+    assert _err(c.req("subscribe", rate_hz=1.0))["code"] == "busy"
+    assert c.req("unsubscribe")["ok"]
+    assert c.req("subscribe", rate_hz=1.0)["ok"]
+
+
+def test_motion_op_flood_is_bounded(served):
+    srv, d = served
+    c = Raw(srv.socket_path)
+    c.send_obj({"id": 0, "op": "program", "text": "SLOWLOAD\nG1 X1\n", "name": "slow"})
+    for i in range(1, 200):
+        c.send_obj({"id": i, "op": "reset"})
+    replies = [c.recv(10.0) for _ in range(200)]
+    codes = [r["error"]["code"] for r in replies if not r["ok"]]
+    assert codes and set(codes) == {"busy"}
+    assert sum(r["ok"] for r in replies) >= 64
+    assert c.req("status")["ok"]

@@ -58,6 +58,12 @@ _STREAM_BACKLOG_BYTES = 256 * 1024
 _WAIT_SLICE_S = 0.2
 #: outstanding "wait" requests per client
 _MAX_WAITS_PER_CLIENT = 4
+#: motion ops queued but not done, per client
+_MAX_MOTION_PENDING = 64
+#: subscriptions per client
+_MAX_SUBS_PER_CLIENT = 8
+#: a TCP client must authenticate within this time
+_AUTH_TIMEOUT_S = 5.0
 #: state values after which "wait" returns
 _WAIT_DONE_STATES = ("idle", "fault")
 
@@ -66,7 +72,7 @@ class _Conn:
     """One client connection (touched only by the selector thread, except ``alive``)."""
 
     __slots__ = ("sock", "num", "kind", "peer", "dec", "out", "authenticated", "closing", "alive",
-                 "subs", "waits", "client_name", "registered_mask")
+                 "subs", "waits", "motion_pending", "client_name", "registered_mask", "created")
 
     def __init__(self, sock: socket.socket, num: int, kind: str, peer: str, max_bytes: int):
         self.sock = sock
@@ -80,7 +86,9 @@ class _Conn:
         self.alive = True
         self.subs: dict[int, list] = {}       # sub id -> [period_s, next_due, seq, dropped]
         self.waits = 0
+        self.motion_pending = 0
         self.client_name = ""
+        self.created = time.monotonic()
         self.registered_mask = 0
 
     def label(self) -> str:
@@ -114,6 +122,7 @@ class SocketServer:
                                      else getattr(dcfg, "max_message_bytes", P.MAX_MESSAGE_BYTES))
         self.status_rate_hz = float(status_rate_hz if status_rate_hz is not None else dcfg.status_rate_hz)
         self.tcp_address: tuple[str, int] | None = None
+        self.auth_timeout_s = _AUTH_TIMEOUT_S
         self.machine_name = str(getattr(cfg, "name", "") or "")
 
         self._sel: selectors.BaseSelector | None = None
@@ -324,6 +333,17 @@ class SocketServer:
                     self._drop(conn, "internal error")
         self._deliver_results()
         self._serve_streams()
+        self._expire_unauthenticated()
+
+    def _expire_unauthenticated(self) -> None:
+        now = time.monotonic()
+        for conn in list(self._conns.values()):
+            if not conn.authenticated and not conn.closing and now - conn.created > self.auth_timeout_s:
+                log.warning("%s: no hello with token within %g s; closing", conn.label(), self.auth_timeout_s)
+                self._send(conn, P.error_reply(None, P.UNAUTHORIZED,
+                                               f"no 'hello' with 'token' within {self.auth_timeout_s:g} s"))
+                conn.closing = True
+                self._flush(conn)
 
     def _accept(self, lsock: socket.socket, kind: str) -> None:
         for _ in range(16):
@@ -466,6 +486,12 @@ class SocketServer:
 
     def _submit_motion(self, conn: _Conn, req: P.Request, call: Callable[[], Any],
                        reply: Callable[[Any], dict]) -> None:
+        if conn.motion_pending >= _MAX_MOTION_PENDING:
+            self._send(conn, P.error_reply(req.id, P.BUSY, f"more than {_MAX_MOTION_PENDING} motion ops "
+                                                           f"of this client are still being executed"))
+            return
+        conn.motion_pending += 1
+
         def job() -> None:
             out: dict
             try:
@@ -479,7 +505,7 @@ class SocketServer:
                 with self._motion_cv:
                     self._motion_done += 1
                     self._motion_cv.notify_all()
-            self._results.put((conn, out))
+            self._results.put((conn, out, "motion-done"))
             self._wake()
         with self._motion_cv:
             self._motion_submitted += 1
@@ -559,6 +585,10 @@ class SocketServer:
         self._wait_pool.submit(job)
 
     def _op_subscribe(self, conn: _Conn, req: P.Request) -> None:
+        if len(conn.subs) >= _MAX_SUBS_PER_CLIENT:
+            self._send(conn, P.error_reply(req.id, P.BUSY,
+                                           f"at most {_MAX_SUBS_PER_CLIENT} subscriptions per client"))
+            return
         rate = float(req.fields.get("rate_hz", self.status_rate_hz))
         period = 1.0 / rate
         st = self._status()
@@ -582,8 +612,10 @@ class SocketServer:
             except queue.Empty:
                 return
             conn, out = item[0], item[1]
-            if len(item) > 2:
+            if item[2] == "wait-done":
                 conn.waits -= 1
+            elif item[2] == "motion-done":
+                conn.motion_pending -= 1
             if out is not None and conn.alive and not conn.closing:
                 self._send(conn, out)
 
