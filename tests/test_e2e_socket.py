@@ -71,13 +71,19 @@ def client(machine):
 
 def programmed_end_platform_pose(cfg, text: str) -> np.ndarray:
     """Platform pose (mm, deg) at the end of ``text``: the interpreter's last tool-tip pose
-    converted here, independently of the planner: t = tip - R (tip_platform + L axis_platform)."""
+    through the planner's conversion (``hexacnc.planner.path.tip_to_platform``), checked
+    against the formula t = tip - R (tip_platform + L axis_platform) written out here."""
+    from hexacnc.planner.path import tip_to_platform
     prog = program_from_config(text, "expected", cfg)
     last = [b for b in prog.blocks if b.end is not None][-1]
     tip = np.asarray(last.end, dtype=float)
+    q = np.asarray(cfg.tool.tip_platform_mm) + last.tool_length_mm * np.asarray(cfg.tool.axis_platform)
+    tip_rad = np.concatenate([tip[:3], np.radians(tip[3:])])
+    X = np.asarray(tip_to_platform(tip_rad[None, :], q[None, :]), dtype=float)[0]
+    pose = np.concatenate([X[:3], np.degrees(X[3:])])
     R = matrix_from_euler(*np.radians(tip[3:]))
-    ref = np.asarray(cfg.tool.tip_platform_mm) + last.tool_length_mm * np.asarray(cfg.tool.axis_platform)
-    return np.concatenate([tip[:3] - R @ ref, tip[3:]])
+    np.testing.assert_allclose(pose, np.concatenate([tip[:3] - R @ q, tip[3:]]), atol=1e-9)
+    return pose
 
 
 def expected_struts_cmd_mm(cfg, hx: Hexapod, pose_deg: np.ndarray) -> np.ndarray:
@@ -131,20 +137,6 @@ def test_program_over_socket_ends_on_the_inverse_kinematics_of_its_end_pose(cfg,
     # and the program is reported finished at 100 %
     prog = st.get("program") or st.get("progress")
     assert prog["name"] == "e2e-end-pose" and prog["percent"] == pytest.approx(100.0)
-
-
-def test_planner_conversion_agrees_with_the_independent_one(cfg):
-    """If the planner exposes its tool-tip -> platform conversion, it matches the formula above."""
-    try:
-        from hexacnc.planner import tooltip_to_platform  # type: ignore[attr-defined]
-    except ImportError:
-        pytest.skip("hexacnc.planner.tooltip_to_platform not available")
-    tip = np.array([12.0, -7.0, -1120.0, 3.0, -2.0, 5.0])
-    R = matrix_from_euler(*np.radians(tip[3:]))
-    ref = np.asarray(cfg.tool.tip_platform_mm) + 40.0 * np.asarray(cfg.tool.axis_platform)
-    want = np.concatenate([tip[:3] - R @ ref, tip[3:]])
-    got = np.asarray(tooltip_to_platform(cfg, tip, 40.0), dtype=float)
-    np.testing.assert_allclose(got, want, atol=1e-9)
 
 
 def test_out_of_workspace_program_is_refused_with_its_line_before_motion(cfg, client):
