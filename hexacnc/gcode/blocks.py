@@ -46,5 +46,6 @@ class Block:
     coolant: str = "off"
     tool: int = 0
     extra: dict = field(default_factory=dict)
-    #: G94 moves with no X/Y/Z change: the programmed feed as an angular rate (F is deg/min then)
+    #: G94 moves with no X/Y/Z change: F is deg/min (LinuxCNC), given here in deg/s;
+    #: ``feed_mm_s`` then holds the same number (the path parameter is degrees)
     feed_deg_s: float | None = None

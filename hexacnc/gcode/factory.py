@@ -25,8 +25,8 @@ def machine_defaults(cfg) -> dict:
     wo = [float(v) for v in cfg.planner.work_offset_mm] + [float(v) for v in home[3:6]]
     tools = getattr(cfg, "tools", None)
     table = None
-    if tools is not None and getattr(tools, "length_mm", None) is not None:
-        table = dict(tools.length_mm)
+    if tools is not None and getattr(tools, "length_mm", None):
+        table = dict(tools.length_mm)   # an empty [tools] table means "no table": any T is accepted
     return {"start_pose": start, "work_offsets": {1: wo}, "tool_table": table,
             "tool_axis_platform": [float(v) for v in cfg.tool.axis_platform]}
 

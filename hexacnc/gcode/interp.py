@@ -623,7 +623,7 @@ class Interpreter:
             b = Block(B.LINE, ln.num, start, e, fm, inv, exact_stop=self.exact_stop,
                       blend_tolerance_mm=self.blend, tool_length_mm=self.tool_len, tool=self.tool)
             if inv is None and end[0] == pos[0] and end[1] == pos[1] and end[2] == pos[2]:
-                b.feed_deg_s = self.feed / 60.0
+                b.feed_deg_s = b.feed_mm_s = self.feed / 60.0  # rotary-only: F is deg/min
         self.blocks.append(b)
         self.pos = end
         self.pos_arr = e
@@ -707,6 +707,13 @@ class Interpreter:
                     self.G[target] = v
         if ln.comments:
             self._comments(ln)
+        # -- units first, so that F, G64 P and axis words of this line are read in the new units
+        if 200 in gset or 210 in gset:
+            new_u = 25.4 if 200 in gset else 1.0
+            if new_u != self.u:
+                self.feed = self.feed * self.u / new_u   # keep the physical feed of an earlier F
+                self.u = new_u
+                self.scale = [new_u] * 3 + [1.0] * 3
         u = self.u
         # -- feed mode and F
         if 930 in gset:
@@ -763,13 +770,6 @@ class Interpreter:
         for g in (170, 180, 190):
             if g in gset:
                 self.plane = g
-        if 200 in gset or 210 in gset:
-            new_u = 25.4 if 200 in gset else 1.0
-            if new_u != self.u:
-                self.feed = self.feed * self.u / new_u
-                self.u = new_u
-                self.scale = [new_u] * 3 + [1.0] * 3
-            u = self.u
         # -- tool length
         if 430 in gset:
             if "h" in vals:
@@ -954,7 +954,7 @@ class Interpreter:
             f = vals.get("f")
             if f is None:
                 raise ln.error(f"G93 inverse-time G{motion // 10} move needs an F word on its line",
-                               f"g{motion}" if f"g{motion}" in ln.cols else (ln.axes[0][1] if ln.axes else None),
+                               f"g{motion}",
                                "feed")
             if f <= 0.0:
                 raise ln.error(f"inverse-time F{f:g} must be positive", "f", "feed")
@@ -962,7 +962,7 @@ class Interpreter:
         f = self.feed
         if f <= 0.0:
             raise ln.error(f"G{motion // 10} with zero feed rate (no F word yet)",
-                           f"g{motion}" if f"g{motion}" in ln.cols else (ln.axes[0][1] if ln.axes else None),
+                           f"g{motion}",
                            "feed")
         return f * self.u / 60.0, None
 
@@ -982,7 +982,7 @@ class Interpreter:
             b = Block(B.LINE, ln.num, start, e, fm, inv, exact_stop=self.exact_stop,
                       blend_tolerance_mm=self.blend, tool_length_mm=self.tool_len, tool=self.tool)
             if fm is not None and end[0] == pos[0] and end[1] == pos[1] and end[2] == pos[2]:
-                b.feed_deg_s = self.feed / 60.0
+                b.feed_deg_s = b.feed_mm_s = self.feed / 60.0  # rotary-only: F is deg/min
         self.blocks.append(b)
         self.pos = end
         self.pos_arr = e
@@ -1037,7 +1037,7 @@ class Interpreter:
         else:
             if cp not in vals and cq not in vals:
                 raise ln.error(f"arc in the G{plane // 10} plane needs {cp.upper()}/{cq.upper()} "
-                               "words or R", f"g{motion}" if f"g{motion}" in ln.cols else ln.axes[0][1], "arc")
+                               "words or R", f"g{motion}", "arc")
             if self.arc_absolute:
                 c_p = vals.get(cp, 0.0) * u + self.off[p]
                 c_q = vals.get(cq, 0.0) * u + self.off[q]
