@@ -8,6 +8,9 @@ objects while cycling: detach the master first, see :meth:`drivers.master.Master
     ev = io.poll()                     # non-blocking drain: feedback, statusword, heartbeats, EMCY
     io.pos_inc[i], io.status[i], io.last_heartbeat_s[i], io.emcy (deque)
 
+The drives consume the master heartbeat (``[bus] heartbeat_timeout_ms``): the first ``send`` sends
+one, so keep the gap between ``Master.detach()`` and the first ``send`` well below that time-out.
+
 Neither call raises for bus trouble or bad frames: ``send`` returns ``SEND_*`` bits, ``poll`` ``EV_*``
 bits. Nothing is allocated per cycle except what python-can forces (received ``can.Message``
 objects, the udp_multicast datagram).
@@ -145,7 +148,7 @@ class CyclicIO:
         self._hb_msg = can.Message(arbitration_id=0x700 + MASTER_NODE_ID, data=bytearray([NMT_OPERATIONAL]),
                                    is_extended_id=False)
         self._hb_every = max(1, round(bus_cfg.heartbeat_ms * 1e-3 / period_s))
-        self._hb_count = 0
+        self._hb_count = self._hb_every - 1      # first heartbeat with the first send()
         # receive dispatch
         self._rx: dict[int, tuple[int, int]] = {}
         for nd in plan.nodes:
@@ -200,7 +203,7 @@ class CyclicIO:
         self._hb_count += 1
         beat = self._hb_count >= self._hb_every
         if beat:
-            self._hb_count = 0
+            self._hb_count = self._hb_every - 1      # first heartbeat with the first send()
         pack_i32 = _I32.pack_into
         pack_u16 = _U16.pack_into
         for bus, frames, sync in self._tx:

@@ -1,0 +1,168 @@
+"""Hot-path frames on the virtual bus, decoded independently with canopen's PDO maps read from the drives."""
+import math
+import time
+
+import can
+import canopen
+import pytest
+
+from drivers import EDS_PATH, cia402
+from drivers.canbus import open_buses
+from drivers.cyclic import (EV_FEEDBACK, EV_STATUS, SEND_LIMIT, SEND_OK, increments_to_length, length_to_increments,
+                            limits_inc)
+from drivers.testing import SimRig
+
+
+def cycle(io, targets, period_s=0.0005):
+    ev = io.send(targets)
+    assert ev == SEND_OK
+    time.sleep(period_s)
+    return io.poll()
+
+
+class CanopenDecoder:
+    """Independent decoder: its own bus objects, canopen RemoteNodes from the EDS, PDO maps read by SDO."""
+
+    def __init__(self, rig):
+        self.buses = open_buses(rig.cfg.bus)
+        self.nets = [canopen.Network(b) for b in self.buses]
+        self.nodes = []
+        for nd in rig.master.plan.nodes:
+            node = canopen.RemoteNode(nd.node_id, canopen.import_od(str(EDS_PATH), nd.node_id))
+            self.nets[nd.bus].add_node(node)
+            self.nodes.append(node)
+        for net in self.nets:
+            net.connect()
+        self.targets = [[] for _ in self.nodes]
+        self.controlwords = [[] for _ in self.nodes]
+        self.positions = [[] for _ in self.nodes]
+        self.statuswords = [[] for _ in self.nodes]
+        for i, node in enumerate(self.nodes):
+            node.rpdo.read()          # SDO upload of 0x1400.. / 0x1600.. from the simulated drive
+            node.tpdo.read()
+            for m in node.rpdo.map.values():
+                if m.enabled:
+                    m.add_callback(self._rx_cb(i))
+            for m in node.tpdo.map.values():
+                if m.enabled:
+                    m.add_callback(self._tx_cb(i))
+
+    def _rx_cb(self, i):
+        def cb(m):
+            for var in m.map:
+                if var.index == 0x607A:
+                    self.targets[i].append(var.raw)
+                elif var.index == 0x6040:
+                    self.controlwords[i].append(var.raw)
+        return cb
+
+    def _tx_cb(self, i):
+        def cb(m):
+            for var in m.map:
+                if var.index == 0x6064:
+                    self.positions[i].append(var.raw)
+                elif var.index == 0x6041:
+                    self.statuswords[i].append(var.raw)
+        return cb
+
+    def close(self):
+        for net in self.nets:
+            net.notifier.stop(2.0)
+        for b in self.buses:
+            b.shutdown()
+
+
+LAYOUTS = [
+    dict(layout="single", buses=1, feedback_divider=1),
+    dict(layout="paired", buses=2, feedback_divider=3),
+    dict(layout="paired", buses=1, feedback_divider=2),
+    dict(layout="fd", buses=1, feedback_divider=3, fd=True),
+]
+
+
+@pytest.mark.parametrize("bus_changes", LAYOUTS, ids=lambda d: "-".join(f"{v}" for v in d.values()))
+def test_frames_decode_with_canopen_pdo_maps(bus_changes):
+    with SimRig(**bus_changes) as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        dec = CanopenDecoder(rig)         # reads the mapping by SDO while the master still beats
+        try:
+            # the mapping the drives report is the layout's (paired: dummies skip the other's bytes)
+            for nd, node in zip(rig.master.plan.nodes, dec.nodes):
+                assert node.rpdo[1].cob_id == nd.rpdo1_cob_id
+                assert [(v.index, v.length) for v in node.rpdo[1].map] == [(i, b) for i, s, b in nd.rpdo1_map]
+                assert node.tpdo[1].trans_type == nd.tpdo1_trans_type
+            io = rig.cyclic()
+            assert not io.emcy
+            sent = []
+            for k in range(60):
+                tg = [start[i] + (k * 37 * (i + 1)) * (-1) ** i for i in range(6)]
+                sent.append(tg)
+                cycle(io, tg)
+            time.sleep(0.05)
+            io.poll()
+            for i in range(6):
+                assert dec.targets[i] == [tg[i] for tg in sent], f"strut {i + 1}"
+                if bus_changes["layout"] == "single":
+                    assert set(dec.controlwords[i]) == {cia402.CW_ENABLE_OPERATION}
+                # feedback: what canopen decodes from the drives' TPDOs is what CyclicIO decoded
+                assert dec.positions[i] and dec.positions[i][-1] == io.pos_inc[i]
+                assert cia402.state_from_status(io.status[i]) == cia402.OPERATION_ENABLED, list(io.emcy)
+            # with a divider d each drive sends its feedback on every d-th SYNC
+            d = bus_changes["feedback_divider"]
+            for i in range(6):
+                assert abs(len(dec.positions[i]) - 60 / d) <= 1
+        finally:
+            dec.close()
+
+
+def test_limits_block_the_whole_cycle_and_controlword_events_only_on_change():
+    with SimRig() as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        io = rig.cyclic()
+        sniff = open_buses(rig.cfg.bus)
+        try:
+            lo, hi = limits_inc(rig.cfg)
+            cycle(io, start)
+            time.sleep(0.02)
+            for b in sniff:
+                while b.recv(0) is not None:
+                    pass
+            bad = list(start)
+            bad[4] = hi[4] + 1
+            assert io.send(bad) == SEND_LIMIT
+            bad[4] = lo[4] - 1
+            assert io.send(bad) == SEND_LIMIT
+            time.sleep(0.01)
+            plan = rig.master.plan
+            master_ids = {0x080, 0x77F} | {n.rpdo1_cob_id for n in plan.nodes} | {n.rpdo2_cob_id for n in plan.nodes}
+            left = [m.arbitration_id for b in sniff for m in iter(lambda b=b: b.recv(0), None)]
+            assert not master_ids & set(left), "a frame left although a target was out of limits"
+            # controlword: one RPDO2 event when it changes, none while it stays
+            io.set_controlword(0, cia402.CW_QUICK_STOP)
+            for _ in range(20):
+                cycle(io, start)
+            seen = []
+            for b in sniff:
+                while (m := b.recv(0)) is not None:
+                    seen.append(m.arbitration_id)
+            assert seen.count(0x301) == 1 and all(c not in seen for c in (0x302, 0x303, 0x304, 0x305, 0x306))
+            assert seen.count(0x080) == 2 * 20              # SYNC on both buses every cycle
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline and \
+                    cia402.state_from_status(io.status[0]) != cia402.SWITCH_ON_DISABLED:
+                cycle(io, start)
+            assert cia402.state_from_status(io.status[0]) == cia402.SWITCH_ON_DISABLED   # 11 then 12
+            assert all(cia402.state_from_status(s) == cia402.OPERATION_ENABLED for s in io.status[1:])
+        finally:
+            for b in sniff:
+                b.shutdown()
+
+
+def test_increment_conversion():
+    assert length_to_increments(512.34567, 500.0, 10000.0) == 123457
+    assert increments_to_length(123457, 500.0, 10000.0) == pytest.approx(512.3457)
+    for x in (-3.2, 0.0, 17.77777):
+        inc = length_to_increments(600 + x, 600, 10000.0)
+        assert abs(increments_to_length(inc, 600, 10000.0) - (600 + x)) <= 0.5 / 10000
