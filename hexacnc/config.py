@@ -209,6 +209,18 @@ class SpindleConfig:
 
 
 @dataclass(frozen=True)
+class DynamicsConfig:
+    """Strut drive and carrier dynamics for the simulator (see :mod:`hexacnc.sim.dynamics`)."""
+    reflected_mass_kg: float = 60.0            #: motor + screw inertia reflected to the strut axis
+    strut_damping_ratio: float = 0.03          #: strut spring damping, ratio at k and mass/6 of the carrier
+    bus_dead_time_s: float = 0.0015            #: setpoint/feedback dead time of the main control loop
+    velocity_bandwidth_hz: float = 0.0         #: drive velocity loop; 0: tuned the conventional way
+    position_gain_1_s: float = 0.0             #: drive position loop Kv factor; 0: bandwidth / 4
+    integral_time_s: float = 0.0               #: velocity PI integral time; 0: 4 / bandwidth
+    velocity_feedforward: bool = True          #: drives use the setpoint's rate as velocity feed-forward
+
+
+@dataclass(frozen=True)
 class ToolConfig:
     axis_platform: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
     tip_platform_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -311,6 +323,7 @@ class MachineConfig:
     daemon: DaemonConfig
     planner: PlannerConfig
     tools: ToolTableConfig = field(default_factory=ToolTableConfig)
+    dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -339,7 +352,8 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 
 
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
-                   "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools")
+                   "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
+                   "dynamics")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -524,6 +538,19 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         tool_len[int(key)] = float(v)
     tools = ToolTableConfig(length_mm=tool_len)
 
+    dy = sec("dynamics")
+    dyd = DynamicsConfig()
+    dynamics = DynamicsConfig(
+        reflected_mass_kg=dy.getfloat("reflected_mass_kg", dyd.reflected_mass_kg, above=0.0, maxval=1e5),
+        strut_damping_ratio=dy.getfloat("strut_damping_ratio", dyd.strut_damping_ratio, minval=0.0, maxval=2.0),
+        bus_dead_time_s=dy.getfloat("bus_dead_time_s", dyd.bus_dead_time_s, minval=0.0, maxval=0.1),
+        velocity_bandwidth_hz=dy.getfloat("velocity_bandwidth_hz", dyd.velocity_bandwidth_hz, minval=0.0,
+                                          maxval=5000.0),
+        position_gain_1_s=dy.getfloat("position_gain_1_s", dyd.position_gain_1_s, minval=0.0, maxval=10000.0),
+        integral_time_s=dy.getfloat("integral_time_s", dyd.integral_time_s, minval=0.0, maxval=10.0),
+        velocity_feedforward=dy.getbool("velocity_feedforward", dyd.velocity_feedforward),
+    )
+
     for sct in sections:
         sct.finish()
 
@@ -537,7 +564,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         inertia_kg_mm2=_freeze(inertia),
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
-        daemon=daemon, planner=planner, tools=tools, raw=doc,
+        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, raw=doc,
     )
     _check_geometry(cfg)
     return cfg
