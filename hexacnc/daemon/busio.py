@@ -13,37 +13,201 @@ Modes (``Daemon(io_mode=...)``; ``auto`` picks from the config):
 from __future__ import annotations
 
 import logging
+import os
+
+from ..errors import BusError
 
 log = logging.getLogger("hexacnc.busio")
 
 
 def resolve_mode(cfg, mode: str) -> str:
-    if mode not in ("auto", "bus", "inproc"):
-        raise ValueError(f"io mode {mode!r} is not one of auto, bus, inproc")
+    if mode not in ("auto", "bus", "pipe", "inproc"):
+        raise ValueError(f"io mode {mode!r} is not one of auto, bus, pipe, inproc")
     if mode != "auto":
         return mode
     if cfg.bus.simulate and cfg.bus.interface == "virtual":
-        return "inproc"
+        return "pipe"
     return "bus"
 
 
-def start_simulation(cfg, mode: str, period_s: float):
-    """Start the simulated drives process when the mode needs one; returns a handle or None."""
+class PipeSim:
+    """The simulated drives process on pipe buses, and the hot loop's ends of the pipes."""
+
+    def __init__(self, cfg, faults=()):
+        import pickle
+        import subprocess
+        import sys
+        import time
+        from .pipebus import socket_pairs
+        pairs = socket_pairs(cfg.bus.buses)
+        self.hot_fds = [a.detach() for a, _ in pairs]
+        sim_fds = [b.detach() for _, b in pairs]
+        try:
+            self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc.daemon.simhost"], stdin=subprocess.PIPE,
+                                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=sim_fds,
+                                         text=False)
+        finally:
+            for fd in sim_fds:
+                os.close(fd)
+        self.proc.stdin.write(pickle.dumps({"cfg": cfg, "fds": sim_fds, "faults": list(faults)}))
+        self.proc.stdin.close()
+        import selectors
+        sel = selectors.DefaultSelector()
+        sel.register(self.proc.stdout, selectors.EVENT_READ)
+        t_end = time.monotonic() + 20.0
+        ok = False
+        while time.monotonic() < t_end:
+            if sel.select(0.1):
+                line = self.proc.stdout.readline()
+                if line.strip() == b"READY":
+                    ok = True
+                    break
+                if not line:
+                    break
+            elif self.proc.poll() is not None:
+                break
+        sel.close()
+        if not ok:
+            self.terminate()
+            err = self.proc.stderr.read().decode(errors="replace")[-2000:]
+            self.close_fds()
+            raise BusError(f"simulated drives did not start: {err.strip()}")
+
+    def close_fds(self) -> None:
+        for fd in self.hot_fds:
+            try:
+                os.close(fd)
+            except OSError:
+                pass
+        self.hot_fds = []
+
+    def terminate(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.terminate()
+
+    def wait(self, timeout=None):
+        return self.proc.wait(timeout)
+
+    def kill(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+
+    @property
+    def stdout(self):
+        return self.proc.stdout
+
+    @property
+    def stderr(self):
+        return self.proc.stderr
+
+
+def start_simulation(cfg, mode: str, period_s: float, faults=(), channel: str | None = None):
+    """Start the simulated drives process when the mode needs one; returns its handle or None."""
+    if mode == "pipe":
+        return PipeSim(cfg, faults)
     if mode != "bus" or not cfg.bus.simulate:
         return None
-    from drivers import simdrive  # noqa: F401  (provided by the drivers layer)
-    return simdrive.start_process(cfg)
+    from drivers import simdrive
+    if cfg.bus.interface == "virtual":
+        raise BusError("[bus] interface 'virtual' cannot reach simulated drives in another process: "
+                       "use udp_multicast (inside a network namespace) or socketcan (vcan)")
+    ch = channel or cfg.bus.channel
+    log.info("starting simulated drives (%s %s)", cfg.bus.interface, ch)
+    return simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=ch, faults=list(faults))
 
 
-def child_args(sim) -> dict:
-    return {}
+def child_args(sim, channel: str | None = None) -> dict:
+    if isinstance(sim, PipeSim):
+        return {"channel": channel, "pipe_fds": list(sim.hot_fds)}
+    return {"channel": channel}
+
+
+def pass_fds(sim) -> tuple:
+    return tuple(sim.hot_fds) if isinstance(sim, PipeSim) else ()
 
 
 def stop_simulation(sim) -> None:
     if sim is None:
         return
-    from drivers import simdrive
-    simdrive.stop_process(sim)
+    if isinstance(sim, PipeSim):
+        sim.close_fds()
+    sim.terminate()
+    try:
+        sim.wait(5)
+    except Exception:
+        sim.kill()
+        sim.wait(5)
+    for f in (sim.stdout, sim.stderr):
+        try:
+            f.close()
+        except Exception:
+            pass
+
+
+class CyclicAdapter:
+    """:class:`drivers.cyclic.CyclicIO` seen through the loop's :class:`~hexacnc.daemon.loop.IOProtocol`."""
+
+    def __init__(self, cio, bus_load: float, info: dict):
+        from drivers import cyclic
+        self.cio = cio
+        self.n = cio.n
+        self.target = [0] * 6
+        self.pos = cio.pos_inc                # same list objects: no copies per cycle
+        self.statusword = cio.status
+        self.pos_count = [0] * 6
+        self._pt = list(cio.pos_time_s)
+        self.hb_ns = [0] * 6
+        self.emcy_count = [0] * 6
+        self.emcy_code = [0] * 6
+        self._emcy_last = [None] * 6
+        self.bus_load = bus_load
+        self.info = info
+        self._EV_EMCY = cyclic.EV_EMCY
+        self._EV_BOOTUP = cyclic.EV_BOOTUP
+        self._hb = cio.last_heartbeat_s
+
+    def poll(self, now_ns: int) -> int:
+        cio = self.cio
+        ev = cio.poll()
+        pt = cio.pos_time_s
+        lp = self._pt
+        hb = self._hb
+        hb_ns = self.hb_ns
+        pc = self.pos_count
+        for i in range(6):
+            t = pt[i]
+            if t != lp[i]:
+                lp[i] = t
+                pc[i] += 1
+            hb_ns[i] = int(hb[i] * 1e9)
+        if ev & self._EV_EMCY:
+            q = cio.emcy
+            while q:
+                i, code, reg, extra, t = q.popleft()
+                if code == 0:          # "error reset / no error" EMCY
+                    continue
+                self.emcy_code[i] = code
+                self._emcy_last[i] = (code, reg, bytes(extra))
+                self.emcy_count[i] += 1
+        return ev
+
+    def send(self) -> int:
+        return self.cio.send(self.target)
+
+    def set_controlword(self, i: int, cw: int) -> None:
+        self.cio.set_controlword(i, cw)
+
+    def emcy_text(self, i: int) -> str:
+        from drivers import cia402
+        e = self._emcy_last[i]
+        return cia402.emcy_text(*e) if e else ""
+
+    def close(self) -> None:
+        for b in self.cio.buses:
+            try:
+                b.shutdown()
+            except Exception:
+                pass
 
 
 def open_io(cfg, mode: str, period_s: float, sim_args: dict):
@@ -56,4 +220,33 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         io = SimIO(cfg, period_s, tau_s=0.0005, start_pos=start)
         io.info = {"mode": "inproc", "drives": "in-process model"}
         return io
-    raise NotImplementedError("bus mode: waiting for drivers.cyclic / drivers.master")
+    from drivers import busload, canbus, cia402, cyclic
+    from drivers.master import Master
+    rep = busload.check_layout(cfg.bus, period_s)      # BusError with the figures if it does not fit
+    load = float(rep["load"])
+    if sim_args.get("pipe_fds"):
+        from .pipebus import PipeBus
+        buses = [PipeBus(fd=fd) for fd in sim_args["pipe_fds"]]
+    else:
+        buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
+    try:
+        m = Master(cfg, buses)
+        m.bring_up(enable=True)
+        sw = m.statuswords()
+        pos = m.positions_inc()
+        m.detach()
+        cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
+                              controlword=cia402.CW_ENABLE_OPERATION, period_s=period_s)
+        for i in range(6):
+            cio.status[i] = sw[i]
+            cio.pos_inc[i] = pos[i]
+    except BaseException:
+        for b in buses:
+            try:
+                b.shutdown()
+            except Exception:
+                pass
+        raise
+    info = {"mode": mode, "interface": "pipe (Unix socket pair)" if sim_args.get("pipe_fds") else cfg.bus.interface, "layout": cfg.bus.layout, "buses": cfg.bus.buses,
+            "bus_load": load, "bus_summary": busload.describe(rep)}
+    return CyclicAdapter(cio, load, info)

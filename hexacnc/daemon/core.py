@@ -52,11 +52,11 @@ BOOT_TIMEOUT_S = 30.0
 class HotProcess:
     """Handle of the hot loop subprocess (``python -m hexacnc.daemon.hot``)."""
 
-    def __init__(self, args: dict):
+    def __init__(self, args: dict, fds: tuple = ()):
         r, w = os.pipe()
         try:
             self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc.daemon.hot", str(w)],
-                                         stdin=subprocess.PIPE, pass_fds=(w,), close_fds=True)
+                                         stdin=subprocess.PIPE, pass_fds=(w,) + tuple(fds), close_fds=True)
         finally:
             os.close(w)
         self._r = r
@@ -105,8 +105,8 @@ class HotProcess:
             self.proc.kill()
 
 
-def _spawn_hot(args: dict) -> HotProcess:
-    return HotProcess(args)
+def _spawn_hot(args: dict, fds: tuple = ()) -> HotProcess:
+    return HotProcess(args, fds)
 
 
 @dataclass
@@ -127,10 +127,13 @@ class Daemon:
     """Supervisor of the hot loop. ``Daemon(cfg).start()``; or use as a context manager."""
 
     def __init__(self, cfg, *, io_mode: str = "auto", period_s: float | None = None,
-                 realtime: bool = True, start: bool = True, log_level: str | None = None):
+                 realtime: bool = True, start: bool = True, log_level: str | None = None,
+                 sim_faults=(), channel: str | None = None):
         self.cfg = cfg
         self.period_s = float(period_s or cfg.cycle.period_s)
         self.io_mode = io_mode
+        self.sim_faults = list(sim_faults)
+        self.channel = channel
         self.realtime = realtime
         self.log_level = log_level or cfg.daemon.log_level
         self.hx = Hexapod(cfg)
@@ -156,14 +159,21 @@ class Daemon:
     # ------------------------------------------------------------------ life cycle
     def start(self, timeout_s: float = BOOT_TIMEOUT_S) -> "Daemon":
         from . import busio
+        from drivers import busload
         mode = busio.resolve_mode(self.cfg, self.io_mode)
         self.info["io_mode"] = mode
+        rep = busload.check_layout(self.cfg.bus, self.period_s)   # refuse a layout over max_load, with figures
+        self.info["bus_load"] = rep["load"]
+        self.info["bus_summary"] = busload.describe(rep)
         self.sh = S.Shared(create=True)
         try:
-            self.sim = busio.start_simulation(self.cfg, mode, self.period_s)
+            self.sim = busio.start_simulation(self.cfg, mode, self.period_s, self.sim_faults, self.channel)
             self.hot = _spawn_hot({"cfg": self.cfg, "shm": self.sh.name, "io_mode": mode,
                                    "period_s": self.period_s, "realtime": self.realtime,
-                                   "log_level": self.log_level, "sim_args": busio.child_args(self.sim)})
+                                   "log_level": self.log_level, "sim_args": busio.child_args(self.sim, self.channel)},
+                                  busio.pass_fds(self.sim))
+            if hasattr(self.sim, "close_fds"):
+                self.sim.close_fds()          # the hot process holds its ends now
             t_end = time.monotonic() + timeout_s
             msg = self.hot.wait_report(timeout_s)
             if msg is None or msg[0] != "ready":

@@ -82,8 +82,8 @@ def _op_enabled(sw: int) -> bool:
 
 def _next_cw(sw: int, prev_cw: int) -> int:
     """Controlword that moves a drive with statusword ``sw`` one step towards Operation Enabled."""
-    if sw < 0:
-        return CW_SHUTDOWN
+    if sw < 0 or (sw & 0x4F) == 0:                 # unknown / not ready: wait
+        return prev_cw
     if sw & 0x08:                                  # fault: rising edge on bit 7 (transition 15)
         return CW_FAULT_RESET if prev_cw != CW_FAULT_RESET else CW_DISABLE_VOLTAGE
     if (sw & 0x4F) == 0x40:                        # switch on disabled -> 2
@@ -300,6 +300,8 @@ class HotLoop:
         hb_ns = io.hb_ns
         emcy_count = io.emcy_count
         emcy_seen = self.emcy_seen
+        pos_count = io.pos_count
+        pos_seen = [0] * 6
         statusword = io.statusword
         follow_max = self.follow_max
         follow_lim = self.follow_mm
@@ -314,6 +316,8 @@ class HotLoop:
         ROW = S.ROW
         lmin = self.lmin
         lmax = self.lmax
+        lo_inc = [math.ceil((lmin[i] - off[i]) * ipm - 1e-9) for i in range(6)]
+        hi_inc = [math.floor((lmax[i] - off[i]) * ipm + 1e-9) for i in range(6)]
         ST_IDLE, ST_RUNNING, ST_STOPPING, ST_FAULT, ST_DISABLED, ST_BOOT = (
             S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING, S.ST_FAULT, S.ST_DISABLED, S.ST_BOOT)
 
@@ -373,14 +377,17 @@ class HotLoop:
                         if (sw & 0x6F) != 0x27:
                             self._fault(F_DRIVE, i + 1, sw)
                             break
-                        e = act[i] - l0[i]
-                        if e < 0.0:
-                            e = -e
-                        if e > follow_max[i]:
-                            follow_max[i] = e
-                        if e > follow_lim:
-                            self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
-                            break
+                        if pos_count[i] != pos_seen[i]:
+                            # a fresh sample: the position at the last SYNC, whose target was l0
+                            pos_seen[i] = pos_count[i]
+                            e = act[i] - l0[i]
+                            if e < 0.0:
+                                e = -e
+                            if e > follow_max[i]:
+                                follow_max[i] = e
+                            if e > follow_lim:
+                                self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
+                                break
                     state = self.state
                 # ---------------------------------------------------------- setpoint + transform
                 if state == ST_RUNNING or state == ST_IDLE:
@@ -444,6 +451,15 @@ class HotLoop:
                     if state == ST_BOOT:
                         all_on = True
                         for i in range(6):
+                            if pos_count[i] == 0:       # no position yet: never enable blind
+                                all_on = False
+                                break
+                            if act[i] < lmin[i] or act[i] > lmax[i]:
+                                all_on = False
+                                if t0 - self.enable_t0 > ENABLE_TIMEOUT_NS // 4:
+                                    self.enable_t0 = -ENABLE_TIMEOUT_NS   # refuse now
+                                break
+                        for i in range(6 if all_on else 0):
                             sw = statusword[i]
                             if not _op_enabled(sw):
                                 all_on = False
@@ -451,6 +467,10 @@ class HotLoop:
                                 if cw != self.cw[i]:
                                     io.set_controlword(i, cw)
                                     self.cw[i] = cw
+                        if all_on:
+                            for i in range(6):
+                                if not _op_enabled(statusword[i]):
+                                    all_on = False
                         if all_on:
                             for i in range(6):
                                 io.set_controlword(i, CW_ENABLE_OPERATION)
@@ -463,13 +483,20 @@ class HotLoop:
                             h[S.H_READY] = 1
                         elif t0 - self.enable_t0 > ENABLE_TIMEOUT_NS:
                             bad = 0
+                            arg = 0
                             for i in range(6):
+                                if pos_count[i] == 0:
+                                    bad, arg = i + 1, -1
+                                    break
+                                if act[i] < lmin[i] or act[i] > lmax[i]:
+                                    bad, arg = i + 1, -2
+                                    break
                                 if not _op_enabled(statusword[i]):
-                                    bad = i + 1
+                                    bad, arg = i + 1, statusword[i]
                                     break
                             self.fault = F_ENABLE
                             self.fault_strut = bad
-                            self.fault_arg = statusword[bad - 1] if bad else 0
+                            self.fault_arg = arg
                             self._disable()
                             state = self.state = ST_FAULT
                             if h[S.H_READY] == 0:
@@ -477,7 +504,8 @@ class HotLoop:
                 # ---------------------------------------------------------- out to the bus
                 for i in range(6):
                     v = out[i]
-                    target[i] = round((v - off[i]) * ipm)
+                    t = round((v - off[i]) * ipm)
+                    target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
                     l2[i] = l1[i]
                     l1[i] = l0[i]
                     l0[i] = v
@@ -575,6 +603,10 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
     if code == F_BUS:
         return "bus send failed"
     if code == F_ENABLE:
+        if arg == -2:
+            return f"drive {strut} reports a position outside the strut length range: not enabled"
+        if arg == -1:
+            return f"no position feedback from drive {strut}: not enabled"
         return f"drive {strut} did not reach Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
     if code == F_TEST:
         return "test fault"
@@ -591,8 +623,16 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
     import sys
     logging.basicConfig(level=getattr(logging, str(log_level).upper(), logging.INFO), stream=sys.stderr,
                         format="%(asctime)s hexacnc[hot %(process)d] %(levelname)s %(message)s")
+    logging.getLogger("canopen").setLevel(logging.WARNING)
+    logging.getLogger("can").setLevel(logging.WARNING)
     sh = S.Shared(shm_name)
     from . import busio, rt
+    # memory lock and CPU first (slow, and the drives must not wait for the cycle after the boot),
+    # SCHED_FIFO last: threads the bus boot starts must not inherit it
+    locked, m1 = rt.mlockall()
+    (log.info if locked else log.warning)("hot loop: %s", m1)
+    cpu, m2 = rt.pin_cpu(cfg.cycle.cpu)
+    (log.info if cpu >= 0 else log.warning)("hot loop: %s", m2)
     io = None
     try:
         io = busio.open_io(cfg, io_mode, period_s, sim_args or {})
@@ -602,7 +642,12 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
         report("error", f"{type(exc).__name__}: {exc}")
         sh.close()
         return
-    priv = rt.acquire(cfg.cycle.realtime_priority, cfg.cycle.cpu, want_fifo=realtime)
+    if realtime:
+        fifo, m3 = rt.sched_fifo(cfg.cycle.realtime_priority)
+    else:
+        fifo, m3 = False, "SCHED_FIFO not requested"
+    (log.info if fifo else log.warning)("hot loop: %s", m3)
+    priv = {"sched_fifo": fifo, "mlockall": locked, "affinity_cpu": cpu, "messages": [m1, m2, m3]}
     sh.h[S.H_PRIV_FIFO] = 1 if priv["sched_fifo"] else 0
     sh.h[S.H_PRIV_MLOCK] = 1 if priv["mlockall"] else 0
     sh.h[S.H_PRIV_AFFINITY] = priv["affinity_cpu"] + 1

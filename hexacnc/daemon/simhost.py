@@ -1,0 +1,47 @@
+"""``python -m hexacnc.daemon.simhost``: the simulated drives process on pipe buses.
+
+Runs :class:`drivers.simdrive.SimDrives` (six CiA 402 nodes from the EDS) on
+:class:`~hexacnc.daemon.pipebus.PipeBus` ends inherited from the supervisor.  Arguments come as
+one pickle on stdin: ``{"cfg": MachineConfig, "fds": [fd per bus], "faults": [spec, ...]}``.
+Prints ``READY`` once the nodes are up; runs until SIGTERM/SIGINT or until the supervisor's
+end of stdin... (it stops when its parent dies: the pipe buses report EOF).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import pickle
+import signal
+import sys
+import threading
+
+
+def main() -> int:
+    args = pickle.load(sys.stdin.buffer)
+    logging.basicConfig(level=args.get("log_level", "WARNING"), stream=sys.stderr,
+                        format="simdrive %(levelname)s %(message)s")
+    from drivers.simdrive import FaultSpec, SimDrives
+    from .pipebus import PipeBus
+    cfg = args["cfg"]
+    buses = [PipeBus(fd=fd) for fd in args["fds"]]
+    faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *a: stop.set())
+    signal.signal(signal.SIGINT, lambda *a: stop.set())
+    ppid = os.getppid()
+    sim = SimDrives(cfg, buses, faults=faults)
+    try:
+        sim.start()
+        print("READY", flush=True)
+        while not stop.wait(0.2):
+            if os.getppid() != ppid:
+                break
+    finally:
+        sim.stop()
+        for b in buses:
+            b.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
