@@ -1,0 +1,497 @@
+"""Path geometry of a program: blocks -> pieces (lines, helical arcs, corner blends).
+
+Conventions
+-----------
+* Input blocks carry tool-tip poses ``[x, y, z, a, b, c]`` (mm / deg, machine =
+  base frame).  Inside, angles are radians.
+* The path parameter ``s`` is the tool-tip path length in mm; for a move that
+  only rotates it is the angular distance ``|d(a, b, c)|`` in degrees (the feed
+  is then read as deg/s, as LinuxCNC does for rotary-only moves).
+* Orientation is interpolated **linearly in a, b, c** (each rotary axis moves
+  linearly with the path, as on a 5-axis machine) - on lines and on arcs.
+* Platform pose: ``t = tip - R(a, b, c) @ q_tool`` with the tool point
+  ``q_tool = tip_platform_mm + tool_length_mm * axis_platform`` (platform frame).
+* Corner blends: a cubic Hermite curve in (x, y, z, a, b, c) that joins the two
+  trimmed segments with matching first derivatives in ``s`` (C1); its deviation
+  from the programmed path is bounded by the G64 P tolerance (mm for x, y, z and
+  the same number in degrees for a, b, c), checked numerically on 17 points
+  against the corresponding point of the programmed path (an upper bound of the
+  distance to the path).
+
+Piece kinds: 0 line, 1 arc, 2 blend.  Everything is vectorised over arrays of
+(piece index, s).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import PlanError
+from ..gcode import blocks as B
+
+LINE, ARC, BLEND = 0, 1, 2
+_SQRT3 = math.sqrt(3.0)
+_EPS_LEN = 1e-9
+
+
+@dataclass
+class Raw:
+    """One programmed motion before blending (internal)."""
+    kind: int
+    line: int
+    slen: float                 #: s-length (mm, or deg for rotary-only)
+    coef: np.ndarray            #: (24,) geometry coefficients
+    tool_mm: float
+    feed: float                 #: s-units per second (upper bound)
+    rapid: bool
+    exact_stop: bool
+    tolerance: float            #: blend tolerance (mm / deg)
+
+
+def _line_coef(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
+    c = np.zeros(24)
+    c[0:6] = p0
+    c[6:12] = p1 - p0
+    return c
+
+
+def _arc_coef(blk, p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, float]:
+    """Helical arc coefficients and s-length; raises PlanError on bad geometry."""
+    ctr = np.asarray(blk.center, dtype=float)
+    n = np.asarray(blk.normal, dtype=float)
+    nn = float(np.linalg.norm(n))
+    if ctr.shape != (3,) or n.shape != (3,) or nn < 1e-12 or not np.all(np.isfinite(ctr)):
+        raise PlanError(f"arc with invalid centre {blk.center!r} or normal {blk.normal!r}", line=blk.line,
+                        limit="arc geometry", code="gcode")
+    n = n / nn
+    v0 = p0[:3] - ctr
+    h0 = float(v0 @ n)
+    r0v = v0 - h0 * n
+    r0 = float(np.linalg.norm(r0v))
+    v1 = p1[:3] - ctr
+    h1 = float(v1 @ n)
+    r1v = v1 - h1 * n
+    r1 = float(np.linalg.norm(r1v))
+    if r0 < 1e-9 or r1 < 1e-9:
+        raise PlanError("arc with zero radius (start or end on the centre)", line=blk.line,
+                        limit="arc geometry", code="gcode")
+    e1 = r0v / r0
+    e2 = np.cross(n, e1)
+    phi = math.atan2(float(r1v @ e2), float(r1v @ e1))
+    turns = max(0, int(blk.turns or 0))
+    if blk.clockwise:
+        th = -((-phi) % (2 * math.pi))
+        if th > -1e-9:
+            th = -2 * math.pi
+        th -= 2 * math.pi * turns
+    else:
+        th = phi % (2 * math.pi)
+        if th < 1e-9:
+            th = 2 * math.pi
+        th += 2 * math.pi * turns
+    c = np.zeros(24)
+    c[0:3] = ctr + h0 * n
+    c[3:6] = e1
+    c[6:9] = e2
+    c[9:12] = n
+    c[12] = r0
+    c[13] = r1 - r0
+    c[14] = th
+    c[15] = h1 - h0
+    c[16:19] = p0[3:]
+    c[19:22] = p1[3:] - p0[3:]
+    rm = 0.5 * (r0 + r1)
+    slen = math.hypot(abs(th) * rm, h1 - h0)
+    if slen < _EPS_LEN:
+        slen = float(np.linalg.norm(np.degrees(p1[3:] - p0[3:])))
+    return c, slen
+
+
+def _pose_rad(v, what: str, line: int) -> np.ndarray:
+    p = np.asarray(v, dtype=float)
+    if p.shape != (6,) or not np.all(np.isfinite(p)):
+        raise PlanError(f"{what} pose must be 6 finite numbers, got {v!r}", line=line, limit="input", code="gcode")
+    p = p.copy()
+    p[3:] = np.radians(p[3:])
+    return p
+
+
+# ---------------------------------------------------------------------------
+# vectorised evaluation
+# ---------------------------------------------------------------------------
+def eval_raw(kind: np.ndarray, coef: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Tip pose (N,6) (mm, rad) at normalised parameters u (N,) for pieces given by kind (N,), coef (N,24)."""
+    out = np.empty((u.shape[0], 6))
+    m = kind == LINE
+    if m.any():
+        c = coef[m]
+        out[m] = c[:, 0:6] + u[m, None] * c[:, 6:12]
+    m = kind == ARC
+    if m.any():
+        c = coef[m]
+        uu = u[m]
+        r = c[:, 12] + c[:, 13] * uu
+        ph = c[:, 14] * uu
+        cp, sp = np.cos(ph), np.sin(ph)
+        out[m, 0:3] = (c[:, 0:3] + (r * cp)[:, None] * c[:, 3:6] + (r * sp)[:, None] * c[:, 6:9]
+                       + (c[:, 15] * uu)[:, None] * c[:, 9:12])
+        out[m, 3:6] = c[:, 16:19] + uu[:, None] * c[:, 19:22]
+    m = kind == BLEND
+    if m.any():
+        # cubic Hermite in power form: coef = [P0 (6), D*T0 (6), P3 (6), D*T3 (6)]
+        c = coef[m]
+        w = u[m][:, None]
+        w2, w3 = w * w, w * w * w
+        h00 = 2 * w3 - 3 * w2 + 1
+        h10 = w3 - 2 * w2 + w
+        h01 = -2 * w3 + 3 * w2
+        h11 = w3 - w2
+        out[m] = h00 * c[:, 0:6] + h10 * c[:, 6:12] + h01 * c[:, 12:18] + h11 * c[:, 18:24]
+    return out
+
+
+class Path:
+    """The executed path: pieces with global ``s`` ranges.
+
+    Arrays (M pieces): ``kind``, ``coef`` (M,24), ``s0`` (global start),
+    ``slen`` (s-length of the piece), ``u0``/``uscale`` (piece-local parameter
+    ``u = u0 + (s - s0) * uscale``), ``tool_point`` (M,3) platform frame,
+    ``feed`` (s-units/s), ``rapid``, ``line``.
+    """
+
+    def __init__(self, cfg, pieces: list[dict], stops_after: dict[int, dict]):
+        self.cfg = cfg
+        M = len(pieces)
+        self.n = M
+        self.kind = np.array([p["kind"] for p in pieces], dtype=np.int8)
+        self.coef = np.array([p["coef"] for p in pieces], dtype=float).reshape(M, 24)
+        self.slen = np.array([p["slen"] for p in pieces], dtype=float)
+        self.s0 = np.concatenate([[0.0], np.cumsum(self.slen)[:-1]]) if M else np.zeros(0)
+        self.u0 = np.array([p["u0"] for p in pieces], dtype=float)
+        self.uscale = np.array([p["uscale"] for p in pieces], dtype=float)
+        axis = np.asarray(cfg.tool.axis_platform, dtype=float)
+        tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+        self.tool_mm = np.array([p["tool_mm"] for p in pieces], dtype=float)
+        self.tool_point = tipp[None, :] + self.tool_mm[:, None] * axis[None, :]
+        self.feed = np.array([p["feed"] for p in pieces], dtype=float)
+        self.rapid = np.array([p["rapid"] for p in pieces], dtype=bool)
+        self.line = np.array([p["line"] for p in pieces], dtype=np.int64)
+        self.total = float(self.s0[-1] + self.slen[-1]) if M else 0.0
+        #: piece index -> stop/hold description at its end (see plan.py)
+        self.stops_after = stops_after
+
+    def piece_at(self, s: np.ndarray) -> np.ndarray:
+        idx = np.searchsorted(self.s0, s, side="right") - 1
+        return np.clip(idx, 0, self.n - 1)
+
+    def tip(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Tool-tip poses (N,6) mm/rad of pieces ``idx`` at global ``s`` (extrapolates outside the piece)."""
+        u = self.u0[idx] + (s - self.s0[idx]) * self.uscale[idx]
+        return eval_raw(self.kind[idx], self.coef[idx], u)
+
+    def platform(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        """Platform poses (N,6) mm/rad (tool tip converted through the tool point)."""
+        P = self.tip(idx, s)
+        return tip_to_platform(P, self.tool_point[idx])
+
+
+def rot_elems(abc: np.ndarray):
+    """The nine elements of ``Rz(c) Ry(b) Rx(a)`` as (N,) arrays (row-major)."""
+    a, b, c = abc[:, 0], abc[:, 1], abc[:, 2]
+    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    return (cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa,
+            sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa,
+            -sb, cb * sa, cb * ca)
+
+
+def tip_to_platform(P: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Platform poses from tip poses P (N,6) mm/rad and tool points q (N,3) platform frame."""
+    r = rot_elems(P[:, 3:])
+    out = P.copy()
+    out[:, 0] -= r[0] * q[:, 0] + r[1] * q[:, 1] + r[2] * q[:, 2]
+    out[:, 1] -= r[3] * q[:, 0] + r[4] * q[:, 1] + r[5] * q[:, 2]
+    out[:, 2] -= r[6] * q[:, 0] + r[7] * q[:, 1] + r[8] * q[:, 2]
+    return out
+
+
+def strut_lengths(X: np.ndarray, plat: np.ndarray, base: np.ndarray) -> np.ndarray:
+    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics."""
+    r = rot_elems(X[:, 3:])
+    L = np.empty((X.shape[0], 6))
+    for i in range(6):
+        px, py, pz = plat[i]
+        sx = X[:, 0] + r[0] * px + r[1] * py + r[2] * pz - base[i, 0]
+        sy = X[:, 1] + r[3] * px + r[4] * py + r[5] * pz - base[i, 1]
+        sz = X[:, 2] + r[6] * px + r[7] * py + r[8] * pz - base[i, 2]
+        L[:, i] = np.sqrt(sx * sx + sy * sy + sz * sz)
+    return L
+
+
+# ---------------------------------------------------------------------------
+# building the path from blocks
+# ---------------------------------------------------------------------------
+def raw_moves(blocks, cfg) -> tuple[list, list]:
+    """Motion blocks -> list of :class:`Raw`; events -> list of (index_of_preceding_raw, block).
+
+    Zero-length moves are dropped; everything after an ``end`` block is ignored.
+    """
+    pc = cfg.planner
+    rapid_feed = pc.rapid_feed_mm_min / 60.0
+    default_feed = pc.default_feed_mm_min / 60.0
+    raws: list[Raw] = []
+    events: list[tuple[int, object]] = []
+    for blk in blocks:
+        kind = getattr(blk, "kind", None)
+        line = int(getattr(blk, "line", 0) or 0)
+        if kind in B.MOTION_KINDS:
+            p0 = _pose_rad(blk.start, "start", line)
+            p1 = _pose_rad(blk.end, "end", line)
+            if kind == B.ARC:
+                coef, slen = _arc_coef(blk, p0, p1)
+                k = ARC
+            else:
+                lx = float(np.linalg.norm(p1[:3] - p0[:3]))
+                slen = lx if lx > _EPS_LEN else float(np.linalg.norm(np.degrees(p1[3:] - p0[3:])))
+                coef = _line_coef(p0, p1)
+                k = LINE
+            if slen < _EPS_LEN:
+                continue
+            if kind == B.RAPID:
+                feed = rapid_feed
+            elif blk.inverse_time_s is not None:
+                if not blk.inverse_time_s > 0 or not math.isfinite(blk.inverse_time_s):
+                    raise PlanError(f"inverse-time feed must give a positive time, got {blk.inverse_time_s!r}",
+                                    line=line, limit="feed", code="gcode")
+                feed = slen / float(blk.inverse_time_s)
+            else:
+                f = blk.feed_mm_s if blk.feed_mm_s is not None else default_feed
+                if not f > 0 or not math.isfinite(f):
+                    raise PlanError(f"feed must be positive, got {f!r} mm/s", line=line, limit="feed", code="gcode")
+                feed = float(f)
+            tol = blk.blend_tolerance_mm if blk.blend_tolerance_mm is not None else pc.path_tolerance_mm
+            raws.append(Raw(k, line, slen, coef, float(blk.tool_length_mm or 0.0), feed,
+                            kind == B.RAPID, bool(blk.exact_stop), float(tol)))
+        elif kind in (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.END, B.SPINDLE, B.COOLANT, B.TOOL_CHANGE):
+            events.append((len(raws) - 1, blk))
+            if kind == B.END:
+                break
+        else:
+            raise PlanError(f"unknown block kind {kind!r}", line=line, limit="input", code="gcode")
+    return raws, events
+
+
+def _raw_eval(r: Raw, u: np.ndarray) -> np.ndarray:
+    return eval_raw(np.full(u.shape[0], r.kind, dtype=np.int8), np.broadcast_to(r.coef, (u.shape[0], 24)), u)
+
+
+def _raw_deriv(r: Raw, u: float) -> np.ndarray:
+    """d pose / ds (6,) (rad for angles) at normalised u."""
+    d = 1e-6
+    P = _raw_eval(r, np.array([u - d, u + d]))
+    return (P[1] - P[0]) / (2 * d * r.slen)
+
+
+#: events that stop motion; coolant changes do not
+STOP_EVENTS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.END, B.SPINDLE, B.TOOL_CHANGE)
+
+
+def build_path(blocks, cfg) -> tuple[Path, list]:
+    """Blocks -> :class:`Path` with corner blends; returns (path, events placed at piece indices)."""
+    raws, events = raw_moves(blocks, cfg)
+    if not raws:
+        return Path(cfg, [], {}), events
+    axis = np.asarray(cfg.tool.axis_platform, dtype=float)
+    tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    stop_after_raw = set(i for i, blk in events if blk.kind in STOP_EVENTS)
+    nr = len(raws)
+    # junction analysis between raw i and i+1
+    blend_d = np.zeros((nr, 2))          # trim at start / end of each raw (s-units)
+    junction_stop = np.zeros(nr, dtype=bool)   # stop after raw i
+    cand = []
+    for i in range(nr - 1):
+        a, b = raws[i], raws[i + 1]
+        pa = _raw_eval(a, np.array([1.0]))[0]
+        pb = _raw_eval(b, np.array([0.0]))[0]
+        qa = tipp + a.tool_mm * axis
+        qb = tipp + b.tool_mm * axis
+        Xa = tip_to_platform(pa[None], qa[None])[0]
+        Xb = tip_to_platform(pb[None], qb[None])[0]
+        if np.max(np.abs(Xa[:3] - Xb[:3])) > 1e-6 or np.max(np.abs(Xa[3:] - Xb[3:])) > 1e-8:
+            raise PlanError(f"path is discontinuous: the move starts at platform pose "
+                            f"{np.round(_deg(Xb), 6).tolist()} but the previous move (line {a.line}) ended at "
+                            f"{np.round(_deg(Xa), 6).tolist()}", line=b.line, limit="continuity", code="gcode")
+        if i in stop_after_raw or a.exact_stop or a.tool_mm != b.tool_mm:
+            junction_stop[i] = True
+            continue
+        ta = _raw_deriv(a, 1.0)
+        tb = _raw_deriv(b, 0.0)
+        dt = tb - ta
+        if np.max(np.abs(dt)) < 1e-7:
+            continue   # tangent-continuous in s: nothing to do
+        cosang = float(ta[:3] @ tb[:3]) / max(1e-12, float(np.linalg.norm(ta[:3]) * np.linalg.norm(tb[:3])))
+        if np.linalg.norm(ta[:3]) > 1e-9 and np.linalg.norm(tb[:3]) > 1e-9 and cosang < -0.996:
+            junction_stop[i] = True   # reversal (> 175 deg): no useful blend
+            continue
+        tol = min(a.tolerance, b.tolerance)
+        if tol <= 0:
+            junction_stop[i] = True
+            continue
+        dx = float(np.linalg.norm(dt[:3]))
+        da = float(np.linalg.norm(np.degrees(dt[3:])))
+        d = min(4.0 * tol / max(dx, 1e-12), 4.0 * tol / max(da, 1e-12))
+        cand.append([i, d])
+    if cand:
+        C = np.array(cand)
+        idx = C[:, 0].astype(int)
+        d = C[:, 1]
+        la = np.array([raws[i].slen for i in idx])
+        lb = np.array([raws[i + 1].slen for i in idx])
+        da = np.minimum(d, 0.5 * la)
+        db = np.minimum(d, 0.5 * lb)
+        ok = np.zeros(len(idx), dtype=bool)
+        for _ in range(20):
+            todo = np.nonzero(~ok)[0]
+            if todo.size == 0:
+                break
+            dev = _blend_deviation(raws, idx[todo], da[todo], db[todo])
+            tols = np.array([min(raws[i].tolerance, raws[i + 1].tolerance) for i in idx[todo]])
+            good = dev <= tols
+            ok[todo[good]] = True
+            bad = todo[~good]
+            da[bad] *= 0.5
+            db[bad] *= 0.5
+        for j, i in enumerate(idx):
+            if not ok[j] or da[j] < 1e-7 or db[j] < 1e-7:
+                junction_stop[i] = True
+            else:
+                blend_d[i, 1] = da[j]
+                blend_d[i + 1, 0] = db[j]
+    pieces: list[dict] = []
+    stops_after: dict[int, dict] = {}
+    raw_last_piece = np.zeros(nr, dtype=int)
+    for i, r in enumerate(raws):
+        t0, t1 = blend_d[i]
+        pieces.append(dict(kind=r.kind, coef=r.coef, slen=r.slen - t0 - t1, u0=t0 / r.slen, uscale=1.0 / r.slen,
+                           tool_mm=r.tool_mm, feed=r.feed, rapid=r.rapid, line=r.line))
+        raw_last_piece[i] = len(pieces) - 1
+        if junction_stop[i]:
+            stops_after[len(pieces) - 1] = {"corner": True}
+        if t1 > 0:
+            nb = raws[i + 1]
+            coef = _blend_coef(r, nb, t1, blend_d[i + 1, 0])
+            D = t1 + blend_d[i + 1, 0]
+            pieces.append(dict(kind=BLEND, coef=coef, slen=D, u0=0.0, uscale=1.0 / D, tool_mm=r.tool_mm,
+                               feed=min(r.feed, nb.feed), rapid=r.rapid and nb.rapid, line=nb.line))
+    placed = [(int(raw_last_piece[i]) if i >= 0 else -1, blk) for i, blk in events]
+    return Path(cfg, pieces, stops_after), placed
+
+
+def _deg(X: np.ndarray) -> np.ndarray:
+    Y = np.array(X, dtype=float)
+    Y[3:] = np.degrees(Y[3:])
+    return Y
+
+
+def _blend_coef(a: Raw, b: Raw, da: float, db: float) -> np.ndarray:
+    ua = 1.0 - da / a.slen
+    ub = db / b.slen
+    P0 = _raw_eval(a, np.array([ua]))[0]
+    P3 = _raw_eval(b, np.array([ub]))[0]
+    D = da + db
+    c = np.empty(24)
+    c[0:6] = P0
+    c[6:12] = _raw_deriv(a, ua) * D
+    c[12:18] = P3
+    c[18:24] = _raw_deriv(b, ub) * D
+    return c
+
+
+def _blend_deviation(raws: list[Raw], idx: np.ndarray, da: np.ndarray, db: np.ndarray) -> np.ndarray:
+    """Max deviation (mm for xyz, deg for abc; the larger) of candidate blends from the programmed path."""
+    W = np.linspace(0.0, 1.0, 17)
+    out = np.empty(len(idx))
+    for j, i in enumerate(idx):
+        a, b = raws[i], raws[i + 1]
+        coef = _blend_coef(a, b, da[j], db[j])
+        Pb = eval_raw(np.full(17, BLEND, dtype=np.int8), np.broadcast_to(coef, (17, 24)), W)
+        D = da[j] + db[j]
+        s = W * D - da[j]                # s relative to the corner
+        ref = np.empty((17, 6))
+        ma = s <= 0
+        ref[ma] = _raw_eval(a, 1.0 + s[ma] / a.slen)
+        ref[~ma] = _raw_eval(b, s[~ma] / b.slen)
+        dx = np.max(np.linalg.norm(Pb[:, :3] - ref[:, :3], axis=1))
+        dang = np.max(np.linalg.norm(np.degrees(Pb[:, 3:] - ref[:, 3:]), axis=1))
+        out[j] = max(dx, dang)
+    return out
+
+
+# ---------------------------------------------------------------------------
+# derivative bounds for the check spacing
+# ---------------------------------------------------------------------------
+def piece_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per piece rigorous bounds in s: ``t1 >= |d tip/ds|``, ``t2 >= |d2 tip/ds2|``,
+    ``a1 >= |d abc/ds|`` (rad per s-unit), ``a2 >= |d2 abc/ds2|``.  Returned as (t1, t2, a1, a2)."""
+    M = path.n
+    t1 = np.zeros(M)
+    t2 = np.zeros(M)
+    a1 = np.zeros(M)
+    a2 = np.zeros(M)
+    c = path.coef
+    k = path.kind
+    sc = path.uscale
+    m = k == LINE
+    t1[m] = np.linalg.norm(c[m, 6:9], axis=1) * sc[m]
+    a1[m] = np.linalg.norm(c[m, 9:12], axis=1) * sc[m]
+    m = k == ARC
+    if m.any():
+        r = np.maximum(np.abs(c[m, 12]), np.abs(c[m, 12] + c[m, 13]))
+        th = np.abs(c[m, 14])
+        dr = np.abs(c[m, 13])
+        h = np.abs(c[m, 15])
+        t1[m] = (th * r + dr + h) * sc[m]
+        t2[m] = (th * th * r + 2 * th * dr) * sc[m] ** 2
+        a1[m] = np.linalg.norm(c[m, 19:22], axis=1) * sc[m]
+    m = k == BLEND
+    if m.any():
+        P0, M0, P3, M3 = c[m, 0:6], c[m, 6:12], c[m, 12:18], c[m, 18:24]
+        P1 = P0 + M0 / 3.0
+        P2 = P3 - M3 / 3.0
+        d1 = [3 * (P1 - P0), 3 * (P2 - P1), 3 * (P3 - P2)]
+        d2 = [6 * (P2 - 2 * P1 + P0), 6 * (P3 - 2 * P2 + P1)]
+        s1 = sc[m]
+        t1[m] = np.max([np.linalg.norm(v[:, :3], axis=1) for v in d1], axis=0) * s1
+        a1[m] = np.max([np.linalg.norm(v[:, 3:], axis=1) for v in d1], axis=0) * s1
+        t2[m] = np.max([np.linalg.norm(v[:, :3], axis=1) for v in d2], axis=0) * s1 ** 2
+        a2[m] = np.max([np.linalg.norm(v[:, 3:], axis=1) for v in d2], axis=0) * s1 ** 2
+    return t1, t2, a1, a2
+
+
+def sample_spacing(path: Path, plat: np.ndarray, Lmin: float, bound_mm: float):
+    """Per piece: s spacing ``h`` and the bounds used.
+
+    With ``q_i = p_i - q_tool`` the strut vector is ``s_i = tip + R q_i - b_i``;
+    ``|omega| <= sqrt(3) |abc'|`` (columns of E are unit vectors),
+    ``|omega'| <= 2 |abc'|^2 + sqrt(3) |abc''|``, so
+    ``|L''| <= (t1 + W |q|)^2 / Lmin + t2 + (W' + W^2) |q| = M2``.
+    Linear interpolation between samples ``h`` apart then errs by at most
+    ``M2 h^2 / 8 <= sample_bound_mm``; joint angles move at most
+    ``G = (t1 + W |q|) / Lmin + W`` rad per s-unit, so an angle between samples
+    exceeds the larger sample value by at most ``G h / 2``.
+    Returns (h, length_margin_mm, angle_margin_rad) per piece.
+    """
+    t1, t2, a1, a2 = piece_bounds(path)
+    qn = np.max(np.linalg.norm(plat[None, :, :] - path.tool_point[:, None, :], axis=2), axis=1)
+    W = _SQRT3 * a1
+    W2 = 2 * a1 * a1 + _SQRT3 * a2
+    sp = t1 + W * qn
+    M2 = sp * sp / Lmin + t2 + (W2 + W * W) * qn
+    h = np.sqrt(8.0 * bound_mm / np.maximum(M2, 1e-12))
+    nint = np.maximum(1, np.ceil(path.slen / h - 1e-9)).astype(np.int64)
+    h = path.slen / nint
+    lmarg = M2 * h * h / 8.0
+    G = sp / Lmin + W
+    amarg = G * h / 2.0
+    return h, nint, lmarg, amarg

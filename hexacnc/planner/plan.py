@@ -1,0 +1,501 @@
+"""Whole-program planning: path -> limit check -> time parameterisation -> verified setpoint table.
+
+Method (see docs/planner.md):
+
+1. :func:`~hexacnc.planner.path.build_path` turns blocks into pieces with C1
+   corner blends inside the G64 P tolerance (rotations included).
+2. A grid in ``s`` whose spacing bounds the strut-length error between samples
+   by ``[planner] sample_bound_mm`` (and joint angles by ``G h / 2``): strut
+   lengths and joint angles are checked on it with the limits shrunk by those
+   bounds; the first violation is a :class:`PlanError` naming line and limit.
+3. Strut derivatives ``L'``, ``L''``, ``L'''`` by central differences of the
+   inverse kinematics; a forward-backward pass on ``s_dot^2`` over the whole
+   program (TOPP) under feed, rapid, angular-velocity, strut velocity and
+   acceleration limits (and a curvature-jerk bound).
+4. The profile ``s(t)`` sampled at the cycle period and smoothed by a moving
+   average of width ``T = 2 max(A/J)`` (bounded path jerk; stops are holds of at
+   least ``T`` so the smoothed motion really stops there).
+5. The struts of the resulting table are measured (finite differences at the
+   cycle period); where velocity, acceleration or jerk utilisation exceeds its
+   target the speed limit is lowered locally and steps 3-5 repeat.  The reported
+   peak utilisations are these measurements.
+
+Acceleration and jerk are planned to at most ``ETA`` (0.95) of the limits: the
+rest is the headroom the sampler uses for jerk-limited override, pause and stop
+transitions.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..errors import PlanError
+from ..gcode import blocks as B
+from ..kinematics import Hexapod
+from . import path as P
+from .topp import accel_coefficients, forward_backward, interval_times
+
+#: fraction of the acceleration and jerk limits the nominal plan may use
+ETA = 0.95
+#: fraction of the velocity limit the nominal plan may use
+ETA_V = 1.0
+#: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
+RHO_J = 0.5
+#: s step of the central differences (mm or deg)
+FD_STEP = 0.01
+
+FLAG_MOTION = 1
+FLAG_RAPID = 2
+FLAG_DWELL = 4
+FLAG_PROGRAM_PAUSE = 8
+FLAG_PAUSED = 16
+FLAG_STOPPING = 32
+FLAG_END = 64
+FLAG_EVENT = 128
+
+
+@dataclass
+class Hold:
+    grid: int                  #: hold after grid point
+    seconds: float             #: extra standstill beyond the filter's minimum
+    line: int
+    pause: bool = False        #: M0 (or M1 with optional stop) waits for resume
+    optional: bool = False
+    kinds: list = field(default_factory=list)
+
+
+class Plan:
+    """A planned program: a setpoint table at ``dt`` plus a summary.
+
+    Attributes: ``duration_s``, ``utilisation`` (dict of peak strut velocity,
+    acceleration and jerk as fractions of each limit), ``min_joint_margin_deg``,
+    ``min_length_margin_mm``, ``line_times`` {line: (start_s, end_s)},
+    ``events`` [(time_s, line, kind, value)], ``planning_s``.
+    """
+
+    def __init__(self, **kw):
+        self.__dict__.update(kw)
+
+    # -- evaluation -----------------------------------------------------------------
+    def platform_at(self, s: np.ndarray) -> np.ndarray:
+        """Platform poses (N,6) mm/rad at path positions ``s``."""
+        s = np.asarray(s, dtype=float)
+        return self.path.platform(self.path.piece_at(s), s)
+
+    def rows(self) -> np.ndarray:
+        """The whole nominal table as rows [x,y,z,a,b,c(rad),line,flags] (override 1, no pauses)."""
+        X = self.platform_at(self.s_tab)
+        return np.hstack([X, self.line_tab[:, None].astype(float), self.flag_tab[:, None].astype(float)])
+
+    def sampler(self, period_s: float | None = None, optional_stop: bool = False):
+        """Runtime sampler (see :class:`hexacnc.planner.sampler.PlanSampler`)."""
+        from .sampler import PlanSampler
+        return PlanSampler(self, self.dt if period_s is None else float(period_s), optional_stop=optional_stop)
+
+    @property
+    def start_pose_platform(self) -> np.ndarray:
+        """(6,) platform pose at the start, mm / rad."""
+        return self.platform_at(np.array([0.0]))[0]
+
+    @property
+    def end_pose_platform(self) -> np.ndarray:
+        return self.platform_at(np.array([self.path.total]))[0]
+
+    def summary(self) -> dict:
+        """JSON-ready summary (mm, s, degrees)."""
+        return {
+            "ok": True,
+            "duration_s": round(self.duration_s, 6),
+            "utilisation": {k: round(float(v), 6) for k, v in self.utilisation.items()},
+            "min_joint_margin_deg": round(self.min_joint_margin_deg, 6),
+            "min_length_margin_mm": round(self.min_length_margin_mm, 6),
+            "segments": int(self.n_segments),
+            "blends": int(self.n_blends),
+            "stops": int(self.n_stops),
+            "path_length": round(self.path.total, 6),
+            "grid_points": int(self.grid_points),
+            "sample_bound_mm": self.sample_bound_mm,
+            "planning_s": round(self.planning_s, 4),
+            "iterations": int(self.iterations),
+            "lines": {str(k): [round(a, 4), round(b, 4)] for k, (a, b) in sorted(self.line_times.items())},
+        }
+
+
+# ---------------------------------------------------------------------------
+def _strut_geometry(X: np.ndarray, hx: Hexapod):
+    """Strut vectors (N,6,3), lengths (N,6), rotation matrices (N,3,3) for platform poses mm/rad."""
+    r = P.rot_elems(X[:, 3:])
+    R = np.stack(r, axis=1).reshape(-1, 3, 3)
+    rp = np.einsum("nij,kj->nki", R, hx.plat)
+    s = X[:, None, :3] + rp - hx.base[None]
+    L = np.sqrt(np.einsum("nki,nki->nk", s, s))
+    return s, L, R, rp
+
+
+def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
+    """Strut lengths and joint angles on the grid with the limits shrunk by the sampling bounds.
+
+    Returns (min joint margin deg, min length margin mm); raises PlanError at the first violation.
+    """
+    s, L, R, rp = _strut_geometry(Xg, hx)
+    u = s / L[..., None]
+    cb = np.clip(np.einsum("nki,ki->nk", u, hx.base_axes), -1.0, 1.0)
+    up = -np.einsum("nki,nij->nkj", u, R)
+    cp = np.clip(np.einsum("nkj,kj->nk", up, hx.plat_axes), -1.0, 1.0)
+    ab = np.arccos(cb)
+    ap = np.arccos(cp)
+    lm = lmarg[pidx][:, None]
+    am = amarg[pidx][:, None]
+    lo = L - lm - hx.min_length[None]
+    hi = hx.max_length[None] - (L + lm)
+    amax = hx.max_angle_rad[None]
+    jb = amax - (ab + am)
+    jp = amax - (ap + am)
+    # singularity (checked at the samples)
+    J = np.concatenate([u, np.cross(rp, u) / hx.char_length_mm], axis=2)
+    with np.errstate(all="ignore"):
+        cond = np.linalg.cond(J)
+    bad = (np.any(lo < 0, axis=1) | np.any(hi < 0, axis=1) | np.any(jb < 0, axis=1) | np.any(jp < 0, axis=1)
+           | ~np.isfinite(cond) | (cond > hx.max_condition))
+    if bad.any():
+        k = int(np.nonzero(bad)[0][0])
+        m = int(pidx[k])
+        line = int(path.line[m])
+        tip = path.tip(np.array([m]), np.array([sg[k]]))[0]
+        where = (f"at tool tip [{tip[0]:.3f}, {tip[1]:.3f}, {tip[2]:.3f}] mm, "
+                 f"[{math.degrees(tip[3]):.3f}, {math.degrees(tip[4]):.3f}, {math.degrees(tip[5]):.3f}] deg")
+        for i in range(6):
+            if lo[k, i] < 0:
+                raise PlanError(f"strut {i + 1} length {L[k, i]:.4f} mm (+-{lm[k, 0]:.4g} mm sampling bound) "
+                                f"below min_length_mm {hx.min_length[i]:g} {where}", line=line,
+                                limit=f"strut {i + 1} min_length_mm")
+            if hi[k, i] < 0:
+                raise PlanError(f"strut {i + 1} length {L[k, i]:.4f} mm (+-{lm[k, 0]:.4g} mm sampling bound) "
+                                f"above max_length_mm {hx.max_length[i]:g} {where}", line=line,
+                                limit=f"strut {i + 1} max_length_mm")
+        for i in range(6):
+            lim = math.degrees(hx.max_angle_rad[i])
+            if jb[k, i] < 0:
+                raise PlanError(f"base joint {i + 1} angle {math.degrees(ab[k, i]):.4f} deg "
+                                f"(+{math.degrees(am[k, 0]):.4g} deg sampling bound) over max_angle_deg {lim:g} "
+                                f"{where}", line=line, limit=f"base joint {i + 1} max_angle_deg")
+            if jp[k, i] < 0:
+                raise PlanError(f"platform joint {i + 1} angle {math.degrees(ap[k, i]):.4f} deg "
+                                f"(+{math.degrees(am[k, 0]):.4g} deg sampling bound) over max_angle_deg {lim:g} "
+                                f"{where}", line=line, limit=f"platform joint {i + 1} max_angle_deg")
+        raise PlanError(f"near-singular pose: Jacobian condition {cond[k]:.4g} over max_condition "
+                        f"{hx.max_condition:g} {where}", line=line, limit="max_condition")
+    jm = float(np.degrees(min(jb.min(), jp.min()))) if jb.size else math.nan
+    lmm = float(min(lo.min(), hi.min())) if lo.size else math.nan
+    return jm, lmm
+
+
+def _measure(path: P.Path, hx: Hexapod, s_f: np.ndarray, dt: float, vmax, amax, jmax, chunk: int = 200_000):
+    """Strut velocity/acceleration/jerk of the table (finite differences at dt).
+
+    Returns per-sample arrays (float64): uv, ua, uj (max over struts of |.|/limit),
+    va = max|v|/amax, ajr = max|a|/jmax, vjr = max|v|/jmax.
+    """
+    N = s_f.shape[0]
+    uv = np.zeros(N)
+    ua = np.zeros(N)
+    uj = np.zeros(N)
+    va = np.zeros(N)
+    ajr = np.zeros(N)
+    vjr = np.zeros(N)
+    for c0 in range(0, N, chunk):
+        a0 = max(0, c0 - 2)
+        a1 = min(N, c0 + chunk + 2)
+        s = s_f[a0:a1]
+        X = path.platform(path.piece_at(s), s)
+        L = P.strut_lengths(X, hx.plat, hx.base)
+        v = np.diff(L, axis=0) / dt                     # at i+1/2
+        a = np.diff(v, axis=0) / dt                     # at i+1
+        j = np.diff(a, axis=0) / dt                     # at i+3/2
+        n = L.shape[0]
+        V = np.zeros((n, 6))
+        V[1:] = np.maximum(np.abs(v), 0)
+        V[:-1] = np.maximum(V[:-1], np.abs(v))
+        A = np.zeros((n, 6))
+        A[1:-1] = np.abs(a)
+        Jk = np.zeros((n, 6))
+        Jk[1:-2] = np.abs(j)
+        Jk[2:-1] = np.maximum(Jk[2:-1], np.abs(j))
+        sl = slice(c0 - a0, c0 - a0 + min(chunk, N - c0))
+        dst = slice(c0, c0 + min(chunk, N - c0))
+        uv[dst] = np.max(V[sl] / vmax, axis=1)
+        ua[dst] = np.max(A[sl] / amax, axis=1)
+        uj[dst] = np.max(Jk[sl] / jmax, axis=1)
+        va[dst] = np.max(V[sl] / amax, axis=1)
+        ajr[dst] = np.max(A[sl] / jmax, axis=1)
+        vjr[dst] = np.max(V[sl] / jmax, axis=1)
+    return uv, ua, uj, va, ajr, vjr
+
+
+def _sample_profile(sg, h, x, holds_s, dt):
+    """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point)."""
+    N = sg.shape[0]
+    D = interval_times(h, x)                       # (N-1,)
+    v = np.sqrt(np.maximum(x, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(h > 0, (x[1:] - x[:-1]) / (2 * np.where(h > 0, h, 1.0)), 0.0)
+    H = holds_s
+    step = np.empty(N)
+    step[:-1] = H[:-1] + D
+    step[-1] = H[-1]
+    TH = np.concatenate([[0.0], np.cumsum(step)[:-1]])
+    total = float(TH[-1] + H[-1])
+    nt = int(math.ceil(total / dt)) + 1
+    t = np.arange(nt) * dt
+    g = np.clip(np.searchsorted(TH, t, side="right") - 1, 0, N - 1)
+    tau = t - TH[g] - H[g]
+    s = sg[g].copy()
+    gi = np.minimum(g, N - 2)
+    Dg = np.where(g < N - 1, D[gi], 0.0)
+    mov = (tau > 0) & (g < N - 1)
+    tm = np.minimum(tau, Dg)
+    s[mov] = np.minimum(sg[g[mov]] + v[g[mov]] * tm[mov] + 0.5 * u[gi[mov]] * tm[mov] ** 2, sg[g[mov] + 1])
+    return s, TH, total
+
+
+def _box_filter(s_raw: np.ndarray, n: int) -> np.ndarray:
+    """Moving average of n samples over s_raw padded with its first and last value (length + n)."""
+    if n <= 1:
+        return s_raw.copy()
+    ds = np.diff(np.concatenate([s_raw, np.full(n, s_raw[-1])]))
+    ds = np.concatenate([np.zeros(n - 1), ds])
+    C = np.concatenate([[0.0], np.cumsum(ds)])
+    inc = (C[n:] - C[:-n]) / n
+    out = s_raw[0] + np.concatenate([[0.0], np.cumsum(inc)[: s_raw.shape[0] + n - 1]])
+    out = np.maximum.accumulate(out)
+    return np.minimum(out, s_raw[-1])
+
+
+def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | None = None) -> Plan:
+    """Plan a whole program (list of :class:`~hexacnc.gcode.blocks.Block`) for the machine ``cfg``.
+
+    Raises :class:`PlanError` (line, limit) at the first strut-length, joint-angle
+    or singularity violation along the path, or for bad input.
+    """
+    t_start = time.perf_counter()
+    hx = hexapod if hexapod is not None else Hexapod(cfg)
+    dt = float(period_s if period_s is not None else cfg.cycle.period_s)
+    pc = cfg.planner
+    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
+    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
+    jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
+    path, events = P.build_path(blocks, cfg)
+    T_f = float(np.max(2.0 * amax / jmax))
+    nf = max(1, int(math.ceil(T_f / dt)))
+    hold_min = nf * dt
+
+    if path.n == 0:
+        # no motion: a standstill at the start pose (if any) for dwells
+        raise PlanError("program has no motion", line=None, limit="input", code="empty")
+
+    # ---- grid -----------------------------------------------------------------
+    h_p, nint, lmarg, amarg = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)), pc.sample_bound_mm)
+    counts = nint + 1
+    pidx = np.repeat(np.arange(path.n), counts)
+    first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    local = np.arange(pidx.shape[0]) - first[pidx]
+    sg = path.s0[pidx] + local * h_p[pidx]
+    last = first + counts - 1
+    sg[last] = path.s0 + path.slen
+    Ng = sg.shape[0]
+    h = np.diff(sg)
+    h[last[:-1]] = 0.0        # duplicated junction points
+    h = np.maximum(h, 0.0)
+
+    # ---- derivatives by central differences (same piece formula on both sides) --------
+    d = FD_STEP
+    offs = (-2 * d, -d, 0.0, d, 2 * d)
+    Ls = []
+    tips = []
+    for o in offs:
+        so = sg + o
+        tip = path.tip(pidx, so)
+        X = P.tip_to_platform(tip, path.tool_point[pidx])
+        Ls.append(P.strut_lengths(X, hx.plat, hx.base))
+        if o == 0.0:
+            Xg = X
+        if o in (-d, d):
+            tips.append(tip)
+    Lm2, Lm1, L0, Lp1, Lp2 = Ls
+    Lp = (Lp1 - Lm1) / (2 * d)
+    Lpp = (Lp1 - 2 * L0 + Lm1) / (d * d)
+    Lppp = (Lp2 - 2 * Lp1 + 2 * Lm1 - Lm2) / (2 * d ** 3)
+    dtip = (tips[1] - tips[0]) / (2 * d)
+
+    jmarg, lmmarg = _check_limits(path, hx, cfg, sg, pidx, Xg, lmarg, amarg)
+
+    # ---- speed limits -------------------------------------------------------------------
+    xyz_speed = np.linalg.norm(dtip[:, :3], axis=1)
+    ang_speed_deg = np.linalg.norm(np.degrees(dtip[:, 3:]), axis=1)
+    meas = np.where(xyz_speed > 1e-6, xyz_speed, np.maximum(ang_speed_deg, 1e-12))
+    feed = path.feed[pidx]
+    xlim = (feed / meas) ** 2
+    # angular velocity |omega| = |E abc'| s_dot
+    abc = Xg[:, 3:]
+    cb_, sb_, cc_, sc_ = np.cos(abc[:, 1]), np.sin(abc[:, 1]), np.cos(abc[:, 2]), np.sin(abc[:, 2])
+    da_, db_, dc_ = dtip[:, 3], dtip[:, 4], dtip[:, 5]
+    wx = cc_ * cb_ * da_ - sc_ * db_
+    wy = sc_ * cb_ * da_ + cc_ * db_
+    wz = -sb_ * da_ + dc_
+    wn = np.sqrt(wx * wx + wy * wy + wz * wz)
+    wmax = math.radians(pc.max_angular_velocity_deg_s)
+    with np.errstate(divide="ignore", over="ignore"):
+        xlim = np.minimum(xlim, np.where(wn > 1e-12, (wmax / np.maximum(wn, 1e-12)) ** 2, np.inf))
+        aLp = np.abs(Lp)
+        xv = np.min(np.where(aLp > 1e-12, (ETA_V * 0.995 * vmax[None] / np.maximum(aLp, 1e-300)) ** 2, np.inf),
+                    axis=1)
+        aL3 = np.abs(Lppp)
+        xj = np.min(np.where(aL3 > 1e-12, (RHO_J * ETA * jmax[None] / np.maximum(aL3, 1e-300)) ** (2.0 / 3.0),
+                             np.inf), axis=1)
+    xlim = np.minimum(np.minimum(xlim, xv), xj)
+    c, e, dd, xmvc = accel_coefficients(Lp, Lpp, ETA * 0.97 * amax)
+    xlim = np.minimum(xlim, xmvc)
+
+    # ---- stops and holds ------------------------------------------------------------------
+    holds: dict[int, Hold] = {}
+    stop_grid = set()
+    for m in path.stops_after:
+        stop_grid.add(int(last[m]))
+    for m, blk in events:
+        g = int(last[m]) if m >= 0 else 0
+        hd = holds.setdefault(g, Hold(g, 0.0, int(blk.line)))
+        hd.kinds.append(blk)
+        if blk.kind == B.DWELL:
+            hd.seconds += max(0.0, float(blk.seconds or 0.0))
+            hd.line = int(blk.line)
+        elif blk.kind == B.PAUSE:
+            hd.pause = True
+            hd.line = int(blk.line)
+        elif blk.kind == B.OPTIONAL_PAUSE:
+            hd.optional = True
+            hd.line = int(blk.line)
+        if blk.kind in P.STOP_EVENTS:
+            stop_grid.add(g)
+    stop_idx = np.array(sorted(stop_grid | {0, Ng - 1}), dtype=np.int64)
+    # at a stop both duplicated junction points are at rest
+    dup = stop_idx[stop_idx + 1 < Ng]
+    dup = dup[h[dup] == 0] + 1
+    stop_all = np.concatenate([stop_idx, dup])
+    xlim[stop_all] = 0.0
+    holds_s = np.zeros(Ng)
+    pause_grid = []
+    for g in stop_idx:
+        holds_s[g] = hold_min
+    for g, hd in holds.items():
+        extra = hd.seconds
+        if hd.pause or hd.optional:
+            extra += 2 * hold_min
+            pause_grid.append(g)
+        holds_s[g] = hold_min + extra
+    holds_s[0] = max(holds_s[0], 0.0)
+
+    # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
+    factor = np.ones(Ng)
+    s_grid_for_lookup = sg
+    iters = 0
+    for iters in range(1, 25):
+        xl = xlim * factor
+        x = forward_backward(h, xl, c, e, dd)
+        try:
+            s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
+        except FloatingPointError as exc:
+            k = int(str(exc).rsplit(" ", 1)[-1])
+            raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
+                path.line[pidx[k]]), limit="speed") from exc
+        s_f = _box_filter(s_raw, nf)
+        uv, ua, uj, va, ajr, vjr = _measure(path, hx, s_f, dt, vmax, amax, jmax)
+        viol_v = uv > ETA_V * 0.9995
+        viol_a = ua > ETA
+        viol_j = uj > ETA
+        bad = viol_v | viol_a | viol_j
+        if not bad.any():
+            break
+        fac = np.ones(s_f.shape[0])
+        with np.errstate(divide="ignore"):
+            fac = np.where(viol_v, np.minimum(fac, (ETA_V * 0.999 / np.maximum(uv, 1e-12)) ** 2 * 0.98), fac)
+            fac = np.where(viol_a, np.minimum(fac, ETA / np.maximum(ua, 1e-12) * 0.97), fac)
+            fac = np.where(viol_j, np.minimum(fac, ETA / np.maximum(uj, 1e-12) * 0.95), fac)
+        if iters > 12:
+            fac = np.minimum(fac, 0.7)
+        jb = np.nonzero(bad)[0]
+        # group into runs; tighten every grid point the filter window touched
+        br = np.nonzero(np.diff(jb) > nf)[0]
+        starts = np.concatenate([[0], br + 1])
+        ends = np.concatenate([br, [jb.size - 1]])
+        Nt = s_f.shape[0]
+        for a0, a1 in zip(starts, ends):
+            j0, j1 = jb[a0], jb[a1]
+            lo_s = s_f[max(0, j0 - nf - 1)]
+            hi_s = s_f[min(Nt - 1, j1 + nf + 1)]
+            g0 = max(0, int(np.searchsorted(s_grid_for_lookup, lo_s, side="left")) - 1)
+            g1 = min(Ng, int(np.searchsorted(s_grid_for_lookup, hi_s, side="right")) + 1)
+            f = float(np.min(fac[j0:j1 + 1]))
+            factor[g0:g1] *= f
+    else:
+        raise PlanError(f"could not meet the strut dynamic limits (velocity {uv.max():.3f}, acceleration "
+                        f"{ua.max():.3f}, jerk {uj.max():.3f} of the limits) after {iters} iterations",
+                        line=int(path.line[0]), limit="dynamics")
+
+    Nt = s_f.shape[0]
+    # ---- tables: line, flags, holds ----------------------------------------------------------------
+    pt = path.piece_at(s_f)
+    line_tab = path.line[pt].astype(np.int32)
+    flag_tab = np.where(path.rapid[pt], FLAG_MOTION | FLAG_RAPID, FLAG_MOTION).astype(np.int32)
+    ev_out = []
+    pause_idx = []
+    for g, hd in sorted(holds.items()):
+        hs = int(math.floor((TH[g]) / dt))
+        he = int(math.floor((TH[g] + holds_s[g]) / dt))
+        c0 = min(Nt - 1, hs + nf - 1)
+        c1 = min(Nt - 1, he)
+        line_tab[c0:c1 + 1] = hd.line
+        flag_tab[c0:c1 + 1] = FLAG_DWELL
+        for blk in hd.kinds:
+            val = {B.SPINDLE: float(getattr(blk, "spindle_rpm", 0.0)), B.COOLANT: getattr(blk, "coolant", "off"),
+                   B.TOOL_CHANGE: int(getattr(blk, "tool", 0)), B.DWELL: float(getattr(blk, "seconds", 0.0))
+                   }.get(blk.kind)
+            ev_out.append((c0 * dt, int(blk.line), blk.kind, val))
+            flag_tab[c0] |= FLAG_EVENT
+        if hd.pause or hd.optional:
+            p = (c0 + c1) // 2
+            pause_idx.append((p, hd.optional, hd.line))
+            flag_tab[p] |= FLAG_PROGRAM_PAUSE
+    # events that do not stop (coolant) are attached at their position
+    for m, blk in events:
+        if blk.kind not in P.STOP_EVENTS:
+            g = int(last[m]) if m >= 0 else 0
+            j = min(Nt - 1, int((TH[g]) / dt) + nf // 2)
+            ev_out.append((j * dt, int(blk.line), blk.kind, getattr(blk, "coolant", None)))
+            flag_tab[j] |= FLAG_EVENT
+    flag_tab[-1] |= FLAG_END
+    # per-line timing
+    line_times: dict[int, tuple[float, float]] = {}
+    if Nt:
+        order = np.arange(Nt)
+        ul, first_i = np.unique(line_tab, return_index=True)
+        _, last_rev = np.unique(line_tab[::-1], return_index=True)
+        last_i = Nt - 1 - last_rev
+        for ln, a0, a1 in zip(ul.tolist(), first_i.tolist(), last_i.tolist()):
+            line_times[int(ln)] = (a0 * dt, (a1 + 1) * dt)
+        del order
+    util = {"velocity": float(uv.max()), "acceleration": float(ua.max()), "jerk": float(uj.max())}
+    # governor data for the sampler: block maxima (GOV samples) looking ahead
+    from .sampler import governor_tables
+    gov = governor_tables(uv, ua, uj, va, ajr, vjr, dt)
+    plan = Plan(
+        cfg=cfg, hexapod=hx, path=path, dt=dt, s_tab=s_f, line_tab=line_tab, flag_tab=flag_tab,
+        duration_s=(Nt - 1) * dt, utilisation=util, min_joint_margin_deg=jmarg, min_length_margin_mm=lmmarg,
+        line_times=line_times, events=ev_out, pause_idx=pause_idx, gov=gov, filter_s=nf * dt,
+        n_segments=int(np.sum(path.kind != P.BLEND)), n_blends=int(np.sum(path.kind == P.BLEND)),
+        n_stops=len(stop_idx), grid_points=Ng, sample_bound_mm=pc.sample_bound_mm, iterations=iters,
+        grid_s=sg, grid_x=x, planning_s=time.perf_counter() - t_start,
+    )
+    return plan

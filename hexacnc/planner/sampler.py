@@ -1,0 +1,273 @@
+"""Runtime sampler of a :class:`~hexacnc.planner.plan.Plan`: one platform setpoint row per cycle period.
+
+The plan is a table ``s(tau)`` (path position against nominal time).  The
+sampler advances ``tau`` at rate ``f`` (feed override, pause, stop) and emits
+the platform pose at ``s(tau)`` - always on the programmed path.  ``f`` is
+moved by Ruckig (1 DOF, velocity interface: position ``tau``, velocity ``f``,
+acceleration ``f'``, jerk ``f''``) with limits recomputed every row from the
+plan's look-ahead headroom so that, with nominal strut velocity ``v``,
+acceleration ``a`` and jerk ``j`` at ``tau``,
+
+    velocity  f v                              <= vmax
+    accel.    f^2 a + f' v                     <= amax
+    jerk      f^3 j + 3 f f' a + f'' v         <= jmax
+
+(the plan keeps ``a``, ``j`` <= 0.95 of the limits, so there is always room).
+Pause and stop are jerk-limited decelerations of ``f`` to 0: the platform
+comes to rest on the path; resume ramps ``f`` back up.  M0 (and M1 with
+``optional_stop``) pause inside a standstill hold of the plan.
+
+Rows: float64 ``[x, y, z, a, b, c, line, flags]`` - platform pose in mm and
+radians, source line, flag bits (see :mod:`hexacnc.planner.plan`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
+
+from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING, ETA
+
+#: samples per governor block and look-ahead of the governor (seconds)
+GOV_BLOCK = 20
+GOV_LOOKAHEAD_S = 0.6
+#: override range accepted by set_override (the plan's headroom may cap it further)
+MAX_OVERRIDE = 2.0
+
+RUN, PAUSING, PAUSED, PROGRAM_PAUSED, STOPPING, DONE = "running", "pausing", "paused", "program_paused", \
+    "stopping", "done"
+
+
+def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
+    """Block maxima of the nominal utilisations, maximised over a look-ahead window."""
+    N = uv.shape[0]
+    nb = (N + GOV_BLOCK - 1) // GOV_BLOCK
+    pad = nb * GOV_BLOCK - N
+    W = max(1, int(math.ceil(GOV_LOOKAHEAD_S / (GOV_BLOCK * dt))))
+    out = {}
+    for name, arr in (("uv", uv), ("ua", ua), ("uj", uj), ("va", va), ("ajr", ajr), ("vjr", vjr)):
+        a = np.concatenate([arr, np.full(pad, arr[-1] if N else 0.0)]).reshape(nb, GOV_BLOCK).max(axis=1)
+        w = a.copy()
+        w[1:] = np.maximum(w[1:], a[:-1])           # one block behind
+        for k in range(1, W + 1):                   # W blocks ahead
+            w[:-k] = np.maximum(w[:-k], a[k:])
+        out[name] = w
+    with np.errstate(divide="ignore"):
+        cap = np.minimum(1.0 / np.maximum(out["uv"], 1e-12), np.sqrt(0.98 / np.maximum(out["ua"], 1e-12)))
+        cap = np.minimum(cap, np.cbrt(0.98 / np.maximum(out["uj"], 1e-12)))
+    out["cap"] = np.minimum(cap, MAX_OVERRIDE)
+    return out
+
+
+class PlanSampler:
+    """Setpoint rows from a plan, with feed override, pause/resume and stop.
+
+    ``next_rows(out)`` fills ``out`` ((n, 8) float64) and returns the number of
+    rows written (0 once the program has ended or been stopped).  While paused
+    it keeps writing the standstill pose (flag FLAG_PAUSED).
+    """
+
+    def __init__(self, plan, period_s: float, optional_stop: bool = False):
+        if not (period_s > 0 and math.isfinite(period_s)):
+            raise ValueError(f"period_s must be positive, got {period_s!r}")
+        self.plan = plan
+        self.period_s = float(period_s)
+        self.optional_stop = bool(optional_stop)
+        self.s_tab = plan.s_tab
+        self.n = plan.s_tab.shape[0]
+        self.step = self.period_s / plan.dt          # table samples per row at f = 1
+        self.k = 0.0                                 # plan time in table samples
+        self.f = 1.0
+        self.fd = 0.0
+        self.user = 1.0
+        self.state = RUN
+        self.done = self.n == 0
+        g = plan.gov
+        self._uv, self._ua, self._uj = g["uv"].tolist(), g["ua"].tolist(), g["uj"].tolist()
+        self._va, self._ajr, self._vjr = g["va"].tolist(), g["ajr"].tolist(), g["vjr"].tolist()
+        self._cap = g["cap"].tolist()
+        self._pauses = sorted(plan.pause_idx)
+        self._next_pause = 0
+        self._otg = Ruckig(1, self.period_s)        # never the third (cloud) argument
+        self._inp = InputParameter(1)
+        self._inp.control_interface = ControlInterface.Velocity
+        self._out = OutputParameter(1)
+        self.rows_written = 0
+
+    # -- commands --------------------------------------------------------------------
+    def set_override(self, f: float) -> None:
+        """Feed override (0 .. 2; above 1 only where the plan has headroom); jerk-limited transition."""
+        f = float(f)
+        if not math.isfinite(f):
+            raise ValueError(f"override must be finite, got {f!r}")
+        self.user = min(MAX_OVERRIDE, max(0.0, f))
+
+    def pause(self) -> None:
+        """Jerk-limited deceleration to standstill on the path."""
+        if self.state == RUN:
+            self.state = PAUSING
+
+    def resume(self) -> None:
+        """Restart after pause() or an M0/M1 program pause."""
+        if self.state in (PAUSING, PAUSED, PROGRAM_PAUSED):
+            self.state = RUN
+
+    def stop(self) -> None:
+        """Jerk-limited stop on the path; the program then ends (done)."""
+        if self.state in (PAUSED, PROGRAM_PAUSED):
+            self.state = DONE
+            self.done = True
+            self.f = self.fd = 0.0
+        elif self.state != DONE:
+            self.state = STOPPING
+
+    # -- status ------------------------------------------------------------------------
+    @property
+    def line(self) -> int:
+        i = min(self.n - 1, max(0, int(round(self.k))))
+        return int(self.plan.line_tab[i]) if self.n else 0
+
+    @property
+    def progress(self) -> tuple[float, float]:
+        """(percent done, nominal time left in seconds at override 1)."""
+        if self.n <= 1:
+            return 100.0, 0.0
+        frac = min(1.0, self.k / (self.n - 1))
+        return 100.0 * frac, (self.n - 1 - min(self.k, self.n - 1)) * self.plan.dt
+
+    @property
+    def override(self) -> float:
+        """The rate currently applied (after ramps and the headroom cap)."""
+        return self.f
+
+    # -- rows ----------------------------------------------------------------------------
+    def _limits(self, b: int, f: float, fd: float) -> tuple[float, float]:
+        va = self._va[b]
+        vj = self._vjr[b]
+        A = (0.97 - f * f * self._ua[b]) / va if va > 1e-12 else 1e3
+        J = (0.97 - f * f * f * self._uj[b] - 3.0 * f * abs(fd) * self._ajr[b]) / vj if vj > 1e-12 else 1e5
+        A = min(max(A, 1e-4), 1e3)
+        J = min(max(J, 1e-3), 1e5)
+        return A, J
+
+    def _target(self, b: int) -> float:
+        if self.state in (PAUSING, STOPPING, PAUSED, PROGRAM_PAUSED, DONE):
+            return 0.0
+        return min(self.user, self._cap[b])
+
+    def next_rows(self, out: np.ndarray) -> int:
+        if self.done:
+            return 0
+        nmax = out.shape[0]
+        ks = np.empty(nmax)
+        extra = np.zeros(nmax, dtype=np.int64)
+        cnt = 0
+        last = self.n - 1
+        inp, otg, o = self._inp, self._otg, self._out
+        while cnt < nmax:
+            b = min(len(self._cap) - 1, int(self.k) // GOV_BLOCK)
+            tgt = self._target(b)
+            if self.f == tgt and self.fd == 0.0 and self.state == RUN:
+                # steady: vectorised advance up to the next pause, the end or a cap change
+                nxt = self._pauses[self._next_pause][0] if self._next_pause < len(self._pauses) else last
+                room = nmax - cnt
+                if self.f > 0:
+                    room = min(room, max(1, int((nxt - self.k) / (self.f * self.step))))
+                room = min(room, max(1, int(((b + 1) * GOV_BLOCK - self.k) / max(self.f * self.step, 1e-9)) + 1))
+                kk = self.k + self.f * self.step * np.arange(1, room + 1)
+                if kk[-1] >= nxt:
+                    room = int(np.searchsorted(kk, nxt, side="left")) + 1
+                    kk = kk[:room]
+                    kk[-1] = min(kk[-1], nxt)
+                ks[cnt:cnt + room] = kk
+                cnt += room
+                self.k = float(kk[-1])
+            elif self.state in (PAUSED, PROGRAM_PAUSED):
+                ks[cnt] = self.k
+                extra[cnt] = FLAG_PAUSED
+                cnt += 1
+                continue
+            else:
+                A, J = self._limits(b, self.f, self.fd)
+                inp.current_position = [self.k * self.plan.dt]
+                inp.current_velocity = [self.f]
+                inp.current_acceleration = [self.fd]
+                inp.target_velocity = [tgt]
+                inp.target_acceleration = [0.0]
+                inp.max_velocity = [MAX_OVERRIDE + 1.0]
+                inp.max_acceleration = [A]
+                inp.max_jerk = [J]
+                res = otg.update(inp, o)
+                if res not in (Result.Working, Result.Finished):
+                    # fall back to holding the rate (never a jump)
+                    nk = self.k + self.f * self.step
+                    nf, nfd = self.f, 0.0
+                else:
+                    nk = max(self.k, o.new_position[0] / self.plan.dt)
+                    nf, nfd = max(0.0, o.new_velocity[0]), o.new_acceleration[0]
+                if abs(nf - tgt) < 1e-9 and abs(nfd) < 1e-7:
+                    nf, nfd = tgt, 0.0
+                self.k, self.f, self.fd = nk, nf, nfd
+                ks[cnt] = self.k
+                if self.state == STOPPING:
+                    extra[cnt] = FLAG_STOPPING
+                cnt += 1
+                if self.f == 0.0 and self.fd == 0.0:
+                    if self.state == PAUSING:
+                        self.state = PAUSED
+                    elif self.state == STOPPING:
+                        self.state = DONE
+                        self.done = True
+                        break
+            # program pause / end
+            if self._next_pause < len(self._pauses) and self.k >= self._pauses[self._next_pause][0]:
+                p, optional, _ln = self._pauses[self._next_pause]
+                self._next_pause += 1
+                if not optional or self.optional_stop:
+                    self.k = float(p)
+                    ks[cnt - 1] = self.k
+                    self.f = self.fd = 0.0
+                    if self.state == RUN or self.state == PAUSING:
+                        self.state = PROGRAM_PAUSED
+                    elif self.state == STOPPING:
+                        self.state = DONE
+                        self.done = True
+                        break
+            if self.k >= last:
+                self.k = float(last)
+                ks[cnt - 1] = self.k
+                extra[cnt - 1] |= FLAG_END
+                self.state = DONE
+                self.done = True
+                break
+        self._fill(out, ks[:cnt], extra[:cnt])
+        self.rows_written += cnt
+        return cnt
+
+    def _fill(self, out: np.ndarray, k: np.ndarray, extra: np.ndarray) -> None:
+        n = k.shape[0]
+        if n == 0:
+            return
+        s = self._interp(k)
+        X = self.plan.platform_at(s)
+        idx = np.clip(np.rint(k).astype(np.int64), 0, self.n - 1)
+        out[:n, :6] = X
+        out[:n, 6] = self.plan.line_tab[idx]
+        out[:n, 7] = (self.plan.flag_tab[idx] & ~FLAG_END) | extra
+
+    def _interp(self, k: np.ndarray) -> np.ndarray:
+        """Catmull-Rom interpolation of the s table at fractional indices, clamped between neighbours."""
+        S = self.s_tab
+        last = self.n - 1
+        i = np.clip(np.floor(k).astype(np.int64), 0, last)
+        t = k - i
+        i0 = np.clip(i - 1, 0, last)
+        i2 = np.clip(i + 1, 0, last)
+        i3 = np.clip(i + 2, 0, last)
+        p0, p1, p2, p3 = S[i0], S[i], S[i2], S[i3]
+        v = 0.5 * (2 * p1 + (p2 - p0) * t + (2 * p0 - 5 * p1 + 4 * p2 - p3) * t * t
+                   + (3 * p1 - p0 - 3 * p2 + p3) * t * t * t)
+        exact = t == 0.0
+        v = np.where(exact, p1, np.clip(v, np.minimum(p1, p2), np.maximum(p1, p2)))
+        return v
