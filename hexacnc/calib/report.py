@@ -1,0 +1,157 @@
+"""Human-readable reports (Markdown + PNG) for ``calib fit`` and ``diagnose``."""
+from __future__ import annotations
+
+import numpy as np
+
+from . import plots
+from .output import ReportDir, write_json
+
+
+def _fmt(v, unit=""):
+    if v is None:
+        return "n/a"
+    return f"{v:.4g}{unit}"
+
+
+def _rms_line(r: dict) -> str:
+    return (f"position {_fmt(r.get('position_mm'), ' mm')}, orientation {_fmt(r.get('orientation_deg'), ' deg')}, "
+            f"strut {_fmt(r.get('strut_mm'), ' mm')}")
+
+
+def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
+    L = ["# Model diagnosis", ""]
+    d = res["data"]
+    L.append(f"Data: `{d['fit']}`, {d['rows']} poses, {d['observations']} measured coordinates "
+             f"({', '.join(d['measured'])}); measurement frame "
+             f"{'registered (fitted)' if d['frame_registration'] else 'taken as the base frame'}.")
+    nz = res["noise"]
+    if nz["known"]:
+        L.append(f"Instrument noise: {nz['position_mm']:g} mm, {nz['orientation_deg']:g} deg. "
+                 f"Rigid-model chi2/dof = {nz['chi2_red_baseline']:.3g} "
+                 f"(noise alone would give up to {nz['chi2_red_noise_limit']:.3g}).")
+    else:
+        L.append("Instrument noise not given: causes are judged by cross-validation and BIC only; the rigid "
+                 f"model's residual is {nz['estimated_scale_baseline']:.3g} x the assumed weighting noise "
+                 f"({nz['position_mm']:g} mm).")
+    L.append("")
+    L.append("## Verdict")
+    L.append("")
+    if not res["causes"]:
+        L.append("**none**: no candidate cause explains the residual better than noise and geometry; "
+                 "the rigid 42-parameter model is adequate for this data.")
+    else:
+        L.append(f"**{res['verdict']}** (ordered by contribution).")
+        L.append("")
+        for c in res["causes"]:
+            ev = c["evidence"]
+            L.append(f"- **{c['name']}**: {c['model']}. Contribution {ev['contribution_mm']:.4g} mm RMS on the struts; "
+                     f"cross-validated residual {ev['cv_gain']:.3g}x smaller with it; BIC change "
+                     f"{ev['delta_bic']:.1f}.")
+            top = sorted(c["parameters"].items(), key=lambda kv: -abs(kv[1]))[:6]
+            L.append("  Parameters: " + ", ".join(
+                f"{k} = {v:.4g} ± {c['parameter_std'].get(k, float('nan')):.2g}" for k, v in top)
+                + (" ..." if len(c["parameters"]) > 6 else ""))
+            if ev.get("cannot_be_told_apart_from"):
+                L.append(f"  Caution: this data cannot tell it apart from {', '.join(ev['cannot_be_told_apart_from'])}.")
+    L.append("")
+    L.append("## Residuals (RMS)")
+    L.append("")
+    L.append("| model | fit data | held-out |")
+    L.append("|---|---|---|")
+    L.append(f"| rigid 42-parameter | {_rms_line(res['baseline']['rms_fit'])} | {_rms_line(res['baseline']['rms_holdout'])} |")
+    L.append(f"| extended | {_rms_line(res['extended']['rms_fit'])} | {_rms_line(res['extended']['rms_holdout'])} |")
+    h = res.get("holdout")
+    if h:
+        L.append("")
+        L.append(f"Held-out: `{h['path']}`, {h['rows']} poses; first {h['rereference_rows']} spent to re-reference "
+                 f"({h['rereferenced']}), evaluated on {h['rows_evaluated']}. "
+                 f"Gain (baseline/extended): {_fmt(res['gain']['holdout_rms_ratio'])}.")
+    L.append("")
+    L.append("## Candidates")
+    L.append("")
+    L.append("| cause | separable from geometry | CV gain (first round) | delta BIC | note |")
+    L.append("|---|---|---|---|---|")
+    for name, c in res["candidates"].items():
+        r0 = (c.get("rounds") or [{}])[0]
+        note = c.get("reason") or c.get("verdict") or ("selected" if c.get("selected_in_round") else "")
+        L.append(f"| {name} | {_fmt(c.get('separable_fraction'))} | {_fmt(r0.get('cv_gain'))} | "
+                 f"{_fmt(r0.get('delta_bic'))} | {note} |")
+    if res.get("inseparable"):
+        L.append("")
+        L.append("Candidate pairs this data cannot separate: "
+                 + "; ".join(f"{p['a']} / {p['b']}" for p in res["inseparable"]) + ".")
+    L.append("")
+    L.append("'Separable from geometry': fraction of a candidate's signature that the 42 geometric parameters "
+             "(and frame registration) cannot absorb; near 0 means a geometric error looks the same.")
+    if pngs:
+        L.append("")
+        L.append("## Plots")
+        L.append("")
+        for p in pngs:
+            L.append(f"![{p}]({p})")
+    return "\n".join(L) + "\n"
+
+
+def write_diagnosis_report(rd: ReportDir, diag, cfg) -> None:
+    res = diag.result
+    pngs = []
+    b_fit = diag.baseline.fit.residuals()
+    e_fit = diag.extended.fit.residuals()
+    panels = [("rigid 42-parameter model, fit data", b_fit), ("extended model, fit data", e_fit)]
+    hi = getattr(diag, "hold_info", None)
+    if hi:
+        panels += [("rigid model, held-out", hi["baseline_residuals"]), ("extended model, held-out", hi["extended_residuals"])]
+    plots.workspace_before_after(rd.path("residuals_workspace.png"), panels,
+                                 "Residuals over the workspace, before and after")
+    pngs.append("residuals_workspace.png")
+    if plots.struts_vs_reading(rd.path("residuals_struts.png"), diag.ctx.q, b_fit, e_fit,
+                               "Strut-length residual against the reading (fit data)"):
+        pngs.append("residuals_struts.png")
+    fitres = diag.extended.fit
+    ev = fitres.evaluator
+    base, plat, _, _ = ev.split(fitres.theta)
+    for c in res["causes"]:
+        name = c["name"]
+        B = fitres.layout.cause_models[name].build(ev.ctx, ev.X, base, plat)
+        dl = np.einsum("nik,k->ni", B, fitres.theta[fitres.layout.causes[name]])
+        fn = f"cause_{name}.png"
+        plots.cause_plot(rd.path(fn), name, diag.ctx.q, ev.X, dl, c["model"])
+        pngs.append(fn)
+    (rd.path("summary.md")).write_text(diagnosis_markdown(res, pngs), encoding="utf-8")
+    write_json(rd.path("diagnosis.json"), res)
+
+
+def fit_markdown(rep: dict) -> str:
+    L = ["# Calibration report", ""]
+    L.append(f"Data: `{rep['data']['path']}`, {rep['data']['rows']} poses, {rep['data']['observations']} measured "
+             f"coordinates ({', '.join(rep['data']['measured'])}).")
+    L.append(f"Model: 42 geometric parameters{' + 12 frame registration' if rep['frame_registration'] else ''}"
+             + (f" + causes {', '.join(rep['causes'])}" if rep["causes"] else "") + f"; noise {rep['noise']}.")
+    L.append("")
+    L.append(f"- nominal model: {_rms_line(rep['rms_nominal'])}")
+    L.append(f"- calibrated: {_rms_line(rep['rms_fit'])}")
+    L.append(f"- chi2/dof {rep['chi2_red']:.4g} with {rep['dof']:.1f} degrees of freedom; "
+             f"{rep['iterations']} iterations, converged: {rep['converged']}")
+    L.append("")
+    L.append("## Largest parameter changes")
+    L.append("")
+    L.append("| parameter | calibrated | change | std |")
+    L.append("|---|---|---|---|")
+    for p in sorted(rep["parameters"], key=lambda p: -abs(p["change"]))[:15]:
+        L.append(f"| {p['name']} | {p['value']:.5g} | {p['change']:+.4g} | {p['std']:.3g} |")
+    L.append("")
+    L.append("## Not identified by this data (held by the priors)")
+    L.append("")
+    if not rep["unidentifiable"]:
+        L.append("Every parameter combination is constrained by the measurements more than by the prior.")
+    for d in rep["unidentifiable"]:
+        L.append(f"- singular value {d['singular_value']:.3g}: "
+                 + " ".join(f"{c['weight']:+.2f}*{c['name']}" for c in d["combination"]))
+    L.append("")
+    L.append("## Strongest correlations")
+    L.append("")
+    for c in rep["correlations"]:
+        L.append(f"- {c['a']} / {c['b']}: {c['correlation']:+.3f}")
+    L.append("")
+    L.append("![residuals](residuals_workspace.png)")
+    return "\n".join(L) + "\n"
