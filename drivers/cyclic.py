@@ -91,6 +91,8 @@ class CyclicIO:
     """Per-cycle frames of the configured layout on ``buses`` (one bus object per ``[bus] buses``).
 
     ``limits_inc``: (min list, max list) increments; a target outside is never sent.
+    ``status`` / ``positions_inc``: last statuswords / positions the master read (``Master.statuswords()``,
+    ``Master.positions_inc()``); statuswords arrive on change and every 50 ms (event timer) only.
     ``controlword``: the controlword the drives are assumed to hold already (the master left them
     there); in the ``paired``/``fd`` layouts a controlword is sent (RPDO2) only when it changes,
     in ``single`` it is part of every RPDO1.
@@ -98,7 +100,8 @@ class CyclicIO:
 
     def __init__(self, buses: can.BusABC | Sequence[can.BusABC], bus_cfg,
                  limits_inc: tuple[Sequence[int], Sequence[int]] | None = None,
-                 controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005):
+                 controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005,
+                 status: Sequence[int] | None = None, positions_inc: Sequence[int] | None = None):
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.plan = plan = plan_layout(bus_cfg)
@@ -112,9 +115,9 @@ class CyclicIO:
         self._hi = [min(INT32_MAX, int(v)) for v in hi]
         # state filled by poll()
         now = time.monotonic()
-        self.pos_inc: list[int] = [0] * n
+        self.pos_inc: list[int] = [int(v) for v in positions_inc] if positions_inc is not None else [0] * n
         self.pos_time_s: list[float] = [0.0] * n          #: monotonic time of the last TPDO1
-        self.status: list[int] = [0] * n
+        self.status: list[int] = [int(v) for v in status] if status is not None else [0] * n
         self.status_time_s: list[float] = [0.0] * n
         self.last_heartbeat_s: list[float] = [now] * n    #: monotonic; starts at construction
         self.nmt_state: list[int] = [-1] * n

@@ -97,7 +97,7 @@ class Master:
         if self.attached:
             return
         for net in self.networks:
-            net.notifier = can.Notifier(net.bus, net.listeners, 0.2)
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
         self.attached = True
 
     def detach(self) -> list[can.BusABC]:
@@ -300,8 +300,8 @@ class Master:
                 nd = pending[0]
                 sw = self._read(nd, f"walk to {name!r}", 0x6041)
                 raise self._fail(nd, f"walk to {name!r}",
-                                 f"still {cia402.status_text(sw)} after {timeout_s:g} s "
-                                 f"(last transition sent: {last_t[nd.index]}, controlword 0x{self._cw[nd.index]:04X})"
+                                 f"still {cia402.status_text(sw)} after {timeout_s:g} s: the drive did not "
+                                 f"follow transition {last_t[nd.index]} (controlword 0x{self._cw[nd.index]:04X})"
                                  + (f"; also not there: nodes {[n.node_id for n in pending[1:]]}" if len(pending) > 1 else ""))
             time.sleep(0.005)
 

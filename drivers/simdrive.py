@@ -726,7 +726,7 @@ class SimDrives:
     def start(self) -> "SimDrives":
         """Attach to the buses, boot every node (boot-up message, pre-operational)."""
         for net in self.networks:
-            net.connect()
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
         with self.lock:
             for d in self.drives:
                 d.boot()

@@ -134,6 +134,9 @@ class SimRig:
     def cyclic(self, **kw):
         from .cyclic import CyclicIO, limits_inc
 
+        if self.master.attached:
+            kw.setdefault("status", self.master.statuswords())
+            kw.setdefault("positions_inc", self.master.positions_inc())
         self.master.detach()
         kw.setdefault("limits_inc", limits_inc(self.cfg))
         kw.setdefault("period_s", self.cfg.cycle.period_s)
