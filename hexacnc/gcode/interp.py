@@ -643,7 +643,7 @@ class Interpreter:
             for d in ln.dyn:
                 if d[0] in "gm" and d[1] == "@":
                     v = vals[d]
-                    code = round(v * 10.0)
+                    code = round(v * 10.0) if 0.0 <= v < 1e6 else -1
                     if abs(v * 10.0 - code) > 0.001 or code < 0 or (d[0] == "m" and code % 10):
                         raise ln.error(f"{d[0].upper()}{v:g} is not a valid code", d, "unsupported")
                     (gs if d[0] == "g" else ms).append(int(code) if d[0] == "g" else int(code) // 10)
@@ -1005,8 +1005,8 @@ class Interpreter:
         turns = 0
         if "p" in vals:
             pv = vals["p"]
-            if pv != int(pv) or pv < 1:
-                raise ln.error(f"arc P{pv:g} (number of turns) must be a positive integer", "p", "arc")
+            if pv != int(pv) or not 1 <= pv <= 10000:
+                raise ln.error(f"arc P{pv:g} (number of turns) must be an integer 1..10000", "p", "arc")
             turns = int(pv) - 1
         cw = motion == 20
         sp, sq, ep, eq = start[p], start[q], end[p], end[q]

@@ -166,7 +166,11 @@ def compile_template(src: str):
     """``src``: a tuple display of expressions -> function ``(P, L, G, D, k) -> tuple``."""
     fn = _FN_CACHE.get(src)
     if fn is None:
-        fn = eval("lambda P,L,G,D,k:" + src, _ENV)  # noqa: S307 - generated from our own grammar
+        try:
+            fn = eval("lambda P,L,G,D,k:" + src, _ENV)  # noqa: S307 - generated from our own grammar
+        except (SyntaxError, RecursionError, MemoryError) as exc:
+            raise _Bad(0, f"expression too deeply nested or too long ({type(exc).__name__})",
+                       "expression") from None
         if len(_FN_CACHE) < 100_000:
             _FN_CACHE[src] = fn
     return fn
@@ -282,16 +286,23 @@ class _Ph(float):
     __slots__ = ("idx",)
 
 
+_MAX_DEPTH = 60
+_MAX_TERMS = 400
+
+
 class _Ctx:
-    __slots__ = ("s", "k", "nph")
+    __slots__ = ("s", "k", "nph", "depth")
 
     def __init__(self, s: str):
         self.s = s
         self.k: list[float] = []
         self.nph = 0
+        self.depth = 0
 
     def const(self, v: float) -> str:
         self.k.append(v)
+        if len(self.k) > _MAX_TERMS:
+            raise _Bad(0, f"more than {_MAX_TERMS} numbers in the expressions of one line", "expression")
         return f"k[{len(self.k) - 1}]"
 
 
@@ -314,8 +325,12 @@ def _read_real(c: _Ctx, i: int):
     if ch == "-" or ch == "+":
         m = _NUMBER.match(s, i)
         if m:
-            return float(m.group()), m.end()
+            return _number(m.group(), i), m.end()
+        c.depth += 1
+        if c.depth > _MAX_DEPTH:
+            raise _Bad(i, f"expression nested deeper than {_MAX_DEPTH}", "expression")
         v, j = _read_real(c, i + 1)
+        c.depth -= 1
         if type(v) is float:
             return (-v if ch == "-" else v), j
         if isinstance(v, float):
@@ -324,7 +339,7 @@ def _read_real(c: _Ctx, i: int):
     if ch.isdigit() or ch == ".":
         m = _UNSIGNED.match(s, i)
         if m:
-            return float(m.group()), m.end()
+            return _number(m.group(), i), m.end()
         raise _Bad(i, f"bad number at {s[i:i + 8]!r}")
     if ch.isalpha():
         m = _FUNC.match(s, i)
@@ -333,6 +348,19 @@ def _read_real(c: _Ctx, i: int):
         raise _Bad(i, f"unknown function or word {s[i:i + 8]!r} where a value is expected",
                    "expression")
     raise _Bad(i, f"bad character {ch!r} where a value is expected")
+
+
+def _number(text: str, i: int) -> float:
+    v = float(text)
+    if not -1e300 < v < 1e300:
+        raise _Bad(i, f"number {text[:20]}... is out of range", "value")
+    return v
+
+
+def _param_number(text: str, i: int) -> int:
+    if len(text) > 12:
+        raise _Bad(i, f"parameter number {text[:12]}... is outside 1..{MAX_PARAMETER}", "parameter")
+    return int(float(text))
 
 
 def _read_param(c: _Ctx, i: int):
@@ -351,7 +379,7 @@ def _read_param(c: _Ctx, i: int):
         return _named_src(name), j + 1
     if ch.isdigit():
         m = _INDEX.match(s, i)
-        n = int(float(m.group()))
+        n = _param_number(m.group(), i)
         if n < 1 or n > MAX_PARAMETER:
             raise _Bad(i, f"parameter number {n} is outside 1..{MAX_PARAMETER}", "parameter")
         if n in SYSTEM_PARAMETERS:
@@ -360,7 +388,11 @@ def _read_param(c: _Ctx, i: int):
             raise _Bad(m.end(), "parameter number is not an integer", "parameter")
         return f"P[{n}]", m.end()
     if ch == "#" or ch == "[":
+        c.depth += 1
+        if c.depth > _MAX_DEPTH:
+            raise _Bad(i, f"parameter reference nested deeper than {_MAX_DEPTH}", "parameter")
         v, j = _read_real(c, i)
+        c.depth -= 1
         if isinstance(v, _Ph):
             v = c.const(v)
         if type(v) is float:
@@ -409,7 +441,11 @@ def _read_func(c: _Ctx, name: str, i: int, start: int):
 
 def _read_expr(c: _Ctx, i: int):
     """After '[': expression up to the matching ']' -> (float | source, next index)."""
+    c.depth += 1
+    if c.depth > _MAX_DEPTH:
+        raise _Bad(i, f"expression nested deeper than {_MAX_DEPTH}", "expression")
     v, j = _binary(c, i, 0)
+    c.depth -= 1
     s = c.s
     if j >= len(s):
         raise _Bad(j, "expression not closed with ']'", "expression")
@@ -439,6 +475,8 @@ def _binary(c: _Ctx, i: int, minprec: int):
 # -- line parser ------------------------------------------------------------
 def _gcode_int(v: float) -> int | None:
     """G/M value -> code x10 (G59.1 -> 591) or None when not a multiple of 0.1."""
+    if not 0.0 <= v < 1e6:
+        return None
     t = round(v * 10.0)
     if abs(v * 10.0 - t) > 0.001 or t < 0:
         return None
@@ -475,7 +513,7 @@ def parse_line(raw: str, num: int) -> Line:
         return ln
     pre = _PREFIX.match(s).end()
     body = s[pre:] if pre else s
-    if body and body[0] != "o" and "\x01" not in body:
+    if body and body[0] != "o" and "\x01" not in body and len(body) < 300:
         parts = _SHAPE_SPLIT.split(body)
         shape = "\x01".join(parts[0::2])
         tpl = _SHAPES.get(shape, False)
@@ -506,7 +544,7 @@ def _make_shape(shape: str, nnum: int):
         c = _parse(tpl, shape)
     except _Bad:
         c = None
-    if c is None or c.nph != nnum or len(_SHAPES) > 200_000:
+    if c is None or c.nph != nnum or len(_SHAPES) > 200_000 or any(d[0] in "gm" for d in tpl.dyn):
         _SHAPES[shape] = None
         return None
     # where each number goes: words (letter, index) and constant slots
@@ -642,7 +680,7 @@ def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
         j = k + 1
     elif ch.isdigit():
         m = _INDEX.match(s, j)
-        target = int(float(m.group()))
+        target = _param_number(m.group(), j)
         if target < 1 or target > MAX_PARAMETER:
             raise _Bad(j, f"parameter number {target} is outside 1..{MAX_PARAMETER}", "parameter")
         if target in SYSTEM_PARAMETERS:
@@ -684,7 +722,7 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         m = _DIGITS.match(s, j)
         if not m:
             raise _Bad(j, "O word needs a number or <name>")
-        label = str(int(m.group()))
+        label = m.group().lstrip("0") or "0"
         j = m.end()
     m = _OWORD.match(s, j)
     if not m:
@@ -699,7 +737,7 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         if kw != "call" and srcs:
             raise _Bad(j, f"O-word {kw!r} takes one value", "syntax")
         v, j = _read_real(c, j)
-        srcs.append(c.const(v) if type(v) is float else v)
+        srcs.append(c.const(v) if isinstance(v, float) else v)
     if kw in ("if", "elseif", "while", "repeat") and not srcs:
         raise _Bad(j, f"O-word {kw!r} needs a condition value", "syntax")
     if kw == "call" and len(srcs) > 30:
