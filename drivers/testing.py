@@ -154,3 +154,71 @@ class SimRig:
 
     def __exit__(self, *exc):
         self.close()
+
+
+class PdoDecoder:
+    """Independent frame decoder for tests: its own bus objects, canopen ``RemoteNode`` objects built
+    from the EDS, the PDO mapping read back from the drives by SDO (``rpdo.read()``/``tpdo.read()``),
+    and canopen's own ``PdoMap`` decoding. Records, per strut, every decoded target (0x607A),
+    controlword (0x6040), position actual (0x6064) and statusword (0x6041).
+
+    Create it while the drives are configured and NMT operational, and while nothing else runs SDO.
+    """
+
+    def __init__(self, cfg, eds_path=None):
+        import canopen
+
+        from . import EDS_PATH
+        from .canbus import open_buses
+        from .layout import plan_layout
+
+        self.plan = plan_layout(cfg.bus)
+        self.buses = open_buses(cfg.bus)
+        self.nets = [canopen.Network(b) for b in self.buses]
+        self.nodes = []
+        for nd in self.plan.nodes:
+            node = canopen.RemoteNode(nd.node_id, canopen.import_od(str(eds_path or EDS_PATH), nd.node_id))
+            self.nets[nd.bus].add_node(node)
+            self.nodes.append(node)
+        import can
+        for net in self.nets:
+            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        n = len(self.nodes)
+        self.targets: list[list[int]] = [[] for _ in range(n)]
+        self.controlwords: list[list[int]] = [[] for _ in range(n)]
+        self.positions: list[list[int]] = [[] for _ in range(n)]
+        self.statuswords: list[list[int]] = [[] for _ in range(n)]
+        for i, node in enumerate(self.nodes):
+            node.rpdo.read()
+            node.tpdo.read()
+            for m in node.rpdo.map.values():
+                if m.enabled:
+                    m.add_callback(self._cb(i))
+            for m in node.tpdo.map.values():
+                if m.enabled:
+                    m.add_callback(self._cb(i))
+
+    def _cb(self, i):
+        sinks = {0x607A: self.targets[i], 0x6040: self.controlwords[i], 0x6064: self.positions[i],
+                 0x6041: self.statuswords[i]}
+
+        def cb(m):
+            for var in m.map:
+                sink = sinks.get(var.index)
+                if sink is not None:
+                    sink.append(var.raw)
+        return cb
+
+    def close(self) -> None:
+        for net in self.nets:
+            if net.notifier is not None:
+                net.notifier.stop(1.0)
+                net.notifier = None
+        for b in self.buses:
+            b.shutdown()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

@@ -2,15 +2,13 @@
 import math
 import time
 
-import can
-import canopen
 import pytest
 
 from drivers import EDS_PATH, cia402
 from drivers.canbus import open_buses
 from drivers.cyclic import (EV_FEEDBACK, EV_STATUS, SEND_LIMIT, SEND_OK, increments_to_length, length_to_increments,
                             limits_inc)
-from drivers.testing import SimRig
+from drivers.testing import PdoDecoder, SimRig
 
 
 def cycle(io, targets, period_s=0.0005):
@@ -18,58 +16,6 @@ def cycle(io, targets, period_s=0.0005):
     assert ev == SEND_OK
     time.sleep(period_s)
     return io.poll()
-
-
-class CanopenDecoder:
-    """Independent decoder: its own bus objects, canopen RemoteNodes from the EDS, PDO maps read by SDO."""
-
-    def __init__(self, rig):
-        self.buses = open_buses(rig.cfg.bus)
-        self.nets = [canopen.Network(b) for b in self.buses]
-        self.nodes = []
-        for nd in rig.master.plan.nodes:
-            node = canopen.RemoteNode(nd.node_id, canopen.import_od(str(EDS_PATH), nd.node_id))
-            self.nets[nd.bus].add_node(node)
-            self.nodes.append(node)
-        for net in self.nets:
-            net.connect()
-        self.targets = [[] for _ in self.nodes]
-        self.controlwords = [[] for _ in self.nodes]
-        self.positions = [[] for _ in self.nodes]
-        self.statuswords = [[] for _ in self.nodes]
-        for i, node in enumerate(self.nodes):
-            node.rpdo.read()          # SDO upload of 0x1400.. / 0x1600.. from the simulated drive
-            node.tpdo.read()
-            for m in node.rpdo.map.values():
-                if m.enabled:
-                    m.add_callback(self._rx_cb(i))
-            for m in node.tpdo.map.values():
-                if m.enabled:
-                    m.add_callback(self._tx_cb(i))
-
-    def _rx_cb(self, i):
-        def cb(m):
-            for var in m.map:
-                if var.index == 0x607A:
-                    self.targets[i].append(var.raw)
-                elif var.index == 0x6040:
-                    self.controlwords[i].append(var.raw)
-        return cb
-
-    def _tx_cb(self, i):
-        def cb(m):
-            for var in m.map:
-                if var.index == 0x6064:
-                    self.positions[i].append(var.raw)
-                elif var.index == 0x6041:
-                    self.statuswords[i].append(var.raw)
-        return cb
-
-    def close(self):
-        for net in self.nets:
-            net.notifier.stop(2.0)
-        for b in self.buses:
-            b.shutdown()
 
 
 LAYOUTS = [
@@ -85,7 +31,7 @@ def test_frames_decode_with_canopen_pdo_maps(bus_changes):
     with SimRig(**bus_changes) as rig:
         rig.master.bring_up()
         start = rig.master.positions_inc()
-        dec = CanopenDecoder(rig)         # reads the mapping by SDO while the master still beats
+        dec = PdoDecoder(rig.cfg)         # reads the mapping by SDO while the master still beats
         try:
             # the mapping the drives report is the layout's (paired: dummies skip the other's bytes)
             for nd, node in zip(rig.master.plan.nodes, dec.nodes):
