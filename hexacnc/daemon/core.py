@@ -166,11 +166,13 @@ class Daemon:
         self.info["bus_load"] = rep["load"]
         self.info["bus_summary"] = busload.describe(rep)
         self.sh = S.Shared(create=True)
+        self._keep_off_hot_cpu()
         try:
             self.sim = busio.start_simulation(self.cfg, mode, self.period_s, self.sim_faults, self.channel)
             self.hot = _spawn_hot({"cfg": self.cfg, "shm": self.sh.name, "io_mode": mode,
                                    "period_s": self.period_s, "realtime": self.realtime,
-                                   "log_level": self.log_level, "sim_args": busio.child_args(self.sim, self.channel)},
+                                   "log_level": self.log_level, "cpu": self.info.get("hot_cpu"),
+                                   "sim_args": busio.child_args(self.sim, self.channel)},
                                   busio.pass_fds(self.sim))
             if hasattr(self.sim, "close_fds"):
                 self.sim.close_fds()          # the hot process holds its ends now
@@ -203,6 +205,20 @@ class Daemon:
                  self.period_s * 1e3, mode)
         return self
 
+    def _keep_off_hot_cpu(self) -> None:
+        """Supervisor (and the processes/threads it starts later) off the hot loop's CPU."""
+        try:
+            cpus = sorted(os.sched_getaffinity(0))
+            hot = cpus[-1] if self.cfg.cycle.cpu < 0 else self.cfg.cycle.cpu
+            rest = {c for c in cpus if c != hot}
+            self.info["hot_cpu"] = hot
+            if rest and hot in cpus:
+                self._saved_affinity = set(cpus)
+                os.sched_setaffinity(0, rest)
+                self.info["supervisor_cpus"] = sorted(rest)
+        except (OSError, AttributeError):
+            pass
+
     def __enter__(self) -> "Daemon":
         return self
 
@@ -234,6 +250,12 @@ class Daemon:
         if self.sh is not None:
             self.sh.close()
             self.sh = None
+        saved = getattr(self, "_saved_affinity", None)
+        if saved:
+            try:
+                os.sched_setaffinity(0, saved)
+            except OSError:
+                pass
 
     @property
     def alive(self) -> bool:

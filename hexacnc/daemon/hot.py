@@ -26,7 +26,7 @@ def main() -> int:
 
     from .loop import hot_main
     hot_main(args["cfg"], args["shm"], args["io_mode"], args["period_s"], args["realtime"],
-             args["log_level"], report, args.get("sim_args"))
+             args["log_level"], report, args.get("sim_args"), args.get("cpu"))
     return 0
 
 

