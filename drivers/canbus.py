@@ -84,7 +84,9 @@ def bus_channels(bus_cfg, channel: str | None = None) -> list[str]:
     n = bus_cfg.buses
     if "," in ch:
         out = [c.strip() for c in ch.split(",")]
-        if len(out) != n or not all(out):
+        if not all(out):
+            raise BusError(f"[bus] channel {ch!r} has an empty entry")
+        if len(out) != n:
             raise BusError(f"[bus] channel {ch!r} lists {len(out)} channels but [bus] buses = {n}")
         if bus_cfg.interface == "udp_multicast":
             out = [_derive_udp_group(c, 0) for c in out]

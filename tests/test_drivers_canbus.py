@@ -23,7 +23,9 @@ def test_channel_derivation():
     named = bus_channels(bus(interface="udp_multicast", channel="hexacnc", buses=2))
     assert all(c.startswith("239.19") for c in named) and named[0] != named[1]
     assert bus_channels(bus(interface="udp_multicast", channel="hexacnc", buses=2)) == named   # deterministic
-    with pytest.raises(BusError, match="lists 1 channels but \\[bus\\] buses = 2"):
+    with pytest.raises(BusError, match="lists 3 channels but \\[bus\\] buses = 2"):
+        bus_channels(bus(interface="socketcan", channel="can0,can1,can2", buses=2))
+    with pytest.raises(BusError, match="empty entry"):
         bus_channels(bus(interface="socketcan", channel="can0,", buses=2))
     with pytest.raises(BusError, match="ending in a number"):
         bus_channels(bus(interface="socketcan", channel="canbus", buses=2))
