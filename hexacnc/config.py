@@ -212,6 +212,7 @@ class SpindleConfig:
 class DynamicsConfig:
     """Strut drive and carrier dynamics for the simulator (see :mod:`hexacnc.sim.dynamics`)."""
     reflected_mass_kg: float = 60.0            #: motor + screw inertia reflected to the strut axis
+    drive_lag_s: float = 0.0003                #: current loop + velocity sampling as a first-order lag
     strut_damping_ratio: float = 0.03          #: strut spring damping, ratio at k and mass/6 of the carrier
     bus_dead_time_s: float = 0.0015            #: setpoint/feedback dead time of the main control loop
     velocity_bandwidth_hz: float = 0.0         #: drive velocity loop; 0: tuned the conventional way
@@ -542,6 +543,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     dyd = DynamicsConfig()
     dynamics = DynamicsConfig(
         reflected_mass_kg=dy.getfloat("reflected_mass_kg", dyd.reflected_mass_kg, above=0.0, maxval=1e5),
+        drive_lag_s=dy.getfloat("drive_lag_s", dyd.drive_lag_s, above=0.0, maxval=0.1),
         strut_damping_ratio=dy.getfloat("strut_damping_ratio", dyd.strut_damping_ratio, minval=0.0, maxval=2.0),
         bus_dead_time_s=dy.getfloat("bus_dead_time_s", dyd.bus_dead_time_s, minval=0.0, maxval=0.1),
         velocity_bandwidth_hz=dy.getfloat("velocity_bandwidth_hz", dyd.velocity_bandwidth_hz, minval=0.0,
