@@ -73,6 +73,8 @@ def test_inverse_time_feed():
     assert m[3].inverse_time_s is None and m[3].feed_mm_s == pytest.approx(1.0)
     e = err("G93 G1 X10 F2\nX20\n")
     assert (e.code, e.line) == ("feed", 2)
+    e = err("G1 X1 F100\nG93 G1 X10 F2\nG94 G1 X20\n")   # leaving G93 needs a new F
+    assert (e.code, e.line) == ("feed", 3)
 
 
 def test_zero_feed_is_an_error():

@@ -716,10 +716,11 @@ class Interpreter:
                 self.scale = [new_u] * 3 + [1.0] * 3
         u = self.u
         # -- feed mode and F
-        if 930 in gset:
-            self.inverse_time = True
-        elif 940 in gset:
-            self.inverse_time = False
+        if 930 in gset or 940 in gset:
+            inv = 930 in gset
+            if inv != self.inverse_time:
+                self.feed = 0.0   # an F of the other mode means something else: a new F is required
+            self.inverse_time = inv
         if "f" in vals:
             self._set_feed(ln, vals["f"])
         # -- S, T, M6, spindle, coolant
