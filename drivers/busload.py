@@ -183,3 +183,33 @@ def suggest_layouts(cfg, period_s: float | None = None, max_load: float | None =
     out.sort(key=lambda s: (s["changes"]["buses"], s["changes"]["fd"], s["changes"]["feedback_divider"],
                             s["load"]))
     return out
+
+
+def main(argv=None) -> int:
+    """``python -m drivers.busload [--config F] [--period-s P]``: the report and fitting layouts as JSON."""
+    import argparse
+    import json
+    import sys
+
+    from hexacnc.config import load_config
+    from hexacnc.errors import HexacncError
+
+    ap = argparse.ArgumentParser(prog="python -m drivers.busload", description=__doc__.splitlines()[0])
+    ap.add_argument("--config", help="machine description (TOML); default: the embedded default")
+    ap.add_argument("--period-s", type=float, help="cycle period (default [cycle] period_s)")
+    args = ap.parse_args(argv)
+    try:
+        cfg = load_config(args.config)
+        period = args.period_s if args.period_s is not None else cfg.cycle.period_s
+        rep = bus_time(cfg.bus, period)
+    except HexacncError as exc:
+        print(f"busload: {exc}", file=sys.stderr)
+        return 2
+    rep["summary"] = describe(rep)
+    rep["suggestions"] = suggest_layouts(cfg.bus, period)
+    print(json.dumps(rep, indent=1))
+    return 0 if rep["fits"] else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
