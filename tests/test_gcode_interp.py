@@ -311,3 +311,49 @@ def test_refusals_name_line_column_code(text, line, col, code):
     e = err(text)
     assert (e.line, e.column, e.code) == (line, col, code), str(e)
     assert f"line {line}" in str(e)
+
+
+def test_g92_family_and_system_parameters():
+    text = "G0 X10 Y4\nG92 X0\n#1 = #5211\n#2 = #5420\nG92.2\n#3 = #5420\nG92.3\n#4 = #<_x>\nG0 X1\n"
+    from hexacnc.gcode.interp import Interpreter
+    it = Interpreter(text)
+    p = it.run(text)
+    assert it.P[1:5] == [10.0, 0.0, 10.0, 0.0]
+    assert moves(p)[-1].end[0] == 11.0
+
+
+def test_debug_message_substitutes_parameters():
+    p = parse_program("#1 = 2.5\n#<d> = 3\n(DEBUG, one=#1 d=#<d> nope=#<zz>)\n")
+    assert p.messages == [(3, "one=2.500000 d=3.000000 nope=######")]
+
+
+def test_r_arc_in_xz_plane_and_helical_in_yz():
+    b = parse_program("F60 G18 G3 X10 Z10 R10\n").blocks[0]
+    # G18: rotation about +Y takes Z to X; CCW short arc from (x0,z0) to (x10,z10) has centre x=10, z=0
+    assert b.center.tolist() == pytest.approx([10, 0, 0]) and b.normal.tolist() == [0, 1, 0]
+    b = parse_program("F60 G19 G2 Y0 Z0 X5 J5 K0 P2\n").blocks[0]   # full helix along X
+    assert b.turns == 1 and b.end[0] == 5 and b.center.tolist() == [0, 5, 0]
+
+
+def test_program_from_config_with_tool_table(tmp_path):
+    import tomllib
+    from hexacnc.config import default_config_path, parse_config
+    from hexacnc.gcode import program_from_config
+    doc = tomllib.loads(default_config_path().read_text())
+    doc["tools"] = {"length_mm": {"1": 62.5}}
+    doc.setdefault("planner", {})["work_offset_mm"] = [5.0, -5.0, -1100.0]
+    cfg = parse_config(doc)
+    with pytest.raises(GcodeError) as ei:
+        program_from_config("T1 M6 G43 H1\nG0 X0 Y0 Z0\nT2\n", "t", cfg)
+    assert (ei.value.line, ei.value.code) == (3, "tool")
+    p = program_from_config("T1 M6 G43 H1\nG0 X0 Y0 Z0 A1\n", "t", cfg)
+    b = moves(p)[0]
+    assert b.tool_length_mm == 62.5
+    assert b.end.tolist() == pytest.approx([5.0, -5.0, -1100.0, 1.0 + cfg.home_pose[3], cfg.home_pose[4],
+                                            cfg.home_pose[5]])
+    # the platform did not move between the start and the G43 shift
+    axis = np.asarray(cfg.tool.axis_platform)
+    tip0 = np.asarray(cfg.tool.tip_platform_mm)
+    R = matrix_from_euler(*np.radians(cfg.home_pose[3:]))
+    plat = b.start[:3] - R @ (tip0 + 62.5 * axis)
+    assert plat == pytest.approx(cfg.home_pose[:3], abs=1e-9)
