@@ -11,7 +11,7 @@ Pattern for a pytest test that must run inside (it re-runs itself there)::
 
     @pytest.mark.netns
     def test_cross_process(request):
-        if not netns_or_rerun(request):     # outside: ran inside a fresh namespace (or skipped)
+        if not netns_or_rerun(request):     # outside: the module ran inside a fresh namespace
             return
         ...                                 # inside the namespace: udp_multicast is private
 """
@@ -79,14 +79,31 @@ def run_in_netns(argv: Sequence[str], *, timeout_s: float = 120.0, env: dict | N
 def run_pytest_in_netns(node_ids: Sequence[str], *, timeout_s: float = 120.0,
                         extra_args: Sequence[str] = ()) -> subprocess.CompletedProcess:
     """Run pytest on ``node_ids`` (e.g. ``request.node.nodeid``) inside a fresh namespace."""
-    argv = [sys.executable, "-m", "pytest", "-q", "-x", "-p", "no:cacheprovider", *extra_args, *node_ids]
+    argv = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", *extra_args, *node_ids]
     return run_in_netns(argv, timeout_s=timeout_s)
 
 
-def netns_or_rerun(request, timeout_s: float = 120.0) -> bool:
-    """In a pytest test: True when already inside a namespace (go on); otherwise re-run this very
-    test inside a fresh one, fail with its output if it failed, and return False. Skips cleanly
-    when namespaces are unavailable."""
+_MODULE_RUNS: dict[str, tuple[subprocess.CompletedProcess, dict[str, str]]] = {}
+
+
+def _run_module_in_netns(module_path: str, timeout_s: float):
+    """Run a whole test module once inside a fresh namespace; per-test outcomes from ``-rA``."""
+    if module_path not in _MODULE_RUNS:
+        r = run_pytest_in_netns([module_path], timeout_s=timeout_s, extra_args=["-rA", "--no-header"])
+        outcomes: dict[str, str] = {}
+        for line in r.stdout.splitlines():
+            parts = line.split(" ", 2)
+            if len(parts) >= 2 and parts[0] in ("PASSED", "FAILED", "ERROR", "SKIPPED"):
+                outcomes[parts[1]] = parts[0]
+        _MODULE_RUNS[module_path] = (r, outcomes)
+    return _MODULE_RUNS[module_path]
+
+
+def netns_or_rerun(request, timeout_s: float = 180.0) -> bool:
+    """In a pytest test: True when already inside a namespace (go on). Otherwise the test's whole
+    module is run once inside a fresh namespace (one pytest start-up for all its tests), this
+    test's outcome is looked up, the test fails with the inside output if it failed there, and
+    False is returned. Skips cleanly when namespaces are unavailable."""
     import pytest
 
     if inside_netns():
@@ -94,13 +111,17 @@ def netns_or_rerun(request, timeout_s: float = 120.0) -> bool:
     reason = netns_unavailable_reason()
     if reason is not None:
         pytest.skip(f"cross-process bus test needs a private network namespace: {reason}")
-    r = run_pytest_in_netns([request.node.nodeid], timeout_s=timeout_s)
-    tail = (r.stdout[-6000:] + "\n" + r.stderr[-3000:]).strip()
-    if r.returncode == 5:
-        pytest.fail(f"test not collected inside the namespace:\n{tail}")
-    if r.returncode != 0:
-        pytest.fail(f"inside the network namespace the test failed (exit {r.returncode}):\n{tail}")
-    return False
+    nodeid = request.node.nodeid
+    r, outcomes = _run_module_in_netns(nodeid.split("::", 1)[0], timeout_s)
+    outcome = outcomes.get(nodeid)
+    if outcome == "PASSED":
+        return False
+    tail = (r.stdout[-8000:] + "\n" + r.stderr[-3000:]).strip()
+    if outcome == "SKIPPED":
+        pytest.skip(f"skipped inside the namespace:\n{tail}")
+    if outcome is None:
+        pytest.fail(f"no result for {nodeid} inside the namespace (exit {r.returncode}):\n{tail}")
+    pytest.fail(f"inside the network namespace the test {outcome} (exit {r.returncode}):\n{tail}")
 
 
 class SimRig:
