@@ -26,6 +26,7 @@ Fault injection (manufacturer object 0x2000, or ``--fault`` / ``faults=``):
 ``N`` is the node id; via SDO, sub 2 is a delay in ms from the write. Run as a process::
 
     python -m drivers.simdrive --config F [--interface udp_multicast] [--channel C] [--fault SPEC]...
+                               [--model package.module:factory]
 
 It prints ``READY`` on stdout once the nodes have booted and runs until SIGTERM/SIGINT.
 In-process (``virtual`` bus, unit tests): ``SimDrives(cfg, buses).start()`` / ``.stop()``.
@@ -777,7 +778,7 @@ class SimDrives:
 # --------------------------------------------------------------------------------------------
 def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None, channel: str | None = None,
           faults: Sequence[str] = (), ready_timeout_s: float = 20.0, env: dict | None = None,
-          extra_args: Sequence[str] = ()) -> subprocess.Popen:
+          extra_args: Sequence[str] = (), model: str | None = None) -> subprocess.Popen:
     """Start ``python -m drivers.simdrive`` and wait for its ``READY`` line; returns the process.
 
     Stop it with ``proc.terminate(); proc.wait()``. Raises :class:`BusError` if it exits or
@@ -792,6 +793,8 @@ def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None
         cmd += ["--channel", channel]
     for f in faults:
         cmd += ["--fault", f]
+    if model:
+        cmd += ["--model", model]
     cmd += list(extra_args)
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     e = dict(os.environ if env is None else env)
@@ -815,6 +818,19 @@ def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None
     raise BusError(f"simulated drives did not start ({' '.join(cmd)}): {err.strip()[-2000:]}")
 
 
+def load_model_factory(spec: str) -> ModelFactory:
+    """``"package.module:callable"`` -> the callable (a :data:`ModelFactory`)."""
+    import importlib
+    mod, _, name = spec.partition(":")
+    try:
+        obj = getattr(importlib.import_module(mod), name or "model_factory")
+    except (ImportError, AttributeError, ValueError) as exc:
+        raise ConfigError(f"--model {spec!r}: cannot load the strut model factory: {exc}") from exc
+    if not callable(obj):
+        raise ConfigError(f"--model {spec!r} is not callable")
+    return obj
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from hexacnc.config import load_config
     from hexacnc.errors import HexacncError
@@ -826,6 +842,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--channel", help="override [bus] channel")
     ap.add_argument("--fault", action="append", default=[], metavar="SPEC",
                     help="NODE:emcy:CODE@S | NODE:heartbeat@S | NODE:stuck@S | NODE:refuse (S after enable)")
+    ap.add_argument("--model", metavar="MODULE:FACTORY",
+                    help="strut model factory (strut index, MachineConfig) -> StrutModel; "
+                         "default drivers.simdrive:default_model_factory")
     ap.add_argument("--log-level", default="WARNING")
     args = ap.parse_args(argv)
     logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
@@ -836,6 +855,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             import dataclasses
             cfg = cfg.replace(bus=dataclasses.replace(cfg.bus, interface=args.interface))
         faults = [FaultSpec.parse(f) for f in args.fault]
+        factory = load_model_factory(args.model) if args.model else None
         buses = open_buses(cfg.bus, channel=args.channel)
     except HexacncError as exc:
         print(f"simdrive: {exc}", file=sys.stderr)
@@ -843,7 +863,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     signal.signal(signal.SIGINT, lambda *a: stop.set())
-    sim = SimDrives(cfg, buses, faults=faults)
+    sim = SimDrives(cfg, buses, faults=faults, model_factory=factory)
     try:
         sim.start()
         print("READY", flush=True)

@@ -219,3 +219,49 @@ def test_second_order_model_limits_and_settles():
         m.step(0.0, dt, False)
         n += 1
     assert n * dt == pytest.approx(abs(v0) / 2000.0, abs=2 * dt)
+
+
+class IdealStrut:
+    """A plug-in model: follows the target exactly (counts its calls)."""
+
+    def __init__(self):
+        self.velocity_mm_s = 0.0
+        self.x = 0.0
+        self.steps = 0
+
+    def reset(self, position_mm):
+        self.x = position_mm
+
+    def step(self, target_mm, dt_s, enabled):
+        self.steps += 1
+        if enabled:
+            self.velocity_mm_s = (target_mm - self.x) / dt_s
+            self.x = target_mm
+        else:
+            self.velocity_mm_s = 0.0
+        return self.x
+
+
+def test_pluggable_strut_model():
+    models = []
+
+    def factory(strut, cfg):
+        models.append(IdealStrut())
+        return models[-1]
+    with SimRig(model_factory=factory) as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        io = rig.cyclic()
+        run(io, 50, lambda k: [s + 7 * k * (i + 1) for i, s in enumerate(start)])
+        time.sleep(0.02)
+        assert rig.sim.positions_inc() == [s + 7 * 49 * (i + 1) for i, s in enumerate(start)]
+        assert len(models) == 6 and all(m.steps >= 50 for m in models)
+
+
+def test_fault_spec_parsing():
+    assert FaultSpec.parse("3:emcy:0x3210@1.5") == FaultSpec(3, "emcy", 0x3210, 1.5)
+    assert FaultSpec.parse("2:heartbeat@2") == FaultSpec(2, "heartbeat", 0x1000, 2.0)
+    assert FaultSpec.parse("5:refuse") == FaultSpec(5, "refuse", 0x1000, 0.0)
+    for bad in ("x:stuck", "3:melt", "3:stuck:7", "0:stuck", "3:emcy:0x1FFFF", "3:stuck@-1"):
+        with pytest.raises(Exception, match="--fault"):
+            FaultSpec.parse(bad)
