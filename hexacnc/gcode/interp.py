@@ -18,6 +18,7 @@ move the platform, so the programmed tool-tip position jumps by
 """
 from __future__ import annotations
 
+import gc
 import math
 import re
 from dataclasses import dataclass, field
@@ -201,6 +202,7 @@ class Interpreter:
         self.seek = False
         self.line_now = 0
         self._top_repeat: dict[int, int] = {}
+        self._sysfn = self._sys
 
     # -- parsing and structure ------------------------------------------------
     def _line(self, idx: int) -> Line:
@@ -427,6 +429,9 @@ class Interpreter:
                 raise ln.error("internal: seeking an O-word branch", None, "flow")
             if ln.plain and self.motion in (0, 10):
                 self._plain(ln)
+            elif ln.gmot is not None:
+                self.motion = ln.gmot
+                self._plain(ln)
             else:
                 r = self._execute(ln)
                 if r is not None:
@@ -577,7 +582,7 @@ class Interpreter:
         fn = ln.fn
         if fn is not None:
             try:
-                res = fn(self.P, self.L, self.G, self._sys, ln.k)
+                res = fn(self.P, self.L, self.G, self._sysfn, ln.k)
             except (KeyError, ArithmeticError, ValueError, ExprError, IndexError, TypeError) as exc:
                 raise self._expr_error(ln, exc) from None
             for key, v in zip(ln.dyn, res):
@@ -1085,4 +1090,11 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
                      max_lines=max_lines)
-    return it.run(text)
+    # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
+    was_enabled = gc.isenabled()
+    gc.disable()
+    try:
+        return it.run(text)
+    finally:
+        if was_enabled:
+            gc.enable()

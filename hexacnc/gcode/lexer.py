@@ -17,6 +17,7 @@ Columns in errors are 1-based positions in the raw source line.
 from __future__ import annotations
 
 import math
+import operator
 import re
 
 from ..errors import GcodeError
@@ -243,7 +244,7 @@ class Line:
     """One parsed source line (see module docstring)."""
 
     __slots__ = ("num", "raw", "delete", "words", "gs", "ms", "dyn", "fn", "k", "assigns",
-                 "oword", "comments", "cols", "axes", "plain", "empty")
+                 "oword", "comments", "cols", "axes", "plain", "empty", "gmot")
 
     def __init__(self, num: int, raw: str):
         self.num = num
@@ -260,8 +261,9 @@ class Line:
         self.comments: list[str] = []
         self.cols: dict[str, int] = {}   #: letter -> index in the stripped line
         self.axes: tuple = ()            #: ((axis index, letter), ...)
-        self.plain = False               #: only constant axis/F words: fast path
+        self.plain = False               #: only axis/F words: fast path (modal G0/G1)
         self.empty = False
+        self.gmot = None                 #: G0/G1 (0/10) as the only code with axis/F words: fast path
 
     def column(self, letter: str) -> int:
         cols = self.cols
@@ -484,8 +486,8 @@ def _gcode_int(v: float) -> int | None:
 
 
 #: numbers in value position (after a value word letter, an operator, '[' or '=')
-_SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklpqrstxyz\[*/+\-=])([-+]?(?:\d+\.?\d*|\.\d+))")
-_PREFIX = re.compile(r"/?(?:n(?:\d+\.?\d*|\.\d+))?")
+#: (a malformed run of digits and dots makes float() fail: the line is then parsed in full)
+_SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
 
@@ -511,16 +513,38 @@ def parse_line(raw: str, num: int) -> Line:
         if comments:
             ln.comments = comments
         return ln
-    pre = _PREFIX.match(s).end()
-    body = s[pre:] if pre else s
-    if body and body[0] != "o" and "\x01" not in body and len(body) < 300:
-        parts = _SHAPE_SPLIT.split(body)
+    if s[0] != "o" and len(s) < 300 and "\x01" not in s:
+        parts = _SHAPE_SPLIT.split(s)
         shape = "\x01".join(parts[0::2])
         tpl = _SHAPES.get(shape, False)
         if tpl is False:
             tpl = _make_shape(shape, len(parts) // 2)
         if tpl is not None:
-            return _from_shape(tpl, raw, num, parts[1::2], comments, s[0] == "/")
+            # fill the shape's numbers in (see _make_shape)
+            cls, wletters, wget, fixed, kget, kidx, kfix = tpl
+            try:
+                vals = list(map(float, parts[1::2]))
+            except ValueError:
+                return _parse_full(raw, num, s, comments)
+            ln = cls()
+            ln.num = num
+            ln.raw = raw
+            if wget is not None:
+                w = dict(zip(wletters, wget(vals)))
+                if fixed:
+                    w.update(fixed)
+                ln.words = w
+            else:
+                ln.words = dict(fixed) if fixed else {}
+            if kget is not None:
+                ln.k = kget(vals)
+            elif kidx:
+                vals.extend(kfix)
+                ln.k = tuple([vals[i] for i in kidx])
+            else:
+                ln.k = ()
+            ln.comments = comments or ()
+            return ln
     return _parse_full(raw, num, s, comments)
 
 
@@ -555,59 +579,56 @@ def _make_shape(shape: str, nnum: int):
     # a Line subclass whose class attributes hold what all lines of the shape share
     shared = {"gs": tpl.gs, "ms": tpl.ms, "dyn": tpl.dyn, "fn": staticmethod(tpl.fn) if tpl.fn else None,
               "assigns": tpl.assigns,
-              "oword": None, "cols": None, "axes": tpl.axes, "empty": False, "__slots__": ()}
+              "oword": None, "cols": None, "axes": tpl.axes, "empty": False, "gmot": tpl.gmot,
+              "__slots__": ()}
+    shared["plain"] = tpl.plain
+    shared["delete"] = tpl.delete
     cls = type("ShapedLine", (_ShapedBase,), shared)
-    res = (cls, tuple(L for L, _ in wl), tuple(i for _, i in wl), fixed, tuple(kidx), kfix, tpl.plain)
+    widx = [i for _, i in wl]
+    wget = None
+    if len(widx) == 1:
+        i0 = widx[0]
+        wget = lambda v: (v[i0],)  # noqa: E731
+    elif widx:
+        wget = operator.itemgetter(*widx)
+    kget = None
+    if kidx and all(i < nnum for i in kidx):
+        if len(kidx) == 1:
+            k0 = kidx[0]
+            kget = lambda v: (v[k0],)  # noqa: E731
+        else:
+            kget = operator.itemgetter(*kidx)
+    res = (cls, tuple(L for L, _ in wl), wget, fixed, kget, tuple(kidx), kfix)
     _SHAPES[shape] = res
     return res
 
 
 class _ShapedBase:
     """Base of per-shape line classes: only the per-line fields are slots."""
-    __slots__ = ("num", "raw", "delete", "words", "k", "comments", "plain")
+    __slots__ = ("num", "raw", "words", "k", "comments")
     column = Line.column
     error = Line.error
-
-
-def _from_shape(tpl, raw: str, num: int, nums: list[str], comments, delete: bool) -> Line:
-    cls, wletters, widx, fixed, kidx, kfix, plain = tpl
-    vals = [float(x) for x in nums]
-    ln = cls()
-    ln.num = num
-    ln.raw = raw
-    ln.delete = delete
-    if wletters:
-        w = dict(zip(wletters, [vals[i] for i in widx]))
-        if fixed:
-            w.update(fixed)
-        ln.words = w
-    else:
-        ln.words = dict(fixed)
-    if kidx:
-        vals.extend(kfix)
-        ln.k = tuple([vals[i] for i in kidx])
-    else:
-        ln.k = ()
-    ln.comments = comments or ()
-    ln.plain = plain and not delete
-    return ln
 
 
 def _parse(ln: Line, s: str) -> None:
     i = 0
     n = len(s)
+    c = _Ctx(s)
     if s[0] == "/":
         ln.delete = True
         i = 1
     if i < n and s[i] == "n":
-        m = _UNSIGNED.match(s, i + 1)
-        if not m:
-            raise _Bad(i, "N word needs a line number")
-        i = m.end()
+        if s.startswith("\x01", i + 1):   # a shape's placeholder: the line number is not used
+            c.nph += 1
+            i += 2
+        else:
+            m = _UNSIGNED.match(s, i + 1)
+            if not m:
+                raise _Bad(i, "N word needs a line number")
+            i = m.end()
     if i < n and s[i] == "o":
         _parse_oword(ln, s, i)
         return None
-    c = _Ctx(s)
     srcs: list[str] = []
     words = ln.words
     cols = ln.cols
@@ -653,8 +674,11 @@ def _parse(ln: Line, s: str) -> None:
         ln.k = tuple(c.k)
         ln.fn = compile_template("(" + ",".join(srcs) + ",)")
     ln.axes = tuple((_AXIS_INDEX[a], a) for a in "xyzabc" if a in seen)
-    ln.plain = (not ln.gs and not ln.ms and not ln.assigns and not ln.delete
-                and all(a in "xyzabcf" for a in seen) and all(len(d) == 1 for d in ln.dyn))
+    simple = (not ln.ms and not ln.assigns and not ln.delete
+              and all(a in "xyzabcf" for a in seen) and all(len(d) == 1 for d in ln.dyn))
+    ln.plain = simple and not ln.gs
+    if simple and len(ln.gs) == 1 and ln.gs[0] in (0, 10):
+        ln.gmot = ln.gs[0]
     return c
 
 
