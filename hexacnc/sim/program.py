@@ -171,15 +171,17 @@ def trajectory(cfg, moves: list[Move], dt_s: float = 0.002, start=None,
     poses = np.empty((N, 6))
     line = np.empty(N, dtype=np.int64)
     starts = np.array([sg[0] for sg in segs])
-    idx = np.clip(np.searchsorted(starts, t, side="right") - 1, 0, len(segs) - 1)
+    bounds = np.searchsorted(t, np.append(starts[1:], np.inf), side="left")
+    k0 = 0
     for k, (ts, T, ta, tc, v, a, s_len, p0, delta, ln) in enumerate(segs):
-        sel = idx == k
-        if not np.any(sel):
+        k1 = int(bounds[k]) if k < len(segs) - 1 else N
+        if k1 <= k0:
             continue
-        tau = np.clip(t[sel] - ts, 0.0, T)
+        tau = np.clip(t[k0:k1] - ts, 0.0, T)
         s = np.where(tau < ta, 0.5 * a * tau * tau,
                      np.where(tau < ta + tc, 0.5 * a * ta * ta + v * (tau - ta),
                               s_len - 0.5 * a * (T - tau) ** 2))
-        poses[sel] = p0 + np.outer(np.clip(s / s_len, 0.0, 1.0), delta)
-        line[sel] = ln
+        poses[k0:k1] = p0 + np.outer(np.clip(s / s_len, 0.0, 1.0), delta)
+        line[k0:k1] = ln
+        k0 = k1
     return Trajectory(t_s=t, poses=poses, lengths_mm=hx.inverse_batch(poses), line=line, dt_s=dt_s)
