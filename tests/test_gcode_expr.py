@@ -115,3 +115,44 @@ def test_expression_errors_have_line_column_code(text, code, line, col):
         parse_program(text)
     e = ei.value
     assert (e.code, e.line, e.column) == (code, line, col), str(e)
+
+
+def _full(raw: str, num: int = 1):
+    from hexacnc.gcode import lexer
+    s, _cols, comments = lexer.strip_with_map(raw, num)
+    return lexer._parse_full(raw, num, s, comments)
+
+
+def _evaluate_line(ln):
+    P = [0.0] * 5602
+    P[1], P[2] = 3.0, -2.0
+    L = {"a": 1.5, "xscale": 0.5, "yscale": 1.0, "zscale": 2.0, "fscale": 3.0, "toolno": 1.0, "rpm": 100.0}
+    G = {"_g": 4.0}
+    vals = dict(ln.words)
+    if ln.fn is not None:
+        vals.update(zip(ln.dyn, ln.fn(P, L, G, lambda k: 0.0, ln.k)))
+    return vals, list(ln.gs), list(ln.ms), [a for a in ln.axes], ln.delete
+
+
+SHAPE_LINES = [
+    "N120Y[#<yscale>*-56.12]Z[#<zscale>*-27.725]", "G1 X1 Y-2.5 Z.5 F100", "g2 r1.997999 x1.613302 y-1.178668",
+    "/G0 X5", "N10 G0 X[1-2] Y[#1--2] Z[2**3**2]", "G1 X-#1 Y+#2 A[SIN[30]*2] F[#<_g>*10]",
+    "#1 = [#2 + 3] #<a> = 7 G0 X#1", "G10 L2 P1 X1 Y2", "G64 P0.01 Q.02", "T1 M6 G43 H1", "G4 P1.5",
+    "G1 X[ATAN[1]/[1]] Y[#1 MOD 2] Z[#1 GT 2]", "x1y2z3a4b5c6", "G0 X[#[#1 - 2]] Y##1",
+]
+
+
+def test_shaped_lines_equal_full_parse():
+    from hexacnc.gcode.lexer import parse_line
+    lines = list(SHAPE_LINES)
+    from pathlib import Path
+    corpus = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "gcode"
+    for name in ("3D_Chips.ngc", "arcspiral.ngc", "tort.ngc"):
+        if (corpus / name).exists():
+            lines += (corpus / name).read_text().split("\n")[:400]
+    for i, raw in enumerate(lines * 2):          # twice: the second time from the shape cache
+        a = parse_line(raw, i + 1)
+        if a.empty or a.oword is not None:
+            continue
+        b = _full(raw, i + 1)
+        assert _evaluate_line(a) == _evaluate_line(b), raw
