@@ -231,7 +231,14 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
     try:
         m = Master(cfg, buses)
-        m.bring_up(enable=True)
+        for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
+            try:
+                m.bring_up(enable=True)
+                break
+            except BusError as exc:
+                if attempt == 3:
+                    raise
+                log.warning("bus start attempt %d failed (%s); retrying", attempt, exc)
         sw = m.statuswords()
         pos = m.positions_inc()
         m.detach()

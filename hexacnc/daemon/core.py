@@ -491,6 +491,17 @@ class Daemon:
         from .loop import CMD_STALL
         self.sh.command(CMD_STALL, int(us))
 
+    def reset_stats(self, timeout_s: float = 1.0) -> None:
+        """Start the cycle statistics afresh (benchmarks: one phase at a time)."""
+        seq = self.sh.command(S.CMD_STATS_RESET)
+        t_end = time.monotonic() + timeout_s
+        while self.sh.h[S.H_CMD_ACK] < seq and time.monotonic() < t_end:
+            time.sleep(0.001)
+        for hist in (self.sh.hist_late, self.sh.hist_comp):
+            for i in range(S.HIST_BINS):
+                hist[i] = 0
+        self._stats_cache = (0.0, {})
+
     # ------------------------------------------------------------------ status
     def _fault_dict(self, hs) -> dict | None:
         h, s = hs
@@ -524,7 +535,7 @@ class Daemon:
         h = sh.h
         lat = S.percentiles_us(sh.hist_late.tolist())
         comp = S.percentiles_us(sh.hist_comp.tolist())
-        cycles = h[S.H_CYCLES]
+        cycles = h[S.H_CYCLES] - h[S.H_STATS_CYCLES0]
         out = {
             "period_s": self.period_s, "cycles": cycles,
             "lateness_us": {"median": lat[0], "p99": lat[1], "p999": lat[2], "max": h[S.H_LAT_MAX_NS] / 1e3},

@@ -129,7 +129,7 @@ class HotLoop:
         self.act = [0.0] * 6          # measured lengths, mm
         self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
         self.cw = [-1] * 6            # last controlword requested per drive
-        self.emcy_seen = [0] * 6
+        self.emcy_seen = list(io.emcy_count)
         self.follow_max = [0.0] * 6
         self.state = S.ST_BOOT
         self.fault = F_NONE
@@ -141,9 +141,11 @@ class HotLoop:
         self.starve_ns = 0
         self.enable_t0 = 0
         self.line = 0
-        self.cmd_seen = 0
+        self.cmd_seen = sh.h[S.H_CMD_SEQ]
         self.exit_after = -1
         self.resync = False
+        self.stats_reset = False
+        self.hist_cmd = [0.0] * 6
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -178,7 +180,14 @@ class HotLoop:
             self.hold[i] = X[i]
             self.out[i] = ct.cmd_mm[i]
             self.l0[i] = self.l1[i] = self.l2[i] = ct.cmd_mm[i]
+        self._fill_hist(self.l0)
         self.streaming = False
+
+    def _fill_hist(self, lengths) -> None:
+        h = self.hist_cmd
+        for k in range(0, len(h), 6):
+            for i in range(6):
+                h[k + i] = lengths[i]
 
     def _rehold_from(self, lengths) -> None:
         """After a stop: hold the pose whose commands are ``lengths`` (FK), guards at standstill."""
@@ -241,6 +250,8 @@ class HotLoop:
                 self.exit_after = 1
         elif code == S.CMD_FAULT_TEST:
             self._fault(F_TEST, 0, arg)
+        elif code == S.CMD_STATS_RESET:
+            self.stats_reset = True
         elif code == CMD_STALL:
             time.sleep(arg * 1e-6)
 
@@ -302,6 +313,11 @@ class HotLoop:
         emcy_seen = self.emcy_seen
         pos_count = io.pos_count
         pos_seen = [0] * 6
+        # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check
+        n_hist = max(2, min(32, 2 * int(getattr(self.cfg.bus, "feedback_divider", 1)) + 2))
+        hist_cmd = self.hist_cmd = [0.0] * (6 * n_hist)
+        self._fill_hist(self.l0)
+        h_slot = 0
         statusword = io.statusword
         follow_max = self.follow_max
         follow_lim = self.follow_mm
@@ -333,10 +349,8 @@ class HotLoop:
         comp_max = 0
         cycles = 0
         last_state = -1
-        self.cmd_seen = h[S.H_CMD_SEQ]
-        self.enable_t0 = mono()
-        for i in range(6):
-            emcy_seen[i] = emcy_count[i]
+        if self.state == ST_BOOT:
+            self.enable_t0 = mono()
 
         gc.collect()
         gc.freeze()
@@ -361,6 +375,14 @@ class HotLoop:
                     self.cmd_seen = seq
                     self._command(h[S.H_CMD], h[S.H_CMD_ARG], t0)
                     h[S.H_CMD_ACK] = seq
+                    if self.stats_reset:
+                        self.stats_reset = False
+                        overruns = in_row = max_row = lat_max = comp_max = 0
+                        h[S.H_OVERRUNS] = 0
+                        h[S.H_MAX_IN_ROW] = 0
+                        h[S.H_LAT_MAX_NS] = 0
+                        h[S.H_COMP_MAX_NS] = 0
+                        h[S.H_STATS_CYCLES0] = cycles
                 state = self.state
                 # ---------------------------------------------------------- supervision
                 if state == ST_RUNNING or state == ST_IDLE:
@@ -378,11 +400,18 @@ class HotLoop:
                             self._fault(F_DRIVE, i + 1, sw)
                             break
                         if pos_count[i] != pos_seen[i]:
-                            # a fresh sample: the position at the last SYNC, whose target was l0
+                            # a fresh sample: the position at one of the last SYNCs; the error is
+                            # its distance to the commands sent within the transport allowance
                             pos_seen[i] = pos_count[i]
-                            e = act[i] - l0[i]
-                            if e < 0.0:
-                                e = -e
+                            a_i = act[i]
+                            lo = hi = l0[i]
+                            for k in range(n_hist):
+                                v = hist_cmd[k * 6 + i]
+                                if v < lo:
+                                    lo = v
+                                elif v > hi:
+                                    hi = v
+                            e = lo - a_i if a_i < lo else (a_i - hi if a_i > hi else 0.0)
                             if e > follow_max[i]:
                                 follow_max[i] = e
                             if e > follow_lim:
@@ -443,12 +472,12 @@ class HotLoop:
                         else:
                             self._disable()
                             state = self.state = self.after_stop
-                elif state == ST_FAULT or state == ST_DISABLED or state == ST_BOOT:
-                    # drives without torque: follow the actual position so re-enabling is smooth
+                elif state == ST_BOOT:
+                    # enable walk: the targets track the actual positions so enabling moves nothing
                     for i in range(6):
                         v = act[i]
                         out[i] = lmin[i] if v < lmin[i] else (lmax[i] if v > lmax[i] else v)
-                    if state == ST_BOOT:
+                    if True:
                         all_on = True
                         for i in range(6):
                             if pos_count[i] == 0:       # no position yet: never enable blind
@@ -502,8 +531,11 @@ class HotLoop:
                             if h[S.H_READY] == 0:
                                 h[S.H_READY] = -1
                 # ---------------------------------------------------------- out to the bus
+                hb_ = h_slot * 6
+                h_slot = h_slot + 1 if h_slot + 1 < n_hist else 0
                 for i in range(6):
                     v = out[i]
+                    hist_cmd[hb_ + i] = v
                     t = round((v - off[i]) * ipm)
                     target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
                     l2[i] = l1[i]

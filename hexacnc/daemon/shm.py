@@ -52,6 +52,7 @@ H_FRAMES_RX = 26
 H_UNDERRUNS = 27
 H_END_SEEN = 28         #: rows consumed up to and including an END flag
 H_EXIT = 29             #: 1 when the loop has exited cleanly
+H_STATS_CYCLES0 = 30    #: cycle count at the last statistics reset
 H_STATUSWORDS = 32      #: 6 slots: last statusword per drive
 H_DRIVE_STATE = 38      #: 6 slots: 1 when the drive reports Operation Enabled
 N_HEADER = 64
@@ -81,6 +82,7 @@ CMD_RESET = 2           #: clear fault: fault reset + re-enable, re-seed guards
 CMD_SHUTDOWN = 3        #: controlled stop, disable drives, exit
 CMD_DISABLE = 4         #: controlled stop then disable, no fault
 CMD_FAULT_TEST = 5      #: raise an internal fault (tests): arg = fault code
+CMD_STATS_RESET = 6     #: zero the overrun counters and maxima (the supervisor zeroes the histograms)
 
 # -- hot loop states -------------------------------------------------------------------------
 ST_BOOT = 0

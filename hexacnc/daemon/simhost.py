@@ -23,6 +23,13 @@ def main() -> int:
     from drivers.simdrive import FaultSpec, SimDrives
     from .pipebus import PipeBus
     cfg = args["cfg"]
+    # the simulated drives stand for hardware that keeps time: real-time priority just below the
+    # hot loop when permitted (inherited by the canopen threads started below)
+    prio = int(args.get("priority", max(1, cfg.cycle.realtime_priority - 10)))
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except (OSError, AttributeError) as exc:
+        logging.getLogger("hexacnc.simhost").warning("simulated drives without SCHED_FIFO: %s", exc)
     buses = [PipeBus(fd=fd) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     stop = threading.Event()

@@ -1,0 +1,171 @@
+"""``hexacnc bench loop``: the hot loop's timing with the simulated drives, idle and under load.
+
+Two phases of ``--seconds`` each, at ``--period-s`` (default the config's, 0.5 ms):
+
+* **idle** - the daemon holds the home pose; nothing else happens;
+* **streaming** - a long smooth 6-axis path (Lissajous in x/y/z with a/b/c wobble, ramped in and
+  out) streams from the supervisor into the ring while a *separate process* polls ``status``
+  over the socket (``--poll-hz``) and a supervisor thread polls ``Daemon.status()``.
+
+Prints one JSON object: per phase lateness and compute percentiles (compute includes the bus
+I/O: poll, transform, send), overruns, most overruns in a row, underruns, faults; bus load of
+the layout; the privileges the hot process obtained; and the targets (compute p99 <= 100 us,
+overruns <= 0.1 %, never two in a row with SCHED_FIFO) with pass/fail.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+
+import numpy as np
+
+HELP = "hot loop timing at the cycle period with the simulated drives, idle and while a path streams"
+
+_POLLER = r"""
+import sys, time
+from hexacnc.daemon.protocol import Client
+path, hz, seconds = sys.argv[1], float(sys.argv[2]), float(sys.argv[3])
+n = 0
+t_end = time.monotonic() + seconds
+with Client.unix(path) as c:
+    while time.monotonic() < t_end:
+        rid = c.send("status")
+        c.reply_to(rid, timeout_s=5.0)
+        n += 1
+        time.sleep(1.0 / hz)
+print(n)
+"""
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seconds", type=float, default=60.0, help="duration of each phase (default 60)")
+    parser.add_argument("--config", metavar="F", help="machine description (default: embedded default)")
+    parser.add_argument("--period-s", type=float, help="cycle period (default: [cycle] period_s)")
+    parser.add_argument("--io", choices=("auto", "bus", "pipe", "inproc"), default="auto")
+    parser.add_argument("--poll-hz", type=float, default=50.0, help="status polls per second by the client process")
+    parser.add_argument("--no-realtime", action="store_true")
+    parser.add_argument("--skip-idle", action="store_true")
+
+
+def lissajous_rows(cfg, start_rad, seconds: float, period_s: float) -> np.ndarray:
+    """Rows for a smooth path starting and ending at rest at ``start_rad`` (mm, rad)."""
+    n = int(round(seconds / period_s)) + 1
+    t = np.arange(n) * period_s
+    ramp = min(2.0, seconds / 4)
+    u = np.clip(np.minimum(t, t[-1] - t) / ramp, 0.0, 1.0)
+    env = u ** 3 * (10 - 15 * u + 6 * u * u)
+    w = 2 * math.pi
+    rows = np.zeros((n, 8))
+    rows[:, :6] = start_rad
+    rows[:, 0] += env * 40.0 * np.sin(w * 0.31 * t)
+    rows[:, 1] += env * 40.0 * np.sin(w * 0.23 * t + 0.5) - env * 40.0 * math.sin(0.5)
+    rows[:, 2] += env * 25.0 * np.sin(w * 0.17 * t)
+    rows[:, 3] += env * math.radians(3.0) * np.sin(w * 0.13 * t)
+    rows[:, 4] += env * math.radians(3.0) * np.sin(w * 0.11 * t)
+    rows[:, 5] += env * math.radians(5.0) * np.sin(w * 0.07 * t)
+    rows[:, 6] = 1 + (t // 1.0)               # a "line" per second
+    rows[-1, 7] = 1                           # FLAG_END
+    return rows
+
+
+def _phase(daemon, seconds: float) -> dict:
+    daemon.reset_stats()
+    time.sleep(seconds)
+    st = daemon.status()
+    c = dict(st["cycle"])
+    c.pop("privileges", None)
+    c.pop("ring_fill", None)
+    c["fault"] = st["fault"]
+    c["state_at_end"] = st["state"]
+    return c
+
+
+def main(args: argparse.Namespace) -> int:
+    import dataclasses
+    import logging
+    from ..config import load_config
+    from ..daemon.core import Daemon
+    from ..daemon.server import SocketServer
+
+    logging.basicConfig(level=logging.WARNING)
+    cfg = load_config(args.config)
+    if args.period_s:
+        cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, period_s=args.period_s))
+    period = cfg.cycle.period_s
+    out: dict = {"bench": "loop", "machine": cfg.name, "period_s": period, "seconds_per_phase": args.seconds,
+                 "cpus": os.cpu_count()}
+    sock_dir = tempfile.mkdtemp(prefix="hexacnc-bench-")
+    sock = os.path.join(sock_dir, "hexacnc.sock")
+    with Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime) as d:
+        out["io"] = d.info.get("io_info")
+        out["bus_load"] = d.info.get("bus_load")
+        out["bus"] = d.info.get("bus_summary")
+        priv = d.info.get("privileges") or {}
+        out["privileges"] = {"sched_fifo": priv.get("sched_fifo"), "mlockall": priv.get("mlockall"),
+                             "affinity_cpu": priv.get("affinity_cpu"), "messages": priv.get("messages")}
+        if not args.skip_idle:
+            out["idle"] = _phase(d, args.seconds)
+        server = SocketServer(d, cfg, sock).start()
+        try:
+            start = np.array(d.status()["pose_cmd"], dtype=float)
+            start[3:] = np.radians(start[3:])
+            rows = lissajous_rows(cfg, start, args.seconds + 1.0, period)
+            d.queue_rows(rows, name="bench-lissajous")
+            polls = [0]
+            stop = threading.Event()
+
+            def local_poll():
+                while not stop.is_set():
+                    d.status()
+                    polls[0] += 1
+                    time.sleep(0.01)
+
+            th = threading.Thread(target=local_poll, daemon=True)
+            th.start()
+            poller = subprocess.Popen([sys.executable, "-c", _POLLER, sock, str(args.poll_hz), str(args.seconds)],
+                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            time.sleep(0.3)
+            streaming = _phase(d, args.seconds)
+            stop.set()
+            th.join(2)
+            try:
+                so, se = poller.communicate(timeout=30)
+                streaming["socket_status_polls"] = int(so.strip() or 0)
+                if poller.returncode:
+                    streaming["socket_poller_error"] = se.strip()[-500:]
+            except (subprocess.TimeoutExpired, ValueError):
+                poller.kill()
+            streaming["supervisor_status_polls"] = polls[0]
+            streaming["path_rows"] = len(rows)
+            out["streaming"] = streaming
+            d.stop()
+            d.wait(5)
+        finally:
+            server.close()
+            try:
+                os.rmdir(sock_dir)
+            except OSError:
+                pass
+    fifo = bool(out["privileges"].get("sched_fifo"))
+    targets = {}
+    for name in ("idle", "streaming"):
+        ph = out.get(name)
+        if not ph:
+            continue
+        p99 = ph["compute_us"]["p99"]
+        targets[name] = {
+            "compute_p99_le_100us": p99 is not None and p99 <= 100.0,
+            "overruns_le_0.1pct": ph["overrun_pct"] <= 0.1,
+            "never_two_in_a_row": ph["max_overruns_in_row"] <= 1 if fifo else None,
+            "no_fault": ph["fault"] is None,
+        }
+    out["targets"] = targets
+    print(json.dumps(out, indent=1, default=str))
+    return 0
