@@ -93,6 +93,8 @@ def test_predefined_named_parameters():
 
 @pytest.mark.parametrize("text, code, line, col", [
     ("G0 X[1/0]\n", "expression", 1, 4),
+    ("G0 X[1/1] Y2 Z[SQRT[-1]]\n", "expression", 1, 14),
+    ("#1 = 2 #2 = [1/0]\n", "expression", 1, 8),
     ("G0 X0\nG0 X[SQRT[-1]]\n", "expression", 2, 4),
     ("#1 = [ASIN[2]]\n", "expression", 1, 1),
     ("#1 = [LN[0]]\n", "expression", 1, 1),

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import GcodeError
 from . import blocks as B
 from .blocks import Block
-from .lexer import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, Line, parse_line
+from .lexer import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, Line, compile_template, parse_line
 
 #: modal groups of the supported G codes (code x10)
 _G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 800: 1,
@@ -358,8 +358,15 @@ class Interpreter:
         col = 1
         if ln.oword is not None:
             col = ln.column("o")
-        else:
-            col = ln.column(ln.dyn[0]) if ln.dyn else 1
+        elif ln.dyn:
+            key = ln.dyn[0]
+            for i, src in enumerate(ln.srcs):
+                try:
+                    compile_template("(" + src + ",)")(self.P, self.L, self.G, self._sys, ln.k)
+                except Exception:  # noqa: BLE001 - the first value that fails is the one to name
+                    key = ln.dyn[i]
+                    break
+            col = ln.column(key)
         return GcodeError(f"expression error: {msg}", ln.num, col, "expression")
 
     def _sys(self, key):

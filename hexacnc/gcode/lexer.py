@@ -244,7 +244,7 @@ class Line:
     """One parsed source line (see module docstring)."""
 
     __slots__ = ("num", "raw", "delete", "words", "gs", "ms", "dyn", "fn", "k", "assigns",
-                 "oword", "comments", "cols", "axes", "plain", "empty", "gmot")
+                 "oword", "comments", "cols", "axes", "plain", "empty", "gmot", "srcs")
 
     def __init__(self, num: int, raw: str):
         self.num = num
@@ -264,6 +264,7 @@ class Line:
         self.plain = False               #: only axis/F words: fast path (modal G0/G1)
         self.empty = False
         self.gmot = None                 #: G0/G1 (0/10) as the only code with axis/F words: fast path
+        self.srcs: tuple = ()            #: source of each computed value (to locate errors)
 
     def column(self, letter: str) -> int:
         cols = self.cols
@@ -580,7 +581,7 @@ def _make_shape(shape: str, nnum: int):
     shared = {"gs": tpl.gs, "ms": tpl.ms, "dyn": tpl.dyn, "fn": staticmethod(tpl.fn) if tpl.fn else None,
               "assigns": tpl.assigns,
               "oword": None, "cols": None, "axes": tpl.axes, "empty": False, "gmot": tpl.gmot,
-              "__slots__": ()}
+              "srcs": tpl.srcs, "__slots__": ()}
     shared["plain"] = tpl.plain
     shared["delete"] = tpl.delete
     cls = type("ShapedLine", (_ShapedBase,), shared)
@@ -673,6 +674,7 @@ def _parse(ln: Line, s: str) -> None:
     if srcs:
         ln.k = tuple(c.k)
         ln.fn = compile_template("(" + ",".join(srcs) + ",)")
+        ln.srcs = tuple(srcs)
     ln.axes = tuple((_AXIS_INDEX[a], a) for a in "xyzabc" if a in seen)
     simple = (not ln.ms and not ln.assigns and not ln.delete
               and all(a in "xyzabcf" for a in seen) and all(len(d) == 1 for d in ln.dyn))
@@ -769,5 +771,6 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
     if srcs:
         ln.k = tuple(c.k)
         ln.fn = compile_template("(" + ",".join(srcs) + ",)")
+        ln.srcs = tuple(srcs)
     ln.oword = (kw, label, len(srcs))
     ln.cols["o"] = i
