@@ -32,7 +32,7 @@ from .layout import MASTER_NODE_ID, SYNC_COB_ID, plan_layout
 
 # -- send() result bits ------------------------------------------------------------------------
 SEND_OK = 0
-SEND_LIMIT = 1          #: a target was outside the drive limits: NOTHING was sent this cycle
+SEND_LIMIT = 1          #: a target was outside the drive limits: no new target sent (drives hold)
 SEND_BUS_ERROR = 2      #: a bus refused a frame (python-can error); the others were still tried
 
 # -- poll() event bits -------------------------------------------------------------------------
@@ -146,6 +146,7 @@ class CyclicIO:
             sync = can.Message(arbitration_id=SYNC_COB_ID, data=bytearray(plan.sync_length), is_extended_id=False)
             self._tx.append((self.buses[b], frames, sync))
         self._sync_counter = 0
+        self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
         self._hb_msg = can.Message(arbitration_id=0x700 + MASTER_NODE_ID, data=bytearray([NMT_OPERATIONAL]),
@@ -173,14 +174,18 @@ class CyclicIO:
     def send(self, targets_inc: Sequence[int], controlwords: Sequence[int] | None = None) -> int:
         """Send this cycle's targets (int32 increments, strut order) then SYNC on every bus.
 
-        Returns ``SEND_OK`` or ``SEND_*`` bits. With a target outside the limits nothing at all
-        is sent (the drives keep the last target) and ``SEND_LIMIT`` is returned.
+        Returns ``SEND_OK`` or ``SEND_*`` bits. With any target outside the limits no new target
+        goes out: the RPDO frames repeat the last valid targets (none before the first valid cycle),
+        so the drives hold; SYNC, heartbeat and controlwords still go out; ``SEND_LIMIT`` is returned.
         """
         lo, hi = self._lo, self._hi
+        limit = False
         for i in range(self.n):
             t = targets_inc[i]
             if t < lo[i] or t > hi[i]:
-                return SEND_LIMIT
+                limit = True
+                break
+        have_last = self._have_last
         cw = self.controlword
         if controlwords is not None:
             for i in range(self.n):
@@ -213,10 +218,17 @@ class CyclicIO:
             try:
                 for msg, slots, has_cw in frames:
                     data = msg.data
-                    for i, off in slots:
-                        pack_i32(data, off, targets_inc[i])
+                    if limit:
+                        if not have_last:
+                            continue
                         if has_cw:
-                            pack_u16(data, off - 2, cw[i])
+                            for i, off in slots:
+                                pack_u16(data, off - 2, cw[i])
+                    else:
+                        for i, off in slots:
+                            pack_i32(data, off, targets_inc[i])
+                            if has_cw:
+                                pack_u16(data, off - 2, cw[i])
                     bus.send(msg)
                     sent += 1
                 if self._sync_overflow:
@@ -230,6 +242,9 @@ class CyclicIO:
                 rc |= SEND_BUS_ERROR
         self.frames_sent += sent
         self.cycles += 1
+        if limit:
+            return rc | SEND_LIMIT
+        self._have_last = True
         return rc
 
     # -- receive ------------------------------------------------------------------------------

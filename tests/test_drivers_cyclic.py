@@ -1,5 +1,6 @@
 """Hot-path frames on the virtual bus, decoded independently with canopen's PDO maps read from the drives."""
 import math
+import struct
 import time
 
 import pytest
@@ -82,9 +83,14 @@ def test_limits_block_the_whole_cycle_and_controlword_events_only_on_change():
             assert io.send(bad) == SEND_LIMIT
             time.sleep(0.01)
             plan = rig.master.plan
-            master_ids = {0x080, 0x77F} | {n.rpdo1_cob_id for n in plan.nodes} | {n.rpdo2_cob_id for n in plan.nodes}
-            left = [m.arbitration_id for b in sniff for m in iter(lambda b=b: b.recv(0), None)]
-            assert not master_ids & set(left), "a frame left although a target was out of limits"
+            frames = {f.cob_id: f for f in plan.frames}
+            seen = [m for b in sniff for m in iter(lambda b=b: b.recv(0), None)]
+            rpdo = [m for m in seen if m.arbitration_id in frames]
+            assert len(rpdo) == 2 * len(frames)                  # the frames still go out ...
+            for m in rpdo:                                       # ... repeating the last valid targets
+                for i, off in frames[m.arbitration_id].slots:
+                    assert struct.unpack_from("<i", m.data, off)[0] == start[i]
+            assert sum(m.arbitration_id == 0x080 for m in seen) == 2 * 2     # SYNC on both buses
             # controlword: one RPDO2 event when it changes, none while it stays
             io.set_controlword(0, cia402.CW_QUICK_STOP)
             for _ in range(20):
@@ -112,3 +118,23 @@ def test_increment_conversion():
     for x in (-3.2, 0.0, 17.77777):
         inc = length_to_increments(600 + x, 600, 10000.0)
         assert abs(increments_to_length(inc, 600, 10000.0) - (600 + x)) <= 0.5 / 10000
+
+
+def test_no_target_before_the_first_valid_cycle():
+    with SimRig() as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        io = rig.cyclic()
+        sniff = open_buses(rig.cfg.bus)
+        try:
+            lo, hi = limits_inc(rig.cfg)
+            bad = list(start)
+            bad[0] = hi[0] + 10
+            assert io.send(bad) == SEND_LIMIT
+            time.sleep(0.01)
+            ids = [m.arbitration_id for b in sniff for m in iter(lambda b=b: b.recv(0), None)]
+            assert not {f.cob_id for f in rig.master.plan.frames} & set(ids)   # zeros never go out
+            assert ids.count(0x080) == 2
+        finally:
+            for b in sniff:
+                b.shutdown()
