@@ -8,7 +8,9 @@ Modules (one job each):
 * :mod:`drivers.cia402`   - CiA 402 state machine tables (tagged by transition number), EMCY texts
 * :mod:`drivers.master`   - CANopen master for the non-cyclic work (boot, SDO mapping, enable/disable)
 * :mod:`drivers.cyclic`   - the hot-path codec (prebuilt frames, ``struct``), no allocation per cycle
-* :mod:`drivers.simdrive` - simulated CiA 402 drives (separate process or in-process on ``virtual``)
+* :mod:`drivers.simdrive` - six simulated CiA 402 drives (separate process or in-process on ``virtual``)
+* :mod:`drivers.simnode`  - one simulated drive node (PDOs, state machine, supervision, fault injection)
+* :mod:`drivers.strutmodel` - pluggable strut dynamics for the simulated drives
 * :mod:`drivers.testing`  - run commands inside a private network namespace (cross-process bus tests)
 
 ``hexapod_drive.eds`` is the object dictionary of the drives (real and simulated).
