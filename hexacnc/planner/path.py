@@ -11,8 +11,9 @@ Conventions
   linearly with the path, as on a 5-axis machine) - on lines and on arcs.
 * Platform pose: ``t = tip - R(a, b, c) @ q_tool`` with the tool point
   ``q_tool = tip_platform_mm + tool_length_mm * axis_platform`` (platform frame).
-* Corner blends: a cubic Hermite curve in (x, y, z, a, b, c) that joins the two
-  trimmed segments with matching first derivatives in ``s`` (C1); its deviation
+* Corner blends: a quintic Hermite curve in (x, y, z, a, b, c) that joins the two
+  trimmed segments with matching first and second derivatives in ``s`` (C2, so
+  strut accelerations stay continuous); its deviation
   from the programmed path is bounded by the G64 P tolerance (mm for x, y, z and
   the same number in degrees for a, b, c), checked numerically on 17 points
   against the corresponding point of the programmed path (an upper bound of the
@@ -34,6 +35,8 @@ from ..gcode import blocks as B
 LINE, ARC, BLEND = 0, 1, 2
 _SQRT3 = math.sqrt(3.0)
 _EPS_LEN = 1e-9
+#: coefficients per piece
+NCOEF = 36
 
 
 @dataclass
@@ -42,7 +45,7 @@ class Raw:
     kind: int
     line: int
     slen: float                 #: s-length (mm, or deg for rotary-only)
-    coef: np.ndarray            #: (24,) geometry coefficients
+    coef: np.ndarray            #: (NCOEF,) geometry coefficients
     tool_mm: float
     feed: float                 #: s-units per second (upper bound)
     rapid: bool
@@ -51,7 +54,7 @@ class Raw:
 
 
 def _line_coef(p0: np.ndarray, p1: np.ndarray) -> np.ndarray:
-    c = np.zeros(24)
+    c = np.zeros(NCOEF)
     c[0:6] = p0
     c[6:12] = p1 - p0
     return c
@@ -91,7 +94,7 @@ def _arc_coef(blk, p0: np.ndarray, p1: np.ndarray) -> tuple[np.ndarray, float]:
         if th < 1e-9:
             th = 2 * math.pi
         th += 2 * math.pi * turns
-    c = np.zeros(24)
+    c = np.zeros(NCOEF)
     c[0:3] = ctr + h0 * n
     c[3:6] = e1
     c[6:9] = e2
@@ -122,15 +125,24 @@ def _pose_rad(v, what: str, line: int) -> np.ndarray:
 # vectorised evaluation
 # ---------------------------------------------------------------------------
 def eval_raw(kind: np.ndarray, coef: np.ndarray, u: np.ndarray) -> np.ndarray:
-    """Tip pose (N,6) (mm, rad) at normalised parameters u (N,) for pieces given by kind (N,), coef (N,24)."""
+    """Tip pose (N,6) (mm, rad) at normalised parameters u (N,) for pieces given by kind (N,), coef (N,NCOEF)."""
+    return eval_pieces(kind, coef, np.arange(u.shape[0]), u)
+
+
+def eval_pieces(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, u: np.ndarray) -> np.ndarray:
+    """Tip poses (N,6) mm/rad of pieces ``idx`` (into kind (M,), coef (M,NCOEF)) at normalised u (N,).
+
+    Only the coefficient columns a kind needs are gathered (memory bandwidth is the cost here).
+    """
     out = np.empty((u.shape[0], 6))
-    m = kind == LINE
-    if m.any():
-        c = coef[m]
-        out[m] = c[:, 0:6] + u[m, None] * c[:, 6:12]
-    m = kind == ARC
-    if m.any():
-        c = coef[m]
+    kd = kind[idx]
+    m = np.nonzero(kd == LINE)[0]
+    if m.size:
+        ii = idx[m]
+        out[m] = coef[ii, 0:6] + u[m, None] * coef[ii, 6:12]
+    m = np.nonzero(kd == ARC)[0]
+    if m.size:
+        c = coef[idx[m], 0:22]
         uu = u[m]
         r = c[:, 12] + c[:, 13] * uu
         ph = c[:, 14] * uu
@@ -138,24 +150,50 @@ def eval_raw(kind: np.ndarray, coef: np.ndarray, u: np.ndarray) -> np.ndarray:
         out[m, 0:3] = (c[:, 0:3] + (r * cp)[:, None] * c[:, 3:6] + (r * sp)[:, None] * c[:, 6:9]
                        + (c[:, 15] * uu)[:, None] * c[:, 9:12])
         out[m, 3:6] = c[:, 16:19] + uu[:, None] * c[:, 19:22]
-    m = kind == BLEND
-    if m.any():
-        # cubic Hermite in power form: coef = [P0 (6), D*T0 (6), P3 (6), D*T3 (6)]
-        c = coef[m]
+    m = np.nonzero(kd == BLEND)[0]
+    if m.size:
+        # quintic Hermite: coef = [P0, V0, A0, A1, V1, P1] (6 each) in the blend parameter w
+        c = coef[idx[m]]
         w = u[m][:, None]
-        w2, w3 = w * w, w * w * w
-        h00 = 2 * w3 - 3 * w2 + 1
-        h10 = w3 - 2 * w2 + w
-        h01 = -2 * w3 + 3 * w2
-        h11 = w3 - w2
-        out[m] = h00 * c[:, 0:6] + h10 * c[:, 6:12] + h01 * c[:, 12:18] + h11 * c[:, 18:24]
+        w2 = w * w
+        w3 = w2 * w
+        w4 = w3 * w
+        w5 = w4 * w
+        out[m] = ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[:, 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[:, 6:12]
+                  + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[:, 12:18]
+                  + (0.5 * w3 - w4 + 0.5 * w5) * c[:, 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[:, 24:30]
+                  + (10 * w3 - 15 * w4 + 6 * w5) * c[:, 30:36])
     return out
+
+
+def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
+    """Pose, d/du and d2/du2 (each (N,6), mm / rad) of lines and arcs (analytic)."""
+    n = u.shape[0]
+    P = eval_raw(kind, coef, u)
+    D1 = np.zeros((n, 6))
+    D2 = np.zeros((n, 6))
+    m = kind == LINE
+    D1[m] = coef[m, 6:12]
+    m = kind == ARC
+    if m.any():
+        c = coef[m]
+        uu = u[m]
+        r = c[:, 12] + c[:, 13] * uu
+        ph = c[:, 14] * uu
+        cp, sp = np.cos(ph)[:, None], np.sin(ph)[:, None]
+        radial = cp * c[:, 3:6] + sp * c[:, 6:9]
+        tang = -sp * c[:, 3:6] + cp * c[:, 6:9]
+        dr, th = c[:, 13][:, None], c[:, 14][:, None]
+        D1[m, 0:3] = dr * radial + (r[:, None] * th) * tang + c[:, 15][:, None] * c[:, 9:12]
+        D1[m, 3:6] = c[:, 19:22]
+        D2[m, 0:3] = 2 * dr * th * tang - (r[:, None] * th * th) * radial
+    return P, D1, D2
 
 
 class Path:
     """The executed path: pieces with global ``s`` ranges.
 
-    Arrays (M pieces): ``kind``, ``coef`` (M,24), ``s0`` (global start),
+    Arrays (M pieces): ``kind``, ``coef`` (M,NCOEF), ``s0`` (global start),
     ``slen`` (s-length of the piece), ``u0``/``uscale`` (piece-local parameter
     ``u = u0 + (s - s0) * uscale``), ``tool_point`` (M,3) platform frame,
     ``feed`` (s-units/s), ``rapid``, ``line``.
@@ -166,7 +204,7 @@ class Path:
         M = len(pieces)
         self.n = M
         self.kind = np.array([p["kind"] for p in pieces], dtype=np.int8)
-        self.coef = np.array([p["coef"] for p in pieces], dtype=float).reshape(M, 24)
+        self.coef = np.array([p["coef"] for p in pieces], dtype=float).reshape(M, NCOEF)
         self.slen = np.array([p["slen"] for p in pieces], dtype=float)
         self.s0 = np.concatenate([[0.0], np.cumsum(self.slen)[:-1]]) if M else np.zeros(0)
         self.u0 = np.array([p["u0"] for p in pieces], dtype=float)
@@ -189,7 +227,7 @@ class Path:
     def tip(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Tool-tip poses (N,6) mm/rad of pieces ``idx`` at global ``s`` (extrapolates outside the piece)."""
         u = self.u0[idx] + (s - self.s0[idx]) * self.uscale[idx]
-        return eval_raw(self.kind[idx], self.coef[idx], u)
+        return eval_pieces(self.kind, self.coef, idx, u)
 
     def platform(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Platform poses (N,6) mm/rad (tool tip converted through the tool point)."""
@@ -282,19 +320,42 @@ def raw_moves(blocks, cfg) -> tuple[list, list]:
     return raws, events
 
 
-def _raw_eval(r: Raw, u: np.ndarray) -> np.ndarray:
-    return eval_raw(np.full(u.shape[0], r.kind, dtype=np.int8), np.broadcast_to(r.coef, (u.shape[0], 24)), u)
-
-
-def _raw_deriv(r: Raw, u: float) -> np.ndarray:
-    """d pose / ds (6,) (rad for angles) at normalised u."""
-    d = 1e-6
-    P = _raw_eval(r, np.array([u - d, u + d]))
-    return (P[1] - P[0]) / (2 * d * r.slen)
-
-
 #: events that stop motion; coolant changes do not
 STOP_EVENTS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.END, B.SPINDLE, B.TOOL_CHANGE)
+
+
+def _raw_at(kind, coef, slen, u):
+    """Pose, d/ds, d2/ds2 of raw moves at normalised u (vectorised)."""
+    Pp, D1, D2 = eval_raw_derivs(kind, coef, u)
+    return Pp, D1 / slen[:, None], D2 / (slen * slen)[:, None]
+
+
+def _blend_coefs(rk, rc, rl, ia, da, db):
+    """Quintic Hermite blend coefficients (n, NCOEF) between raw ia and ia+1 trimmed by da / db."""
+    ib = ia + 1
+    Pa, Ta, Ka = _raw_at(rk[ia], rc[ia], rl[ia], 1.0 - da / rl[ia])
+    Pb, Tb, Kb = _raw_at(rk[ib], rc[ib], rl[ib], db / rl[ib])
+    D = (da + db)[:, None]
+    return np.hstack([Pa, Ta * D, Ka * D * D, Kb * D * D, Tb * D, Pb])
+
+
+def _blend_deviation(rk, rc, rl, ia, da, db):
+    """Max deviation (mm for x, y, z; deg for a, b, c; the larger) of blends from the programmed path,
+    measured against the point of the programmed path at the same s (an upper bound of the distance)."""
+    nw = 17
+    n = ia.shape[0]
+    coef = _blend_coefs(rk, rc, rl, ia, da, db)
+    W = np.tile(np.linspace(0.0, 1.0, nw), n)
+    rep = np.repeat(np.arange(n), nw)
+    Pb = eval_raw(np.full(n * nw, BLEND, dtype=np.int8), coef[rep], W)
+    s = W * (da + db)[rep] - da[rep]
+    onA = s <= 0
+    ir = np.where(onA, ia[rep], ia[rep] + 1)
+    u = np.where(onA, 1.0 + s / rl[ir], s / rl[ir])
+    ref = eval_raw(rk[ir], rc[ir], u)
+    dx = np.linalg.norm(Pb[:, :3] - ref[:, :3], axis=1)
+    dang = np.linalg.norm(np.degrees(Pb[:, 3:] - ref[:, 3:]), axis=1)
+    return np.maximum(dx, dang).reshape(n, nw).max(axis=1)
 
 
 def build_path(blocks, cfg) -> tuple[Path, list]:
@@ -306,68 +367,71 @@ def build_path(blocks, cfg) -> tuple[Path, list]:
     tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     stop_after_raw = set(i for i, blk in events if blk.kind in STOP_EVENTS)
     nr = len(raws)
-    # junction analysis between raw i and i+1
-    blend_d = np.zeros((nr, 2))          # trim at start / end of each raw (s-units)
-    junction_stop = np.zeros(nr, dtype=bool)   # stop after raw i
-    cand = []
-    for i in range(nr - 1):
-        a, b = raws[i], raws[i + 1]
-        pa = _raw_eval(a, np.array([1.0]))[0]
-        pb = _raw_eval(b, np.array([0.0]))[0]
-        qa = tipp + a.tool_mm * axis
-        qb = tipp + b.tool_mm * axis
-        Xa = tip_to_platform(pa[None], qa[None])[0]
-        Xb = tip_to_platform(pb[None], qb[None])[0]
-        if np.max(np.abs(Xa[:3] - Xb[:3])) > 1e-6 or np.max(np.abs(Xa[3:] - Xb[3:])) > 1e-8:
+    rk = np.array([r.kind for r in raws], dtype=np.int8)
+    rc = np.array([r.coef for r in raws])
+    rl = np.array([r.slen for r in raws])
+    tool = np.array([r.tool_mm for r in raws])
+    tol = np.array([r.tolerance for r in raws])
+    exact = np.array([r.exact_stop for r in raws])
+    qp = tipp[None, :] + tool[:, None] * axis[None, :]
+    Pe, Te, _ = _raw_at(rk, rc, rl, np.ones(nr))
+    Ps, Ts, _ = _raw_at(rk, rc, rl, np.zeros(nr))
+    Xe = tip_to_platform(Pe, qp)
+    Xs = tip_to_platform(Ps, qp)
+    if nr > 1:
+        gap = np.maximum(np.max(np.abs(Xe[:-1, :3] - Xs[1:, :3]), axis=1),
+                         1e2 * np.max(np.abs(Xe[:-1, 3:] - Xs[1:, 3:]), axis=1))
+        badj = np.nonzero(gap > 1e-6)[0]
+        if badj.size:
+            i = int(badj[0])
             raise PlanError(f"path is discontinuous: the move starts at platform pose "
-                            f"{np.round(_deg(Xb), 6).tolist()} but the previous move (line {a.line}) ended at "
-                            f"{np.round(_deg(Xa), 6).tolist()}", line=b.line, limit="continuity", code="gcode")
-        if i in stop_after_raw or a.exact_stop or a.tool_mm != b.tool_mm:
-            junction_stop[i] = True
-            continue
-        ta = _raw_deriv(a, 1.0)
-        tb = _raw_deriv(b, 0.0)
-        dt = tb - ta
-        if np.max(np.abs(dt)) < 1e-7:
-            continue   # tangent-continuous in s: nothing to do
-        cosang = float(ta[:3] @ tb[:3]) / max(1e-12, float(np.linalg.norm(ta[:3]) * np.linalg.norm(tb[:3])))
-        if np.linalg.norm(ta[:3]) > 1e-9 and np.linalg.norm(tb[:3]) > 1e-9 and cosang < -0.996:
-            junction_stop[i] = True   # reversal (> 175 deg): no useful blend
-            continue
-        tol = min(a.tolerance, b.tolerance)
-        if tol <= 0:
-            junction_stop[i] = True
-            continue
-        dx = float(np.linalg.norm(dt[:3]))
-        da = float(np.linalg.norm(np.degrees(dt[3:])))
-        d = min(4.0 * tol / max(dx, 1e-12), 4.0 * tol / max(da, 1e-12))
-        cand.append([i, d])
-    if cand:
-        C = np.array(cand)
-        idx = C[:, 0].astype(int)
-        d = C[:, 1]
-        la = np.array([raws[i].slen for i in idx])
-        lb = np.array([raws[i + 1].slen for i in idx])
-        da = np.minimum(d, 0.5 * la)
-        db = np.minimum(d, 0.5 * lb)
-        ok = np.zeros(len(idx), dtype=bool)
-        for _ in range(20):
-            todo = np.nonzero(~ok)[0]
-            if todo.size == 0:
-                break
-            dev = _blend_deviation(raws, idx[todo], da[todo], db[todo])
-            tols = np.array([min(raws[i].tolerance, raws[i + 1].tolerance) for i in idx[todo]])
-            good = dev <= tols
-            ok[todo[good]] = True
-            bad = todo[~good]
-            da[bad] *= 0.5
-            db[bad] *= 0.5
-        for j, i in enumerate(idx):
-            if not ok[j] or da[j] < 1e-7 or db[j] < 1e-7:
-                junction_stop[i] = True
-            else:
-                blend_d[i, 1] = da[j]
-                blend_d[i + 1, 0] = db[j]
+                            f"{np.round(_deg(Xs[i + 1]), 6).tolist()} but the previous move (line {raws[i].line}) "
+                            f"ended at {np.round(_deg(Xe[i]), 6).tolist()}", line=raws[i + 1].line,
+                            limit="continuity", code="gcode")
+    junction_stop = np.zeros(nr, dtype=bool)
+    junction_stop[-1] = True
+    blend_d = np.zeros((nr, 2))
+    if nr > 1:
+        ta, tb = Te[:-1], Ts[1:]
+        dtan = tb - ta
+        smooth = np.max(np.abs(dtan), axis=1) < 1e-7
+        na = np.linalg.norm(ta[:, :3], axis=1)
+        nb = np.linalg.norm(tb[:, :3], axis=1)
+        cosang = np.einsum("ij,ij->i", ta[:, :3], tb[:, :3]) / np.maximum(na * nb, 1e-12)
+        reverse = (na > 1e-9) & (nb > 1e-9) & (cosang < -0.996)
+        jt = np.minimum(tol[:-1], tol[1:])
+        forced = np.array([i in stop_after_raw for i in range(nr - 1)]) | exact[:-1] | (tool[:-1] != tool[1:])
+        stop = forced | (~smooth & (reverse | (jt <= 0)))
+        junction_stop[:-1] = stop
+        cand = np.nonzero(~stop & ~smooth)[0]
+        if cand.size:
+            dx = np.linalg.norm(dtan[cand, :3], axis=1)
+            dang = np.linalg.norm(np.degrees(dtan[cand, 3:]), axis=1)
+            d = np.minimum(8.0 * jt[cand] / np.maximum(dx, 1e-12), 8.0 * jt[cand] / np.maximum(dang, 1e-12))
+            da = np.minimum(d, 0.5 * rl[cand])
+            db = np.minimum(d, 0.5 * rl[cand + 1])
+            ok = np.zeros(cand.size, dtype=bool)
+            for _ in range(30):
+                todo = np.nonzero(~ok)[0]
+                if todo.size == 0:
+                    break
+                dev = _blend_deviation(rk, rc, rl, cand[todo], da[todo], db[todo])
+                good = dev <= jt[cand[todo]]
+                ok[todo[good]] = True
+                bad = todo[~good]
+                da[bad] *= 0.6
+                db[bad] *= 0.6
+            fail = ~ok | (da < 1e-7) | (db < 1e-7)
+            junction_stop[cand[fail]] = True
+            good = cand[~fail]
+            blend_d[good, 1] = da[~fail]
+            blend_d[good + 1, 0] = db[~fail]
+            bcoef = _blend_coefs(rk, rc, rl, good, da[~fail], db[~fail]) if good.size else np.zeros((0, NCOEF))
+            bmap = {int(i): j for j, i in enumerate(good)}
+        else:
+            bmap = {}
+    else:
+        bmap = {}
     pieces: list[dict] = []
     stops_after: dict[int, dict] = {}
     raw_last_piece = np.zeros(nr, dtype=int)
@@ -379,11 +443,10 @@ def build_path(blocks, cfg) -> tuple[Path, list]:
         if junction_stop[i]:
             stops_after[len(pieces) - 1] = {"corner": True}
         if t1 > 0:
-            nb = raws[i + 1]
-            coef = _blend_coef(r, nb, t1, blend_d[i + 1, 0])
+            nb_ = raws[i + 1]
             D = t1 + blend_d[i + 1, 0]
-            pieces.append(dict(kind=BLEND, coef=coef, slen=D, u0=0.0, uscale=1.0 / D, tool_mm=r.tool_mm,
-                               feed=min(r.feed, nb.feed), rapid=r.rapid and nb.rapid, line=nb.line))
+            pieces.append(dict(kind=BLEND, coef=bcoef[bmap[i]], slen=D, u0=0.0, uscale=1.0 / D, tool_mm=r.tool_mm,
+                               feed=min(r.feed, nb_.feed), rapid=r.rapid and nb_.rapid, line=nb_.line))
     placed = [(int(raw_last_piece[i]) if i >= 0 else -1, blk) for i, blk in events]
     return Path(cfg, pieces, stops_after), placed
 
@@ -392,40 +455,6 @@ def _deg(X: np.ndarray) -> np.ndarray:
     Y = np.array(X, dtype=float)
     Y[3:] = np.degrees(Y[3:])
     return Y
-
-
-def _blend_coef(a: Raw, b: Raw, da: float, db: float) -> np.ndarray:
-    ua = 1.0 - da / a.slen
-    ub = db / b.slen
-    P0 = _raw_eval(a, np.array([ua]))[0]
-    P3 = _raw_eval(b, np.array([ub]))[0]
-    D = da + db
-    c = np.empty(24)
-    c[0:6] = P0
-    c[6:12] = _raw_deriv(a, ua) * D
-    c[12:18] = P3
-    c[18:24] = _raw_deriv(b, ub) * D
-    return c
-
-
-def _blend_deviation(raws: list[Raw], idx: np.ndarray, da: np.ndarray, db: np.ndarray) -> np.ndarray:
-    """Max deviation (mm for xyz, deg for abc; the larger) of candidate blends from the programmed path."""
-    W = np.linspace(0.0, 1.0, 17)
-    out = np.empty(len(idx))
-    for j, i in enumerate(idx):
-        a, b = raws[i], raws[i + 1]
-        coef = _blend_coef(a, b, da[j], db[j])
-        Pb = eval_raw(np.full(17, BLEND, dtype=np.int8), np.broadcast_to(coef, (17, 24)), W)
-        D = da[j] + db[j]
-        s = W * D - da[j]                # s relative to the corner
-        ref = np.empty((17, 6))
-        ma = s <= 0
-        ref[ma] = _raw_eval(a, 1.0 + s[ma] / a.slen)
-        ref[~ma] = _raw_eval(b, s[~ma] / b.slen)
-        dx = np.max(np.linalg.norm(Pb[:, :3] - ref[:, :3], axis=1))
-        dang = np.max(np.linalg.norm(np.degrees(Pb[:, 3:] - ref[:, 3:]), axis=1))
-        out[j] = max(dx, dang)
-    return out
 
 
 # ---------------------------------------------------------------------------
@@ -456,11 +485,11 @@ def piece_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         a1[m] = np.linalg.norm(c[m, 19:22], axis=1) * sc[m]
     m = k == BLEND
     if m.any():
-        P0, M0, P3, M3 = c[m, 0:6], c[m, 6:12], c[m, 12:18], c[m, 18:24]
-        P1 = P0 + M0 / 3.0
-        P2 = P3 - M3 / 3.0
-        d1 = [3 * (P1 - P0), 3 * (P2 - P1), 3 * (P3 - P2)]
-        d2 = [6 * (P2 - 2 * P1 + P0), 6 * (P3 - 2 * P2 + P1)]
+        # Bernstein control points of the quintic: derivative bounds by the convex-hull property
+        P0, V0, A0, A1, V1, P1 = (c[m, 6 * i:6 * i + 6] for i in range(6))
+        Q = [P0, P0 + V0 / 5, P0 + 2 * V0 / 5 + A0 / 20, P1 - 2 * V1 / 5 + A1 / 20, P1 - V1 / 5, P1]
+        d1 = [5 * (Q[i + 1] - Q[i]) for i in range(5)]
+        d2 = [20 * (Q[i + 2] - 2 * Q[i + 1] + Q[i]) for i in range(4)]
         s1 = sc[m]
         t1[m] = np.max([np.linalg.norm(v[:, :3], axis=1) for v in d1], axis=0) * s1
         a1[m] = np.max([np.linalg.norm(v[:, 3:], axis=1) for v in d1], axis=0) * s1

@@ -44,8 +44,12 @@ ETA = 0.95
 ETA_V = 1.0
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.5
+#: share of the jerk limit an acceleration step at a junction may take
+RHO_STEP = 0.5
 #: s step of the central differences (mm or deg)
 FD_STEP = 0.01
+
+_DEBUG = bool(__import__('os').environ.get('HEXACNC_PLAN_DEBUG'))
 
 FLAG_MOTION = 1
 FLAG_RAPID = 2
@@ -194,45 +198,127 @@ def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
 
 
 def _measure(path: P.Path, hx: Hexapod, s_f: np.ndarray, dt: float, vmax, amax, jmax, chunk: int = 200_000):
-    """Strut velocity/acceleration/jerk of the table (finite differences at dt).
+    """Strut velocity/acceleration/jerk of the table by finite differences at dt of the exact inverse kinematics.
 
-    Returns per-sample arrays (float64): uv, ua, uj (max over struts of |.|/limit),
+    Returns per-sample arrays: uv, ua, uj (max over struts of |.|/limit),
     va = max|v|/amax, ajr = max|a|/jmax, vjr = max|v|/jmax.
     """
     N = s_f.shape[0]
-    uv = np.zeros(N)
-    ua = np.zeros(N)
-    uj = np.zeros(N)
-    va = np.zeros(N)
-    ajr = np.zeros(N)
-    vjr = np.zeros(N)
+    res = {k: np.zeros(N) for k in ("uv", "ua", "uj", "va", "ajr", "vjr")}
+    if N < 4:
+        return tuple(res.values())
     for c0 in range(0, N, chunk):
         a0 = max(0, c0 - 2)
         a1 = min(N, c0 + chunk + 2)
         s = s_f[a0:a1]
         X = path.platform(path.piece_at(s), s)
         L = P.strut_lengths(X, hx.plat, hx.base)
-        v = np.diff(L, axis=0) / dt                     # at i+1/2
-        a = np.diff(v, axis=0) / dt                     # at i+1
-        j = np.diff(a, axis=0) / dt                     # at i+3/2
         n = L.shape[0]
-        V = np.zeros((n, 6))
-        V[1:] = np.maximum(np.abs(v), 0)
-        V[:-1] = np.maximum(V[:-1], np.abs(v))
-        A = np.zeros((n, 6))
-        A[1:-1] = np.abs(a)
-        Jk = np.zeros((n, 6))
-        Jk[1:-2] = np.abs(j)
-        Jk[2:-1] = np.maximum(Jk[2:-1], np.abs(j))
-        sl = slice(c0 - a0, c0 - a0 + min(chunk, N - c0))
-        dst = slice(c0, c0 + min(chunk, N - c0))
-        uv[dst] = np.max(V[sl] / vmax, axis=1)
-        ua[dst] = np.max(A[sl] / amax, axis=1)
-        uj[dst] = np.max(Jk[sl] / jmax, axis=1)
-        va[dst] = np.max(V[sl] / amax, axis=1)
-        ajr[dst] = np.max(A[sl] / jmax, axis=1)
-        vjr[dst] = np.max(V[sl] / jmax, axis=1)
-    return uv, ua, uj, va, ajr, vjr
+        off = c0 - a0
+        m = min(chunk, N - c0)
+        dst = slice(c0, c0 + m)
+        bv = np.zeros(n)
+        ba = np.zeros(n)
+        bj = np.zeros(n)
+        bva = np.zeros(n)
+        baj = np.zeros(n)
+        bvj = np.zeros(n)
+        for i in range(6):
+            col = L[:, i]
+            v = np.abs(np.diff(col)) / dt                  # between samples k, k+1
+            acc = np.abs(col[2:] - 2 * col[1:-1] + col[:-2]) / (dt * dt)        # at k+1
+            jk = np.abs(col[3:] - 3 * col[2:-1] + 3 * col[1:-2] - col[:-3]) / dt ** 3  # k+1..k+2
+            V = np.zeros(n)
+            V[1:] = v
+            V[:-1] = np.maximum(V[:-1], v)
+            A = np.zeros(n)
+            A[1:-1] = acc
+            J = np.zeros(n)
+            J[1:-2] = jk
+            J[2:-1] = np.maximum(J[2:-1], jk)
+            np.maximum(bv, V / vmax[i], out=bv)
+            np.maximum(ba, A / amax[i], out=ba)
+            np.maximum(bj, J / jmax[i], out=bj)
+            np.maximum(bva, V / amax[i], out=bva)
+            np.maximum(baj, A / jmax[i], out=baj)
+            np.maximum(bvj, V / jmax[i], out=bvj)
+        for k, arr in zip(("uv", "ua", "uj", "va", "ajr", "vjr"), (bv, ba, bj, bva, baj, bvj)):
+            res[k][dst] = arr[off:off + m]
+    return tuple(res[k] for k in ("uv", "ua", "uj", "va", "ajr", "vjr"))
+
+
+def _window_min(sg: np.ndarray, x: np.ndarray, T: float, passes: int = 3) -> np.ndarray:
+    """``x_k <= min x_j`` over ``|s_j - s_k| <= sqrt(x_k) T``: the moving average of width T mixes the
+    speeds of every position passed within T, so a slow spot must be approached slowly enough."""
+    N = x.shape[0]
+    if N < 2:
+        return x
+    levels = [x.copy()]
+    span = 1
+    while 2 * span <= N:
+        prev = levels[-1]
+        levels.append(np.minimum(prev[:-span], prev[span:]))
+        span *= 2
+    x = x.copy()
+    for _ in range(passes):   # the radius shrinks with x; the minimum is over the original limits
+        r = np.sqrt(np.maximum(x, 0.0)) * T
+        lo = np.searchsorted(sg, sg - r, side="left")
+        hi = np.searchsorted(sg, sg + r, side="right") - 1
+        ln = np.maximum(hi - lo + 1, 1)
+        k = np.floor(np.log2(ln)).astype(np.int64)
+        k = np.minimum(k, len(levels) - 1)
+        out = np.empty(N)
+        for lv in np.unique(k):
+            m = k == lv
+            tab = levels[lv]
+            out[m] = np.minimum(tab[lo[m]], tab[hi[m] - (1 << lv) + 1])
+        x = np.minimum(x, out)
+    return x
+
+
+def _measure_model(sg, Lp, Lpp, Lppp, s_f, dt, vmax, amax, jmax, chunk: int = 100_000):
+    """Utilisation from the grid derivatives (interpolated in s) and the s(t) table: cheap, used while iterating.
+
+    v = L' s_dot, a = L'' s_dot^2 + L' s_ddot, j = L''' s_dot^3 + 3 L'' s_dot s_ddot + L' s_dddot.
+    """
+    N = s_f.shape[0]
+    uv = np.zeros(N)
+    ua = np.zeros(N)
+    uj = np.zeros(N)
+    if N < 5:
+        return uv, ua, uj
+    sd = np.zeros(N)
+    sdd = np.zeros(N)
+    sddd = np.zeros(N)
+    sd[1:-1] = (s_f[2:] - s_f[:-2]) / (2 * dt)
+    sdd[1:-1] = (s_f[2:] - 2 * s_f[1:-1] + s_f[:-2]) / (dt * dt)
+    sddd[1:-2] = (s_f[3:] - 3 * s_f[2:-1] + 3 * s_f[1:-2] - s_f[:-3]) / dt ** 3
+    mv_all = np.nonzero((sd != 0) | (sdd != 0) | (sddd != 0))[0]
+    for c0 in range(0, mv_all.size, chunk):
+        mv = mv_all[c0:c0 + chunk]
+        s = s_f[mv]
+        g = np.clip(np.searchsorted(sg, s, side="right") - 1, 0, sg.shape[0] - 2)
+        hh = sg[g + 1] - sg[g]
+        w = np.where(hh > 0, (s - sg[g]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
+        v1, v2, v3 = sd[mv], sdd[mv], sddd[mv]
+        w = w[:, 0]
+        bv = np.zeros(mv.size)
+        ba = np.zeros(mv.size)
+        bj = np.zeros(mv.size)
+        for i in range(6):
+            l1 = Lp[g, i]
+            l1 = l1 + (Lp[g + 1, i] - l1) * w
+            l2 = Lpp[g, i]
+            l2 = l2 + (Lpp[g + 1, i] - l2) * w
+            l3 = Lppp[g, i]
+            l3 = l3 + (Lppp[g + 1, i] - l3) * w
+            np.maximum(bv, np.abs(l1 * v1) / vmax[i], out=bv)
+            np.maximum(ba, np.abs(l2 * (v1 * v1) + l1 * v2) / amax[i], out=ba)
+            np.maximum(bj, np.abs(l3 * (v1 * v1 * v1) + 3 * l2 * (v1 * v2) + l1 * v3) / jmax[i], out=bj)
+        uv[mv] = bv
+        ua[mv] = ba
+        uj[mv] = bj
+    return uv, ua, uj
 
 
 def _sample_profile(sg, h, x, holds_s, dt):
@@ -358,6 +444,15 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     xlim = np.minimum(np.minimum(xlim, xv), xj)
     c, e, dd, xmvc = accel_coefficients(Lp, Lpp, ETA * 0.97 * amax)
     xlim = np.minimum(xlim, xmvc)
+    # curvature jumps at tangent-continuous junctions: an acceleration step dL'' x between two
+    # cycles reads as a jerk dL'' x / dt, so x <= RHO_STEP J dt / |dL''|
+    jn = np.nonzero(h == 0)[0]
+    if jn.size:
+        dLpp = np.abs(Lpp[jn + 1] - Lpp[jn])
+        with np.errstate(divide="ignore"):
+            xs = np.min(np.where(dLpp > 1e-12, RHO_STEP * jmax[None] * dt / np.maximum(dLpp, 1e-300), np.inf), axis=1)
+        xlim[jn] = np.minimum(xlim[jn], xs)
+        xlim[jn + 1] = np.minimum(xlim[jn + 1], xs)
 
     # ---- stops and holds ------------------------------------------------------------------
     holds: dict[int, Hold] = {}
@@ -397,11 +492,18 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         holds_s[g] = hold_min + extra
     holds_s[0] = max(holds_s[0], 0.0)
 
+    xw = xlim.copy()
+    xw[stop_all] = np.inf
+    xlim = _window_min(sg, xw, nf * dt)
+    xlim[stop_all] = 0.0
+
     # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
     factor = np.ones(Ng)
     s_grid_for_lookup = sg
     iters = 0
-    for iters in range(1, 25):
+    exact = False
+    exact_iters = 0
+    for iters in range(1, 40):
         xl = xlim * factor
         x = forward_backward(h, xl, c, e, dd)
         try:
@@ -411,19 +513,39 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
                 path.line[pidx[k]]), limit="speed") from exc
         s_f = _box_filter(s_raw, nf)
-        uv, ua, uj, va, ajr, vjr = _measure(path, hx, s_f, dt, vmax, amax, jmax)
+        if exact:
+            uv, ua, uj, va, ajr, vjr = _measure(path, hx, s_f, dt, vmax, amax, jmax)
+        else:
+            uv, ua, uj = _measure_model(sg, Lp, Lpp, Lppp, s_f, dt, vmax, amax, jmax)
         viol_v = uv > ETA_V * 0.9995
         viol_a = ua > ETA
         viol_j = uj > ETA
         bad = viol_v | viol_a | viol_j
+        if _DEBUG:
+            print(f"plan iter {iters} exact={exact} uv={uv.max():.3f} ua={ua.max():.3f} uj={uj.max():.3f} "
+                  f"bad v/a/j={viol_v.sum()}/{viol_a.sum()}/{viol_j.sum()} T={s_f.shape[0] * dt:.2f}s")
+            for arr in (ua, uj):
+                jw = int(np.argmax(arr))
+                pm = int(path.piece_at(np.array([s_f[jw]]))[0])
+                gw = int(np.searchsorted(sg, s_f[jw]))
+                print("   worst at t", jw * dt, "s", s_f[jw], "piece", pm, "kind", path.kind[pm], "line",
+                      path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
+                      "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
         if not bad.any():
-            break
+            if exact:
+                break
+            exact = True        # the model is satisfied: now measure the real table
+            exact_iters = 0
+            continue
+        if exact:
+            exact_iters += 1
         fac = np.ones(s_f.shape[0])
         with np.errstate(divide="ignore"):
             fac = np.where(viol_v, np.minimum(fac, (ETA_V * 0.999 / np.maximum(uv, 1e-12)) ** 2 * 0.98), fac)
             fac = np.where(viol_a, np.minimum(fac, ETA / np.maximum(ua, 1e-12) * 0.97), fac)
-            fac = np.where(viol_j, np.minimum(fac, ETA / np.maximum(uj, 1e-12) * 0.95), fac)
-        if iters > 12:
+            fac = np.where(viol_j, np.minimum(fac, (ETA / np.maximum(uj, 1e-12)) ** (2.0 / 3.0) * 0.95), fac)
+        fac = np.maximum(fac, 0.3)
+        if iters > 25 or exact_iters > 8:
             fac = np.minimum(fac, 0.7)
         jb = np.nonzero(bad)[0]
         # group into runs; tighten every grid point the filter window touched

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError
 
 from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING, ETA
 
@@ -34,6 +34,9 @@ GOV_BLOCK = 20
 GOV_LOOKAHEAD_S = 0.6
 #: override range accepted by set_override (the plan's headroom may cap it further)
 MAX_OVERRIDE = 2.0
+#: caps on the rate's derivatives (1/s, 1/s^2): 0 -> 1 in no less than ~40 ms
+A_MAX = 50.0
+J_MAX = 5000.0
 
 RUN, PAUSING, PAUSED, PROGRAM_PAUSED, STOPPING, DONE = "running", "pausing", "paused", "program_paused", \
     "stopping", "done"
@@ -142,13 +145,29 @@ class PlanSampler:
         return self.f
 
     # -- rows ----------------------------------------------------------------------------
-    def _limits(self, b: int, f: float, fd: float) -> tuple[float, float]:
+    def _limits(self, b: int, f: float, tgt: float) -> tuple[float, float]:
+        """Ruckig limits for the rate: max |f'| and |f''| that keep the strut bounds with margin 0.97.
+
+        With ``fh = max(f, target)``: ``A = (0.97 - fh^2 ua) / va`` (capped so the cross term
+        ``3 fh A a/J`` takes at most 30 % of the jerk headroom) and
+        ``J = (0.97 - fh^3 uj - 3 fh A ajr) / vjr``; both independent of the current f'.
+        """
+        fh = f if f > tgt else tgt
         va = self._va[b]
         vj = self._vjr[b]
-        A = (0.97 - f * f * self._ua[b]) / va if va > 1e-12 else 1e3
-        J = (0.97 - f * f * f * self._uj[b] - 3.0 * f * abs(fd) * self._ajr[b]) / vj if vj > 1e-12 else 1e5
-        A = min(max(A, 1e-4), 1e3)
-        J = min(max(J, 1e-3), 1e5)
+        hj = 0.97 - fh * fh * fh * self._uj[b]
+        ha = 0.97 - fh * fh * self._ua[b]
+        if hj < 0.01:
+            hj = 0.01
+        if ha < 0.01:
+            ha = 0.01
+        A = ha / va if va > 1e-12 else A_MAX
+        ajr = self._ajr[b]
+        if fh > 0 and ajr > 1e-12:
+            A = min(A, 0.3 * hj / (3.0 * fh * ajr))
+        A = min(max(A, 1e-4), A_MAX)
+        J = (hj - 3.0 * fh * A * ajr) / vj if vj > 1e-12 else J_MAX
+        J = min(max(J, 1e-3), J_MAX)
         return A, J
 
     def _target(self, b: int) -> float:
@@ -189,7 +208,7 @@ class PlanSampler:
                 cnt += 1
                 continue
             else:
-                A, J = self._limits(b, self.f, self.fd)
+                A, J = self._limits(b, self.f, tgt)
                 inp.current_position = [self.k * self.plan.dt]
                 inp.current_velocity = [self.f]
                 inp.current_acceleration = [self.fd]
@@ -198,7 +217,10 @@ class PlanSampler:
                 inp.max_velocity = [MAX_OVERRIDE + 1.0]
                 inp.max_acceleration = [A]
                 inp.max_jerk = [J]
-                res = otg.update(inp, o)
+                try:
+                    res = otg.update(inp, o)
+                except RuckigError:
+                    res = None
                 if res not in (Result.Working, Result.Finished):
                     # fall back to holding the rate (never a jump)
                     nk = self.k + self.f * self.step
