@@ -1,7 +1,6 @@
 """Motion, modes, offsets, tool length and errors of the RS274NGC interpreter."""
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest

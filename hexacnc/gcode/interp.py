@@ -659,7 +659,8 @@ class Interpreter:
                     if abs(v * 10.0 - code) > 0.001 or code < 0 or (d[0] == "m" and code % 10):
                         raise ln.error(f"{d[0].upper()}{v:g} is not a valid code", d, "unsupported")
                     (gs if d[0] == "g" else ms).append(int(code) if d[0] == "g" else int(code) // 10)
-                    ln.cols.setdefault(f"{d[0]}{int(code) if d[0] == 'g' else int(code) // 10}", ln.cols[d])
+                    if ln.cols is not None:
+                        ln.cols.setdefault(f"{d[0]}{int(code) if d[0] == 'g' else int(code) // 10}", ln.cols[d])
         # -- validate codes and modal groups
         groups: dict[int, int] = {}
         for g in gs:
