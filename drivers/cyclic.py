@@ -331,6 +331,25 @@ class CyclicIO:
                 mask |= 1 << i
         return mask
 
+    def step_towards(self, wanted: int, mask: int = 0x3F) -> int:
+        """Non-blocking CiA 402 walk for the cycle: set each masked strut's controlword for its next
+        transition towards ``wanted`` (a :mod:`drivers.cia402` state) from its last statusword.
+
+        Returns the bitmask of masked struts not yet in ``wanted`` (0: done). Call once per cycle
+        before :meth:`send`; while walking to Operation enabled, send the actual positions
+        (``pos_inc``) as targets so the drives take over where they stand.
+        """
+        todo = 0
+        cw = self.controlword
+        for i in range(self.n):
+            if not mask >> i & 1:
+                continue
+            state = cia402.state_from_status(self.status[i])
+            if state != wanted:
+                todo |= 1 << i
+                cw[i] = cia402.controlword_towards(state, wanted, cw[i])[0]
+        return todo
+
     def states(self) -> list[int]:
         """CiA 402 state per strut from the last statuswords (slow path: allocates)."""
         return [cia402.state_from_status(s) for s in self.status]

@@ -116,14 +116,11 @@ def test_emcy_injection_faults_the_drive_and_is_decoded():
         assert cia402.emcy_text(code, reg) == "0x3210 DC link over-voltage [generic, voltage]"
         assert [cia402.state_from_status(s) for i, s in enumerate(io.status) if i != 1] == [cia402.OPERATION_ENABLED] * 5
         # fault reset through the cyclic controlword (non-blocking walk), then enable again
-        cw = io.controlword[1]
         for _ in range(400):
-            state = cia402.state_from_status(io.status[1])
-            if state == cia402.OPERATION_ENABLED:
+            if not io.step_towards(cia402.OPERATION_ENABLED, mask=1 << 1):
                 break
-            cw, _t = cia402.controlword_towards(state, cia402.OPERATION_ENABLED, cw)
-            io.set_controlword(1, cw)
             run(io, 4, lambda k: [io.pos_inc[1] if i == 1 else start[i] for i in range(6)])
+        assert io.step_towards(cia402.OPERATION_ENABLED) == 0
         assert cia402.state_from_status(io.status[1]) == cia402.OPERATION_ENABLED
         assert any(c == 0 for s, c, *_ in io.emcy if s == 1)            # EMCY error reset after 15
 
