@@ -491,6 +491,7 @@ def _gcode_int(v: float) -> int | None:
 _SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
+_COMMENT = re.compile(r"\(([^()]*)\)")
 
 
 def parse_line(raw: str, num: int) -> Line:
@@ -500,14 +501,23 @@ def parse_line(raw: str, num: int) -> Line:
     placeholder); a shape is parsed once and then only its numbers are filled
     in.  Any problem falls back to the full parse, which reports it.
     """
+    comments = None
     if "(" in raw or ";" in raw or ")" in raw or not raw.isascii():
-        s, _cols, comments = strip_with_map(raw, num)
+        parts = _COMMENT.split(raw) if ";" not in raw else None
+        if parts is not None and len(parts) > 1:
+            rest = "".join(parts[0::2])
+            if "(" in rest or ")" in rest or not rest.isascii():
+                s, _cols, comments = strip_with_map(raw, num)
+            else:
+                comments = parts[1::2]
+                s = rest.translate(_WS_DEL).lower()
+        else:
+            s, _cols, comments = strip_with_map(raw, num)
     else:
         s = raw.replace(" ", "")
         if "\t" in s or "\r" in s or "\f" in s or "\v" in s:
             s = s.translate(_WS_DEL)
         s = s.lower()
-        comments = None
     if not s:
         ln = Line(num, raw)
         ln.empty = True
