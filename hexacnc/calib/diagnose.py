@@ -27,6 +27,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import DataError
+from . import limit_blas_threads
 from ..kinematics import Hexapod
 from .identify import FitResult, fit, strongest_correlations, unidentifiable_directions
 from .measurements import Measurements
@@ -217,6 +218,7 @@ def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, 
 
 def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, opts: Options | None = None) -> Diagnosis:
     opts = opts or Options()
+    limit_blas_threads(1)
     t0 = time.perf_counter()
     noise_mm, noise_deg, known = noise_defaults(cfg, opts.noise_mm, opts.noise_deg)
     ctx = Context(cfg, fit_meas, noise_mm, noise_deg)

@@ -29,6 +29,8 @@ class FitResult:
     converged: bool
     evaluator: Evaluator = field(repr=False)
     jac: np.ndarray = field(repr=False, default=None)      #: whitened data Jacobian at theta (free columns)
+    basis: np.ndarray = field(repr=False, default=None)    #: (P, k) theta = theta_init + basis @ z
+    jac_z: np.ndarray = field(repr=False, default=None)    #: whitened data Jacobian w.r.t. z
     _cov: np.ndarray | None = field(repr=False, default=None)
 
     @property
@@ -46,22 +48,64 @@ class FitResult:
         return rms_summary(self.residuals())
 
     def covariance(self) -> np.ndarray:
-        """(P_free, P_free) parameter covariance from the noise model and priors."""
+        """(P_free, P_free) parameter covariance from the noise model and priors (free = ``self.free``)."""
         if self._cov is None:
-            idx = np.where(self.free)[0]
-            sig = self.layout.prior_sigma[idx]
-            A = self.jac.T @ self.jac + np.diag(1.0 / sig ** 2)
+            T = self.basis
+            sig = self.layout.prior_sigma
+            A = self.jac_z.T @ self.jac_z + T.T @ (T / sig[:, None] ** 2)
             D = 1.0 / np.sqrt(np.diag(A))
-            As = A * D[:, None] * D[None, :]
-            self._cov = np.linalg.pinv(As, rcond=1e-14) * D[:, None] * D[None, :]
+            Cz = np.linalg.pinv(A * D[:, None] * D[None, :], rcond=1e-14) * D[:, None] * D[None, :]
+            Tf = T[self.free]
+            self._cov = Tf @ Cz @ Tf.T
         return self._cov
 
 
+def gauge_basis(layout: Layout, fix_gauge: bool) -> np.ndarray:
+    """(P, k) basis of the parameter changes a fit may make.
+
+    With a registered measurement frame, a rigid motion of all base joints is the
+    same as moving the frame, and a rigid motion of all platform joints the same
+    as moving the tracked target: ``fix_gauge`` removes these 12 directions
+    (the joints' centroid and mean orientation stay nominal), which keeps the
+    problem well conditioned.
+    """
+    P = layout.n
+    if not (fix_gauge and layout.frame is not None):
+        return np.eye(P)
+    blocks = []
+    th0 = layout.theta0
+    for start in (0, 18):
+        pts = th0[start:start + 18].reshape(6, 3)
+        C = np.zeros((6, 18))
+        for i in range(6):
+            C[0:3, 3 * i:3 * i + 3] = np.eye(3)
+            x, y, z = pts[i]
+            C[3:6, 3 * i:3 * i + 3] = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+        _, sv, Vt = np.linalg.svd(C)
+        blocks.append(Vt[int(np.sum(sv > 1e-9 * sv[0])):].T)        # (18, 12)
+    T = np.zeros((P, P - 12))
+    T[0:18, 0:12] = blocks[0]
+    T[18:36, 12:24] = blocks[1]
+    T[36:, 24:] = np.eye(P - 36)
+    return T
+
+
 def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None, free: np.ndarray | None = None,
-        max_iter: int = 60, X_init: np.ndarray | None = None, tol: float = 1e-10) -> FitResult:
-    """Levenberg-Marquardt with column scaling; returns a :class:`FitResult`."""
+        max_iter: int = 60, X_init: np.ndarray | None = None, tol: float = 1e-3,
+        fix_gauge: bool = True) -> FitResult:
+    """Levenberg-Marquardt with column scaling; returns a :class:`FitResult`.
+
+    ``tol``: stop when the whitened cost (chi^2) drops by less than this.
+    ``free``: mask of parameters to fit (default all); with a registered frame
+    and all geometry free, the 12 gauge directions are removed (:func:`gauge_basis`).
+    """
     theta = np.array(layout.theta0 if theta_init is None else theta_init, dtype=float)
-    free = np.ones(layout.n, dtype=bool) if free is None else np.asarray(free, dtype=bool)
+    if free is None:
+        free = np.ones(layout.n, dtype=bool)
+        T = gauge_basis(layout, fix_gauge)
+    else:
+        free = np.asarray(free, dtype=bool)
+        T = np.eye(layout.n)[:, free]
     ev = Evaluator(cfg, layout, ctx, X_init)
     nd = ev.n_data()
     if nd == 0:
@@ -71,10 +115,10 @@ def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None,
     lam = 1e-4
     it = 0
     converged = False
-    idx = np.where(free)[0]
+    k = T.shape[1]
     while it < max_iter:
         it += 1
-        Jf = J[:, idx]
+        Jf = J @ T
         D = np.sqrt(np.einsum("ij,ij->j", Jf, Jf))
         D[D == 0] = 1.0
         Js = Jf / D
@@ -83,21 +127,21 @@ def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None,
         improved = False
         for _ in range(12):
             try:
-                step = -np.linalg.solve(A + lam * np.eye(len(idx)), g)
+                step = -np.linalg.solve(A + lam * np.eye(k), g)
             except np.linalg.LinAlgError:
                 lam *= 10
                 continue
-            th_new = theta.copy()
-            th_new[idx] += step / D
+            th_new = theta + T @ (step / D)
             X_saved = ev.X.copy()
             r_new, J_new = ev.evaluate(th_new)
             c_new = float(r_new @ r_new)
             if c_new <= cost:
-                rel = (cost - c_new) / max(cost, 1e-300)
+                drop = cost - c_new
                 theta, r, J, cost = th_new, r_new, J_new, c_new
                 lam = max(lam / 5.0, 1e-9)
                 improved = True
-                if rel < tol or float(np.max(np.abs(step))) < 1e-9:
+                # converged: chi^2 moves by less than tol (statistically nothing) or a tiny step
+                if drop < max(tol, 1e-6 * cost) or float(np.max(np.abs(step))) < 1e-9:
                     converged = True
                 break
             ev.X = X_saved
@@ -110,12 +154,17 @@ def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None,
     ev.evaluate(theta)
     nprior = int(np.isfinite(layout.prior_sigma).sum())
     ndata_rows = r.shape[0] - nprior
-    Jd = J[:ndata_rows][:, idx]
+    Jd = J[:ndata_rows]
     rd = r[:ndata_rows]
-    sig = layout.prior_sigma[idx]
-    s = np.linalg.svd(Jd * sig[None, :], compute_uv=False)
-    p_eff = float(np.sum(s ** 2 / (1.0 + s ** 2)))
-    return FitResult(layout, theta, free, float(rd @ rd), nd, p_eff, it, converged, ev, Jd)
+    Jz = Jd @ T
+    sig = layout.prior_sigma
+    Ap = T.T @ (T / sig[:, None] ** 2)
+    H = Jz.T @ Jz
+    try:
+        p_eff = float(np.trace(np.linalg.solve(H + Ap, H)))
+    except np.linalg.LinAlgError:
+        p_eff = float(np.linalg.matrix_rank(Jz))
+    return FitResult(layout, theta, free, float(rd @ rd), nd, p_eff, it, converged, ev, Jd[:, free], T, Jz)
 
 
 # ---------------------------------------------------------------------------

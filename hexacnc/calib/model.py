@@ -63,16 +63,23 @@ def rate_matrices(abc: np.ndarray) -> np.ndarray:
 
 
 def measure(X: np.ndarray, frame: np.ndarray | None) -> np.ndarray:
-    """Instrument coordinates (N,6) mm/deg of poses X (N,6) mm/rad through ``frame`` (12) or none."""
+    """Instrument coordinates (N,6) mm/deg of poses X (N,6) mm/rad through ``frame`` (12, or (N,12) per row)."""
     if frame is None:
         out = X.copy()
         out[:, 3:] = np.degrees(out[:, 3:])
         return out
-    Rr = matrices_from_euler(frame[None, 3:6])[0]
-    Rt = matrices_from_euler(frame[None, 9:12])[0]
+    F = np.asarray(frame, dtype=float)
     RX = matrices_from_euler(X[:, 3:])
-    pos = frame[:3] + (X[:, :3] + RX @ frame[6:9]) @ Rr.T
-    Rm = np.einsum("ij,njk,kl->nil", Rr, RX, Rt)
+    if F.ndim == 1:
+        Rr = matrices_from_euler(F[None, 3:6])[0]
+        Rt = matrices_from_euler(F[None, 9:12])[0]
+        pos = F[:3] + (X[:, :3] + RX @ F[6:9]) @ Rr.T
+        Rm = np.einsum("ij,njk,kl->nil", Rr, RX, Rt)
+    else:
+        Rr = matrices_from_euler(F[:, 3:6])
+        Rt = matrices_from_euler(F[:, 9:12])
+        pos = F[:, :3] + np.einsum("nij,nj->ni", Rr, X[:, :3] + np.einsum("nij,nj->ni", RX, F[:, 6:9]))
+        Rm = Rr @ RX @ Rt
     return np.column_stack([pos, np.degrees(euler_from_matrices(Rm))])
 
 
@@ -386,28 +393,34 @@ class Evaluator:
         _, rp, s, L = strut_geometry(base, plat, X)
         J = jacobian_batch(rp, s / L[..., None], X)
         dX = -np.linalg.solve(J, G)                        # (N,6,P)
-        # dy/dX and dy/dframe by central differences (cheap: no FK)
-        dydX = np.empty((self.ctx.n, 6, 6))
-        for j in range(6):
-            h = 1e-6 if j < 3 else 1e-8
-            Xp = X.copy()
-            Xp[:, j] += h
-            Xm = X.copy()
-            Xm[:, j] -= h
-            d = measure(Xp, frame) - measure(Xm, frame)
-            d[:, 3:] = (d[:, 3:] + 180.0) % 360.0 - 180.0
-            dydX[:, :, j] = d / (2 * h)
-        Jy = np.einsum("nij,njp->nip", dydX, dX)
-        if self.lay.frame is not None:
+        # dy/dX and dy/dframe: analytic without a frame, else central differences in one batched call
+        n = self.ctx.n
+        if frame is None:
+            Jy = dX.copy()
+            Jy[:, 3:] = np.degrees(Jy[:, 3:])
+        else:
+            hX = np.array([1e-6] * 3 + [1e-8] * 3)
+            Xs = np.repeat(X[None], 12, axis=0)
+            for j in range(6):
+                Xs[2 * j, :, j] += hX[j]
+                Xs[2 * j + 1, :, j] -= hX[j]
+            hF = np.array(([1e-6] * 3 + [1e-8] * 3) * 2)
+            Fs = np.repeat(frame[None], 24, axis=0)
             for j in range(12):
-                h = 1e-6 if j % 6 < 3 else 1e-8
-                fp = frame.copy()
-                fp[j] += h
-                fm = frame.copy()
-                fm[j] -= h
-                d = measure(X, fp) - measure(X, fm)
-                d[:, 3:] = (d[:, 3:] + 180.0) % 360.0 - 180.0
-                Jy[:, :, self.lay.frame.start + j] = d / (2 * h)
+                Fs[2 * j, j] += hF[j]
+                Fs[2 * j + 1, j] -= hF[j]
+            Xall = np.concatenate([Xs.reshape(-1, 6), np.tile(X, (24, 1))])
+            Fall = np.concatenate([np.tile(frame, (12 * n, 1)), np.repeat(Fs, n, axis=0)])
+            Y = measure(Xall, Fall)
+            YX = Y[:12 * n].reshape(6, 2, n, 6)
+            dY = YX[:, 0] - YX[:, 1]
+            dY[..., 3:] = (dY[..., 3:] + 180.0) % 360.0 - 180.0
+            dydX = np.transpose(dY / (2 * hX)[:, None, None], (1, 2, 0))      # (N,6,6)
+            Jy = np.einsum("nij,njp->nip", dydX, dX)
+            YF = Y[12 * n:].reshape(12, 2, n, 6)
+            dF = YF[:, 0] - YF[:, 1]
+            dF[..., 3:] = (dF[..., 3:] + 180.0) % 360.0 - 180.0
+            Jy[:, :, self.lay.frame] = np.transpose(dF / (2 * hF)[:, None, None], (1, 2, 0))
         Jy = Jy / self.ctx.sigma[None, :, None]
         Jy[~self.ctx.mask] = 0.0
         Jy[~self.converged] = 0.0

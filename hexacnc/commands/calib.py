@@ -67,6 +67,8 @@ def configure(p: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from ..calib import limit_blas_threads
+    limit_blas_threads(1)
     return args._calib(args)
 
 

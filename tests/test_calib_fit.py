@@ -1,0 +1,105 @@
+"""Identification of the 42 parameters, calibrated config, test plan (hexacnc.calib)."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from hexacnc.calib import synth
+from hexacnc.calib.diagnose import Options, fit_model
+from hexacnc.calib.identify import parameter_table, unidentifiable_directions
+from hexacnc.calib.measurements import write_measurements
+from hexacnc.calib.model import Context, initial_frame
+from hexacnc.calib.plan import plan
+from hexacnc.cli import main as cli
+from hexacnc.config import load_config
+from hexacnc.errors import DataError
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def test_full_pose_fit_recovers_geometry_within_reported_uncertainty(cfg):
+    s = synth.generate(cfg, 11, "none", n_fit=100, n_holdout=10, sessions=1)
+    ctx = Context(cfg, s.fit, s.noise_mm, s.noise_deg)
+    res = fit_model(cfg, ctx, [], None, Options(prior_joint_mm=5.0))
+    err = res.theta[:42] - s.theta_true
+    sd = np.array([p["std"] for p in parameter_table(res)])[:42]
+    z = err / sd
+    # normalised errors behave like N(0,1): RMS near 1, nothing wild
+    assert 0.6 < np.sqrt(np.mean(z ** 2)) < 1.5, z
+    assert np.max(np.abs(z)) < 4.5
+    assert 0.7 < res.chi2_red < 1.3
+    # the fit moved the parameters from nominal by much more than it is now wrong
+    assert np.sqrt(np.mean((s.theta_true - res.layout.theta0[:42]) ** 2)) > 10 * np.sqrt(np.mean(err ** 2))
+
+
+def test_registered_frame_fit(cfg):
+    s = synth.generate(cfg, 12, "none", n_fit=80, n_holdout=10, registration=True, sessions=1)
+    ctx = Context(cfg, s.fit, s.noise_mm, s.noise_deg)
+    res = fit_model(cfg, ctx, [], initial_frame(cfg, s.fit), Options())
+    r = res.rms()
+    assert r["position_mm"] < 2.0 * s.noise_mm * np.sqrt(3)
+    assert r["strut_mm"] is not None and r["strut_mm"] < 0.02
+    # registration and a rigid motion of all base joints are the same thing: reported as unidentified
+    dirs = unidentifiable_directions(res)
+    assert len(dirs) >= 6
+    names = {c["name"] for d in dirs for c in d["combination"]}
+    assert any(n.startswith("frame_") for n in names) and any(n.startswith("base") for n in names)
+
+
+def test_cli_fit_writes_loadable_config_and_report(cfg, tmp_path):
+    s = synth.generate(cfg, 13, "none", n_fit=60, n_holdout=5, sessions=1)
+    data = tmp_path / "m.csv"
+    write_measurements(data, s.fit)
+    out = tmp_path / "cal.toml"
+    rep = tmp_path / "rep"
+    rc = cli(["calib", "fit", "--config", cfg.path, "--data", str(data), "--out", str(out), "--report", str(rep),
+              "--noise-mm", "0.005", "--noise-deg", "0.0005", "--frame", "base"])
+    assert rc == 0
+    cal = load_config(out)
+    err_before = np.abs(np.r_[cfg.base_joints_mm.ravel(), cfg.platform_joints_mm.ravel()] - s.theta_true[:36])
+    err_after = np.abs(np.r_[cal.base_joints_mm.ravel(), cal.platform_joints_mm.ravel()] - s.theta_true[:36])
+    assert np.sqrt(np.mean(err_after ** 2)) < 0.1 * np.sqrt(np.mean(err_before ** 2))
+    assert np.allclose(cal.strut_offset_mm, s.theta_true[36:], atol=0.2)
+    j = json.loads((rep / "report.json").read_text())
+    assert j["rms_fit"]["strut_mm"] < 0.02 and len(j["parameters"]) == 42
+    assert (rep / "report.md").exists() and (rep / "residuals_workspace.png").stat().st_size > 1000
+
+
+def test_too_few_measurements_is_a_clear_error_and_writes_nothing(cfg, tmp_path):
+    s = synth.generate(cfg, 14, "none", n_fit=20, n_holdout=5, measure_set="z", sessions=1)
+    data = tmp_path / "m.csv"
+    write_measurements(data, s.fit)
+    out = tmp_path / "cal.toml"
+    with pytest.raises(DataError, match="20 measured coordinates"):
+        from hexacnc.commands import calib
+        import argparse
+        p = argparse.ArgumentParser()
+        calib.configure(p)
+        args = p.parse_args(["fit", "--config", cfg.path, "--data", str(data), "--out", str(out),
+                             "--report", str(tmp_path / "rep")])
+        calib.main(args)
+    assert not out.exists()
+    assert not (tmp_path / "rep").exists()
+    assert [f.name for f in tmp_path.iterdir()] == ["m.csv"]
+
+
+def test_plan_beats_random_and_names_what_z_only_cannot_identify(cfg):
+    full = plan(cfg, 30, "xyzabc", candidates=600, seed=1)
+    assert full["indices"]["unidentifiable"] == 0
+    assert full["indices"]["O1"] > full["indices_random_plan"]["O1"]
+    assert full["indices"]["condition_number"] < full["indices_random_plan"]["condition_number"]
+    hx_ok = np.all(np.isfinite(full["readings_mm"]))
+    assert hx_ok and len(full["poses"]) == 30
+    z = plan(cfg, 60, "z", candidates=600, seed=1)
+    # a z probe cannot see x/y translations of the whole machine nor rotations about z
+    assert z["indices"]["unidentifiable"] >= 3
+    assert z["indices"]["condition_number"] == np.inf
+    names = {c["name"] for d in z["unidentifiable"] for c in d["combination"]}
+    assert any(n.startswith("base") for n in names)
+    with pytest.raises(DataError, match="xyzabc"):
+        plan(cfg, 10, "q")
