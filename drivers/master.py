@@ -16,13 +16,11 @@ While attached the master produces its heartbeat (0x700 + 0x7F), which the drive
 from __future__ import annotations
 
 import logging
-import math
 import time
 from typing import Sequence
 
 import can
 import canopen
-from canopen.nmt import NmtError
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from hexacnc.errors import BusError

@@ -1,13 +1,12 @@
 """Hot-path frames on the virtual bus, decoded independently with canopen's PDO maps read from the drives."""
-import math
 import struct
 import time
 
 import pytest
 
-from drivers import EDS_PATH, cia402
+from drivers import cia402
 from drivers.canbus import open_buses
-from drivers.cyclic import (EV_FEEDBACK, EV_STATUS, SEND_LIMIT, SEND_OK, increments_to_length, length_to_increments,
+from drivers.cyclic import (EV_FEEDBACK, SEND_LIMIT, SEND_OK, increments_to_length, length_to_increments,
                             limits_inc)
 from drivers.testing import PdoDecoder, SimRig
 
@@ -42,10 +41,12 @@ def test_frames_decode_with_canopen_pdo_maps(bus_changes):
             io = rig.cyclic()
             assert not io.emcy
             sent = []
+            ev = 0
             for k in range(60):
                 tg = [start[i] + (k * 37 * (i + 1)) * (-1) ** i for i in range(6)]
                 sent.append(tg)
-                cycle(io, tg)
+                ev |= cycle(io, tg)
+            assert ev & EV_FEEDBACK                               # positions flow
             time.sleep(0.05)
             io.poll()
             for i in range(6):
