@@ -46,7 +46,7 @@ class Master:
     """Master of the six drives on ``buses`` (see module doc)."""
 
     def __init__(self, cfg, buses: can.BusABC | Sequence[can.BusABC], *, eds_path=EDS_PATH,
-                 sdo_timeout_s: float = 0.3):
+                 sdo_timeout_s: float = 0.5):
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.cfg = cfg

@@ -199,6 +199,7 @@ class PdoDecoder:
         self.nodes = []
         for nd in self.plan.nodes:
             node = canopen.RemoteNode(nd.node_id, canopen.import_od(str(eds_path or EDS_PATH), nd.node_id))
+            node.sdo.RESPONSE_TIMEOUT = 1.0
             self.nets[nd.bus].add_node(node)
             self.nodes.append(node)
         import can
