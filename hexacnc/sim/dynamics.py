@@ -219,7 +219,11 @@ def workspace_grid(cfg, n_xyz: int = 5, tilt_deg: float | None = None) -> np.nda
 
 
 def eigen_grid(model: CoupledModel, poses: np.ndarray, g: Gains | None = None) -> dict:
-    """Lowest locked-drive eigenfrequency per pose, closed-loop lowest resonance and damping, worst pose."""
+    """Lowest locked-drive eigenfrequency per pose, closed-loop lowest resonance and damping, worst pose.
+
+    Worst pose: lowest locked-drive eigenfrequency (the structure's property, independent of tuning).
+    With gains, per pose the lowest lightly damped (damping < 0.3) closed-loop mode and its damping.
+    """
     f_locked = np.empty(len(poses))
     z_locked = np.empty(len(poses))
     f_cl = np.full(len(poses), np.nan)
@@ -233,8 +237,8 @@ def eigen_grid(model: CoupledModel, poses: np.ndarray, g: Gains | None = None) -
             lam = np.linalg.eigvals(A)
             stable[i] = np.max(lam.real) < 0
             fm, zm = _modes(lam)
-            # structural resonances: oscillatory modes above the position loop's bandwidth
-            sel = fm > 3.0 * g.kp_1_s / (2 * math.pi)
+            # resonances: lightly damped oscillatory modes (damping ratio below 0.3)
+            sel = zm < 0.3
             if np.any(sel):
                 f_cl[i] = fm[sel][0]
                 z_cl[i] = float(np.min(zm[sel]))
@@ -252,7 +256,9 @@ def eigen_grid(model: CoupledModel, poses: np.ndarray, g: Gains | None = None) -
         out.update({"closed_loop_lowest_resonance_hz": f_cl.tolist(), "closed_loop_min_damping": z_cl.tolist(),
                     "closed_loop_stable_everywhere": bool(np.all(stable)),
                     "closed_loop_min_damping_over_grid": float(np.nanmin(z_cl)) if np.any(np.isfinite(z_cl))
-                    else None})
+                    else None,
+                    "closed_loop_resonance_range_hz": [float(np.nanmin(f_cl)), float(np.nanmax(f_cl))]
+                    if np.any(np.isfinite(f_cl)) else None})
     return out
 
 
