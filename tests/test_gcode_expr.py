@@ -158,3 +158,27 @@ def test_shaped_lines_equal_full_parse():
             continue
         b = _full(raw, i + 1)
         assert _evaluate_line(a) == _evaluate_line(b), raw
+
+
+def test_presplit_lines_equal_full_parse():
+    from pathlib import Path
+
+    from hexacnc.gcode.lexer import Presplit
+    texts = ["\n".join(SHAPE_LINES) + "\n(comment 12) G0 X1\nG1 X2 ; 3 4\n\tG0\tY1.5\r\n"]
+    corpus = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "gcode"
+    for name in ("3D_Chips.ngc", "arcspiral.ngc", "tort.ngc", "impeller-7bl-xyzac.ngc"):
+        if (corpus / name).exists():
+            texts.append((corpus / name).read_text())
+    for text in texts:
+        lines = text.split("\n")
+        pre = Presplit(text, lines)
+        assert pre.shapes is not None
+        for i, raw in enumerate(lines):
+            a = pre.line(i)
+            if a.empty or a.oword is not None:
+                continue
+            try:
+                b = _full(raw, i + 1)
+            except GcodeError:
+                continue   # refused lines (M428) are refused by both paths at execution
+            assert a.num == i + 1 and _evaluate_line(a) == _evaluate_line(b), raw

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import GcodeError
 from . import blocks as B
 from .blocks import Block
-from .lexer import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, Line, compile_template, parse_line
+from .lexer import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, Line, Presplit, compile_template, parse_line
 
 #: modal groups of the supported G codes (code x10)
 _G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 800: 1,
@@ -411,12 +411,12 @@ class Interpreter:
         executed = 0
         max_lines = self.max_lines
         parsed = self.parsed
-        lines = self.lines
+        pre = Presplit(text, self.lines).line
         blocks = self.blocks
         while pc < n:
             ln = parsed[pc]
             if ln is None:
-                ln = parse_line(lines[pc], pc + 1)
+                ln = pre(pc)
                 parsed[pc] = ln
             executed += 1
             if executed > max_lines:
@@ -452,7 +452,7 @@ class Interpreter:
                 fr = self.frames[-1]
                 raise GcodeError(f"program ended inside subroutine o{fr.label} called at line {fr.line}",
                                  n, 1, "flow")
-        return Program(name=self.name, blocks=blocks, line_count=len(lines), lines_executed=executed,
+        return Program(name=self.name, blocks=blocks, line_count=len(self.lines), lines_executed=executed,
                        messages=self.messages, end_line=end_line, end_reason=end_reason,
                        final_pose=np.array(self.pos), units="mm" if self.u == 1.0 else "inch")
 

@@ -16,6 +16,7 @@ Columns in errors are 1-based positions in the raw source line.
 """
 from __future__ import annotations
 
+import itertools
 import math
 import operator
 import re
@@ -526,37 +527,83 @@ def parse_line(raw: str, num: int) -> Line:
         return ln
     if s[0] != "o" and len(s) < 300 and "\x01" not in s:
         parts = _SHAPE_SPLIT.split(s)
-        shape = "\x01".join(parts[0::2])
-        tpl = _SHAPES.get(shape, False)
-        if tpl is False:
-            tpl = _make_shape(shape, len(parts) // 2)
-        if tpl is not None:
-            # fill the shape's numbers in (see _make_shape)
-            cls, wletters, wget, fixed, kget, kidx, kfix = tpl
-            try:
-                vals = list(map(float, parts[1::2]))
-            except ValueError:
-                return _parse_full(raw, num, s, comments)
-            ln = cls()
-            ln.num = num
-            ln.raw = raw
-            if wget is not None:
-                w = dict(zip(wletters, wget(vals)))
-                if fixed:
-                    w.update(fixed)
-                ln.words = w
-            else:
-                ln.words = dict(fixed) if fixed else {}
-            if kget is not None:
-                ln.k = kget(vals)
-            elif kidx:
-                vals.extend(kfix)
-                ln.k = tuple([vals[i] for i in kidx])
-            else:
-                ln.k = ()
-            ln.comments = comments or ()
+        ln = _fill("\x01".join(parts[0::2]), parts[1::2], raw, num, comments)
+        if ln is not None:
             return ln
     return _parse_full(raw, num, s, comments)
+
+
+def _fill(shape: str, nums: list[str], raw: str, num: int, comments) -> Line | None:
+    """A line from its shape and numbers (None: the shape cannot be used)."""
+    tpl = _SHAPES.get(shape, False)
+    if tpl is False:
+        tpl = _make_shape(shape, len(nums))
+    if tpl is None:
+        return None
+    cls, wletters, wget, fixed, kget, kidx, kfix = tpl
+    try:
+        vals = list(map(float, nums))
+    except ValueError:
+        return None
+    ln = cls()
+    ln.num = num
+    ln.raw = raw
+    if wget is not None:
+        w = dict(zip(wletters, wget(vals)))
+        if fixed:
+            w.update(fixed)
+        ln.words = w
+    else:
+        ln.words = dict(fixed) if fixed else {}
+    if kget is not None:
+        ln.k = kget(vals)
+    elif kidx:
+        vals.extend(kfix)
+        ln.k = tuple([vals[i] for i in kidx])
+    else:
+        ln.k = ()
+    ln.comments = comments or ()
+    return ln
+
+
+class Presplit:
+    """All lines of a program reduced to shapes in one pass over the text.
+
+    ``line(idx)`` gives the parsed line ``idx`` (0-based) like
+    :func:`parse_line`; lines with comments, non-ASCII text or anything the
+    shapes do not cover take the per-line path.
+    """
+
+    __slots__ = ("lines", "shapes", "nums", "offsets")
+
+    def __init__(self, text: str, lines: list[str]):
+        self.lines = lines
+        self.shapes = None
+        if "\x01" in text or not text.isascii():
+            return
+        t = text.replace(" ", "")
+        for ch in "\t\r\f\v":
+            if ch in t:
+                t = t.replace(ch, "")
+        parts = _SHAPE_SPLIT.split(t.lower())
+        shapes = "\x01".join(parts[0::2]).split("\n")
+        if len(shapes) < len(lines):
+            return
+        self.nums = parts[1::2]
+        self.offsets = list(itertools.accumulate((s.count("\x01") for s in shapes), initial=0))
+        self.shapes = shapes
+
+    def line(self, idx: int) -> Line:
+        raw = self.lines[idx]
+        shapes = self.shapes
+        if shapes is not None:
+            sh = shapes[idx]
+            if sh and sh[0] != "o" and len(sh) < 300 and "(" not in sh and ")" not in sh and ";" not in sh:
+                off = self.offsets
+                ln = _fill(sh, self.nums[off[idx]:off[idx + 1]], raw, idx + 1, None)
+                if ln is not None:
+                    return ln
+        return parse_line(raw, idx + 1)
 
 
 def _parse_full(raw: str, num: int, s: str, comments) -> Line:
