@@ -67,6 +67,7 @@ _MSG = re.compile(r"\s*(msg|debug|print)\s*,", re.IGNORECASE)
 _SUBST = re.compile(r"#(\d+)|#<([^>]+)>")
 _O_LINE = re.compile(r"^[ \t]*(?:\([^)\n]*\)[ \t]*)*/?[ \t]*(?:[nN][ \t\d.]*)?[oO][ \t]*[\d<]",
                     re.MULTILINE)
+_O_LINE_ONE = re.compile(_O_LINE.pattern)
 _LINEAR_TOL_MM = {25.4: 0.002 * 25.4, 1.0: 0.02}   #: arc end-radius tolerance (LinuxCNC-like)
 _R_TOL_MM = {25.4: 0.00005 * 25.4, 1.0: 0.0005}    #: R-arc chord tolerance
 _EPS = 1e-12
@@ -212,19 +213,21 @@ class Interpreter:
             self.parsed[idx] = ln
         return ln
 
-    def _prescan(self, text: str) -> None:
+    def _prescan(self, text: str, pre: Presplit) -> None:
         """Match O-word structures (if/while/do/repeat/sub) before running."""
         self.jump: dict[int, object] = {}
         self.subs: dict[str, tuple[int, int]] = {}
         self.do_end: set[int] = set()
         stack: list[list] = []
-        pos = 0
-        idx = 0
-        idxs = []
-        for m in _O_LINE.finditer(text):
-            idx += text.count("\n", pos, m.start())
-            pos = m.start()
-            idxs.append(idx)
+        idxs = pre.oword_lines(_O_LINE_ONE)
+        if idxs is None:
+            pos = 0
+            idx = 0
+            idxs = []
+            for m in _O_LINE.finditer(text):
+                idx += text.count("\n", pos, m.start())
+                pos = m.start()
+                idxs.append(idx)
         for idx in idxs:
             if idx >= len(self.lines):
                 break
@@ -402,7 +405,8 @@ class Interpreter:
     def run(self, text: str) -> Program:
         self.percent_start = None
         self.stop_at = self._find_end()
-        self._prescan(text)
+        presplit = Presplit(text, self.lines)
+        self._prescan(text, presplit)
         end_reason, end_line = "eof", None
         n = len(self.lines) if self.stop_at is None else self.stop_at
         if self.stop_at is not None:
@@ -411,7 +415,7 @@ class Interpreter:
         executed = 0
         max_lines = self.max_lines
         parsed = self.parsed
-        pre = Presplit(text, self.lines).line
+        pre = presplit.line
         blocks = self.blocks
         while pc < n:
             ln = parsed[pc]

@@ -493,6 +493,7 @@ _SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
 _COMMENT = re.compile(r"\(([^()]*)\)")
+_OSHAPE = re.compile(r"/?(?:n\x01)?o[\d<]")
 
 
 def parse_line(raw: str, num: int) -> Line:
@@ -574,7 +575,7 @@ class Presplit:
     shapes do not cover take the per-line path.
     """
 
-    __slots__ = ("lines", "shapes", "nums", "offsets")
+    __slots__ = ("lines", "shapes", "nums", "offsets", "shape_text")
 
     def __init__(self, text: str, lines: list[str]):
         self.lines = lines
@@ -586,12 +587,40 @@ class Presplit:
             if ch in t:
                 t = t.replace(ch, "")
         parts = _SHAPE_SPLIT.split(t.lower())
-        shapes = "\x01".join(parts[0::2]).split("\n")
+        self.shape_text = "\x01".join(parts[0::2])
+        shapes = self.shape_text.split("\n")
         if len(shapes) < len(lines):
             return
         self.nums = parts[1::2]
         self.offsets = list(itertools.accumulate((s.count("\x01") for s in shapes), initial=0))
         self.shapes = shapes
+
+    def oword_lines(self, line_regex) -> list[int] | None:
+        """Indices of the lines that start with an O word (None: not available).
+
+        Only lines whose shape contains an 'o' are looked at; lines with
+        comments are checked on their raw text with ``line_regex``.
+        """
+        shapes = self.shapes
+        if shapes is None:
+            return None
+        st = self.shape_text
+        out = []
+        line = 0
+        pos = 0
+        i = st.find("o")
+        while i >= 0:
+            line += st.count("\n", pos, i)
+            s = shapes[line]
+            if _OSHAPE.match(s) or (("(" in s or ";" in s) and line_regex.match(self.lines[line])):
+                out.append(line)
+            nl = st.find("\n", i)
+            if nl < 0:
+                break
+            line += 1
+            pos = nl + 1
+            i = st.find("o", pos)
+        return out
 
     def line(self, idx: int) -> Line:
         raw = self.lines[idx]
