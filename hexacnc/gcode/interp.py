@@ -21,7 +21,7 @@ from __future__ import annotations
 import gc
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 
@@ -71,6 +71,13 @@ _O_LINE_ONE = re.compile(_O_LINE.pattern)
 _LINEAR_TOL_MM = {25.4: 0.002 * 25.4, 1.0: 0.02}   #: arc end-radius tolerance (LinuxCNC-like)
 _R_TOL_MM = {25.4: 0.00005 * 25.4, 1.0: 0.0005}    #: R-arc chord tolerance
 _EPS = 1e-12
+_RAPID, _LINE, _ARC = B.RAPID, B.LINE, B.ARC
+# motion blocks are built with positional arguments (fast): the field order is part of the contract
+_POSITIONAL = ("kind", "line", "start", "end", "feed_mm_s", "inverse_time_s", "center", "normal", "turns",
+               "clockwise", "exact_stop", "blend_tolerance_mm", "tool_length_mm", "seconds", "spindle_rpm",
+               "coolant", "tool")
+if tuple(f.name for f in fields(Block))[:len(_POSITIONAL)] != _POSITIONAL:  # pragma: no cover
+    raise ImportError("hexacnc.gcode.blocks.Block fields were reordered; fix interp._POSITIONAL users")
 
 
 @dataclass
@@ -627,8 +634,8 @@ class Interpreter:
         e = np.array(end)
         e.flags.writeable = False
         if self.motion == 0:
-            b = Block(B.RAPID, ln.num, start, e, exact_stop=self.exact_stop, blend_tolerance_mm=self.blend,
-                      tool_length_mm=self.tool_len, tool=self.tool)
+            b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
+                      self.tool_len, 0.0, 0.0, "off", self.tool)
         else:
             if self.inverse_time:
                 fm, inv = self._feed_of(ln, vals, 10)
@@ -636,8 +643,8 @@ class Interpreter:
                 fm, inv = self.feed * self.u / 60.0, None
                 if fm <= 0.0:
                     self._feed_of(ln, vals, 10)  # raises the zero-feed error
-            b = Block(B.LINE, ln.num, start, e, fm, inv, exact_stop=self.exact_stop,
-                      blend_tolerance_mm=self.blend, tool_length_mm=self.tool_len, tool=self.tool)
+            b = Block(_LINE, ln.num, start, e, fm, inv, None, None, 0, False, self.exact_stop, self.blend,
+                      self.tool_len, 0.0, 0.0, "off", self.tool)
             if inv is None and end[0] == pos[0] and end[1] == pos[1] and end[2] == pos[2]:
                 b.feed_deg_s = b.feed_mm_s = self.feed / 60.0  # rotary-only: F is deg/min
         self.blocks.append(b)
@@ -993,12 +1000,12 @@ class Interpreter:
         e = np.array(end)
         e.flags.writeable = False
         if motion == 0:
-            b = Block(B.RAPID, ln.num, start, e, exact_stop=self.exact_stop, blend_tolerance_mm=self.blend,
-                      tool_length_mm=self.tool_len, tool=self.tool)
+            b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
+                      self.tool_len, 0.0, 0.0, "off", self.tool)
         else:
             fm, inv = self._feed_of(ln, vals, motion)
-            b = Block(B.LINE, ln.num, start, e, fm, inv, exact_stop=self.exact_stop,
-                      blend_tolerance_mm=self.blend, tool_length_mm=self.tool_len, tool=self.tool)
+            b = Block(_LINE, ln.num, start, e, fm, inv, None, None, 0, False, self.exact_stop, self.blend,
+                      self.tool_len, 0.0, 0.0, "off", self.tool)
             if fm is not None and end[0] == pos[0] and end[1] == pos[1] and end[2] == pos[2]:
                 b.feed_deg_s = b.feed_mm_s = self.feed / 60.0  # rotary-only: F is deg/min
         self.blocks.append(b)
@@ -1077,9 +1084,8 @@ class Interpreter:
         normal[w] = 1.0
         e = np.array(end)
         e.flags.writeable = False
-        b = Block(B.ARC, ln.num, self._start_arr(), e, fm, inv, np.array(center), np.array(normal),
-                  turns, cw, exact_stop=self.exact_stop, blend_tolerance_mm=self.blend,
-                  tool_length_mm=self.tool_len, tool=self.tool)
+        b = Block(_ARC, ln.num, self._start_arr(), e, fm, inv, np.array(center), np.array(normal),
+                  turns, cw, self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool)
         self.blocks.append(b)
         self.pos = end
         self.pos_arr = e
