@@ -162,6 +162,7 @@ _BINSRC = {"+": "({0}+{1})", "-": "({0}-{1})", "*": "({0}*{1})", "/": "({0}/{1})
 
 #: template source -> compiled function (shared by all programs)
 _FN_CACHE: dict[str, object] = {}
+_CACHE_MAX = 20_000
 
 
 def compile_template(src: str):
@@ -173,8 +174,9 @@ def compile_template(src: str):
         except (SyntaxError, RecursionError, MemoryError) as exc:
             raise _Bad(0, f"expression too deeply nested or too long ({type(exc).__name__})",
                        "expression") from None
-        if len(_FN_CACHE) < 100_000:
-            _FN_CACHE[src] = fn
+        if len(_FN_CACHE) >= _CACHE_MAX:   # bounded: a long-running daemon sees many programs
+            _FN_CACHE.clear()
+        _FN_CACHE[src] = fn
     return fn
 
 
@@ -655,7 +657,9 @@ def _make_shape(shape: str, nnum: int):
         c = _parse(tpl, shape)
     except _Bad:
         c = None
-    if c is None or c.nph != nnum or len(_SHAPES) > 200_000 or any(d[0] in "gm" for d in tpl.dyn):
+    if len(_SHAPES) >= _CACHE_MAX:   # bounded (lines already parsed keep their shape class)
+        _SHAPES.clear()
+    if c is None or c.nph != nnum or any(d[0] in "gm" for d in tpl.dyn):
         _SHAPES[shape] = None
         return None
     # where each number goes: words (letter, index) and constant slots
