@@ -42,8 +42,10 @@ from .topp import accel_coefficients, forward_backward, interval_times
 ETA = 0.95
 #: fraction of the velocity limit the nominal plan may use
 ETA_V = 1.0
+#: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
+FILTER_JERK_SHARE = 0.8
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
-RHO_J = 0.5
+RHO_J = 0.25
 #: share of the jerk limit an acceleration step at a junction may take
 RHO_STEP = 0.5
 #: s step of the central differences (mm or deg)
@@ -247,33 +249,41 @@ def _measure(path: P.Path, hx: Hexapod, s_f: np.ndarray, dt: float, vmax, amax, 
     return tuple(res[k] for k in ("uv", "ua", "uj", "va", "ajr", "vjr"))
 
 
-def _window_min(sg: np.ndarray, x: np.ndarray, T: float, passes: int = 3) -> np.ndarray:
-    """``x_k <= min x_j`` over ``|s_j - s_k| <= sqrt(x_k) T``: the moving average of width T mixes the
-    speeds of every position passed within T, so a slow spot must be approached slowly enough."""
+def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+    """Spread every speed limit over the distance travelled at that speed in the filter window.
+
+    The moving average of width T gives, at position s_j, the mean raw speed of the
+    positions passed within T.  If the raw speed is at most sqrt(x_j) for all
+    positions within ``r_j = sqrt(x_j) T`` of s_j, that mean is at most sqrt(x_j):
+    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.
+    """
     N = x.shape[0]
-    if N < 2:
-        return x
-    levels = [x.copy()]
-    span = 1
-    while 2 * span <= N:
-        prev = levels[-1]
-        levels.append(np.minimum(prev[:-span], prev[span:]))
-        span *= 2
-    x = x.copy()
-    for _ in range(passes):   # the radius shrinks with x; the minimum is over the original limits
-        r = np.sqrt(np.maximum(x, 0.0)) * T
-        lo = np.searchsorted(sg, sg - r, side="left")
-        hi = np.searchsorted(sg, sg + r, side="right") - 1
-        ln = np.maximum(hi - lo + 1, 1)
-        k = np.floor(np.log2(ln)).astype(np.int64)
-        k = np.minimum(k, len(levels) - 1)
-        out = np.empty(N)
-        for lv in np.unique(k):
-            m = k == lv
-            tab = levels[lv]
-            out[m] = np.minimum(tab[lo[m]], tab[hi[m] - (1 << lv) + 1])
-        x = np.minimum(x, out)
-    return x
+    fin = np.isfinite(x)
+    r = np.where(fin, np.sqrt(np.maximum(x, 0.0)) * T, 0.0)
+    lo = np.searchsorted(sg, sg - r, side="left")
+    hi = np.searchsorted(sg, sg + r, side="right") - 1
+    cnt = np.minimum(hi - lo + 1, max_span)
+    # only limits lower than some point in their reach matter
+    j = np.nonzero(fin & (cnt > 1))[0]
+    out = x.copy()
+    if j.size == 0:
+        return out
+    # process in slices to bound memory
+    step = 200_000
+    cj = cnt[j]
+    ends = np.cumsum(cj)
+    start = 0
+    while start < j.size:
+        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + step, side="right"))
+        stop = max(stop, start + 1)
+        jj = j[start:stop]
+        cc = cj[start:stop]
+        rep = np.repeat(jj, cc)
+        off = np.arange(rep.size) - np.repeat(np.cumsum(cc) - cc, cc)
+        k = np.minimum(lo[rep] + off, N - 1)
+        np.minimum.at(out, k, x[rep])
+        start = stop
+    return out
 
 
 def _measure_model(sg, Lp, Lpp, Lppp, s_f, dt, vmax, amax, jmax, chunk: int = 100_000):
@@ -374,7 +384,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
     jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
     path, events = P.build_path(blocks, cfg)
-    T_f = float(np.max(2.0 * amax / jmax))
+    T_f = float(np.max(2.0 * amax / jmax)) / FILTER_JERK_SHARE
     nf = max(1, int(math.ceil(T_f / dt)))
     hold_min = nf * dt
 
@@ -492,20 +502,21 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         holds_s[g] = hold_min + extra
     holds_s[0] = max(holds_s[0], 0.0)
 
-    xw = xlim.copy()
-    xw[stop_all] = np.inf
-    xlim = _window_min(sg, xw, nf * dt)
-    xlim[stop_all] = 0.0
 
     # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
     factor = np.ones(Ng)
     s_grid_for_lookup = sg
+    xw = xlim.copy()
+    xw[stop_all] = np.inf
+    xlim = _dilate_min(sg, xw, nf * dt)
+    xlim[stop_all] = 0.0
+    hL, cL, eL, dL = h.tolist(), c.tolist(), e.tolist(), dd.tolist()
     iters = 0
     exact = False
     exact_iters = 0
     for iters in range(1, 40):
         xl = xlim * factor
-        x = forward_backward(h, xl, c, e, dd)
+        x = forward_backward(hL, xl, cL, eL, dL)
         try:
             s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
         except FloatingPointError as exc:

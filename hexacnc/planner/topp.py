@@ -43,17 +43,18 @@ def accel_coefficients(Lp: np.ndarray, Lpp: np.ndarray, amax: np.ndarray):
     return c, e, d, x_mvc
 
 
-def forward_backward(h: np.ndarray, xlim: np.ndarray, c: np.ndarray, e: np.ndarray, d: np.ndarray) -> np.ndarray:
+def forward_backward(h, xlim: np.ndarray, c, e, d) -> np.ndarray:
     """x = s_dot^2 at the N grid points; h (N-1,) spacing (0 at duplicated junction points).
 
     ``xlim[0]`` and ``xlim[-1]`` should be 0 (start and end at rest); stops are
-    points with ``xlim = 0``.
+    points with ``xlim = 0``.  h, c, e, d may be given as lists (``.tolist()``,
+    to convert them once when the pass repeats).
     """
     N = xlim.shape[0]
-    cl = c.tolist()
-    el = e.tolist()
-    dl = d.tolist()
-    hl = h.tolist()
+    cl = c if isinstance(c, list) else c.tolist()
+    el = e if isinstance(e, list) else e.tolist()
+    dl = d if isinstance(d, list) else d.tolist()
+    hl = h if isinstance(h, list) else h.tolist()
     xl = np.maximum(xlim, 0.0).tolist()
     K = [0.0] * N
     K[-1] = xl[-1]
