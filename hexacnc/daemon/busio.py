@@ -113,7 +113,25 @@ def start_simulation(cfg, mode: str, period_s: float, faults=(), channel: str | 
                        "use udp_multicast (inside a network namespace) or socketcan (vcan)")
     ch = channel or cfg.bus.channel
     log.info("starting simulated drives (%s %s)", cfg.bus.interface, ch)
-    return simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=ch, faults=list(faults))
+    proc = simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=ch, faults=list(faults))
+    drives_realtime(proc.pid, max(1, cfg.cycle.realtime_priority - 10))
+    return proc
+
+
+def drives_realtime(pid: int, priority: int) -> bool:
+    """SCHED_FIFO for every thread of the simulated drives process, when permitted.
+
+    The simulated drives stand for hardware that keeps time; on a loaded machine a normal-priority
+    process misses SYNCs and SDO answers.  Returns False (logged) when not permitted.
+    """
+    try:
+        tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
+        for tid in tids:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (OSError, AttributeError, ValueError) as exc:
+        log.warning("simulated drives at normal priority: %s", exc)
+        return False
 
 
 def child_args(sim, channel: str | None = None) -> dict:

@@ -150,6 +150,7 @@ class Daemon:
         self.stop_requested = False
         self.closed = False
         self._feeder: threading.Thread | None = None
+        self.feed_hold = False          #: tests: the setpoint source stops delivering (dead source)
         self._stats_cache: tuple[float, dict] = (0.0, {})
         self._last_fault_logged = 0
         self._notifier = None
@@ -298,6 +299,8 @@ class Daemon:
                 log.info("start %s (%d blocks, %.2f s)", job.name, job.blocks, job.duration_s)
                 self.cv.notify_all()
             src = job.source
+            if self.feed_hold:
+                return
             if job.end_index < 0:
                 need = ahead - sh.ring_fill()
                 if need > 0:
