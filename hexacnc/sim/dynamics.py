@@ -369,7 +369,8 @@ def nominal_motion(model: CoupledModel, poses_deg: np.ndarray, dt: float) -> dic
 
 
 def simulate_path(model: CoupledModel, g: Gains, poses_deg: np.ndarray, dt: float, lines=None,
-                  jacobian_update_s: float = 0.02, dead_time_s: float | None = None) -> dict:
+                  jacobian_update_s: float = 0.02, dead_time_s: float | None = None,
+                  chunk_samples: int = 100_000) -> dict:
     """Simulate the machine along sampled platform poses (the daemon's strut commands).
 
     The strut commands and their rate (velocity feed-forward) reach the drives
@@ -391,46 +392,63 @@ def simulate_path(model: CoupledModel, g: Gains, poses_deg: np.ndarray, dt: floa
     if N < 3:
         raise DataError("a path needs at least 3 samples")
     td = 0.0 if dead_time_s is None else dead_time_s
-    nom = nominal_motion(model, P, dt)
     d = int(round(td / dt))
-    Ldel = np.concatenate([np.repeat(nom["L"][:1], d, 0), nom["L"][:N - d]]) if d else nom["L"]
-    Lddel = np.concatenate([np.zeros((d, 6)), nom["Ld"][:N - d]]) if d else nom["Ld"]
-    U = np.zeros((N, NU))
-    U[:, IR] = Ldel - nom["L"]
-    U[:, IVFF] = Lddel - nom["Ld"]
-    U[:, IFEXT] = -model.md * nom["Ldd"]
     win = max(1, int(round(jacobian_update_s / dt)))
+    chunk = win * max(1, chunk_samples // win)          # nominal motion in chunks: bounded memory
+    margin = d + 3
     x = np.zeros(NX)
     tip_err = np.empty((N, 3))
     ferr = np.empty((N, 6))
     lerr = np.empty((N, 6))
-    for k0 in range(0, N, win):
-        k1 = min(N, k0 + win)
-        km = (k0 + k1) // 2
-        J, R = model.jacobian(P[km])
-        A, B = model.matrices(J, R, g)
-        Ad, Bd = discretise_fast(A, B, dt)
-        M = model.mass_matrix(R)
-        Uw = U[k0:k1].copy()
-        Uw[:, IWEXT] = -nom["acc_cog"][k0:k1] @ M.T
-        BU = Uw @ Bd.T
-        X = np.empty((k1 - k0, NX))
-        for j in range(k1 - k0):
-            x = Ad @ x + BU[j]
-            X[j] = x
-        T = model.tip_map(R)
-        tip_err[k0:k1] = X[:, IY] @ T.T
-        ferr[k0:k1] = U[k0:k1, IR] - X[:, IQ]
-        lerr[k0:k1] = X[:, IY] @ J.T
+    contour = np.empty((N, 3))
+    for c0 in range(0, N, chunk):
+        c1 = min(N, c0 + chunk)
+        a0, a1 = max(0, c0 - margin), min(N, c1 + margin)
+        nom = nominal_motion(model, P[a0:a1], dt)
+        o = c0 - a0
+        n_c = c1 - c0
+        sl = slice(o, o + n_c)
+        Lfull = nom["L"]
+        if d:
+            idx = np.arange(o, o + n_c) - d
+            Ldel = np.where((idx + a0 >= 0)[:, None], Lfull[np.maximum(idx, 0)], Lfull[0])
+            Lddel = np.where((idx + a0 >= 0)[:, None], nom["Ld"][np.maximum(idx, 0)], 0.0)
+        else:
+            Ldel, Lddel = Lfull[sl], nom["Ld"][sl]
+        U = np.zeros((n_c, NU))
+        U[:, IR] = Ldel - Lfull[sl]
+        U[:, IVFF] = Lddel - nom["Ld"][sl]
+        U[:, IFEXT] = -model.md * nom["Ldd"][sl]
+        acc = nom["acc_cog"][sl]
+        tip_nom = P[a0:a1, :3] + np.einsum("nij,j->ni", nom["R"], model.tip)
+        vdir = np.gradient(tip_nom, dt, axis=0)[sl]
+        for k0 in range(0, n_c, win):
+            k1 = min(n_c, k0 + win)
+            km = c0 + (k0 + k1) // 2
+            J, R = model.jacobian(P[km])
+            A, B = model.matrices(J, R, g)
+            Ad, Bd = discretise_fast(A, B, dt)
+            M = model.mass_matrix(R)
+            Uw = U[k0:k1].copy()
+            Uw[:, IWEXT] = -acc[k0:k1] @ M.T
+            BU = Uw @ Bd.T
+            X = np.empty((k1 - k0, NX))
+            for j in range(k1 - k0):
+                x = Ad @ x + BU[j]
+                X[j] = x
+            T = model.tip_map(R)
+            tip_err[c0 + k0:c0 + k1] = X[:, IY] @ T.T
+            ferr[c0 + k0:c0 + k1] = U[k0:k1, IR] - X[:, IQ]
+            lerr[c0 + k0:c0 + k1] = X[:, IY] @ J.T
+        vn = np.linalg.norm(vdir, axis=1)
+        moving = vn > 1e-3
+        vdir[moving] /= vn[moving, None]
+        vdir[~moving] = 0.0
+        te = tip_err[c0:c1]
+        contour[c0:c1] = te - np.einsum("ni,ni->n", te, vdir)[:, None] * vdir
     wall = time.perf_counter() - wall0
     tip_um = np.linalg.norm(tip_err, axis=1) * 1e3
-    tip_nom = P[:, :3] + np.einsum("nij,j->ni", nom["R"], model.tip)
-    vdir = np.gradient(tip_nom, dt, axis=0)
-    vn = np.linalg.norm(vdir, axis=1)
-    moving = vn > 1e-3
-    vdir[moving] /= vn[moving, None]
-    vdir[~moving] = 0.0
-    contour = tip_err - np.einsum("ni,ni->n", tip_err, vdir)[:, None] * vdir
+    k_tip = int(np.argmax(tip_um))
     contour_um = np.linalg.norm(contour, axis=1) * 1e3
     k_con = int(np.argmax(contour_um))
     k_tip = int(np.argmax(tip_um))
