@@ -7,7 +7,7 @@
                                     # PDO mapping per layout, SYNC counter, mode 8), NMT start, enable
     m.detach()                      # stop canopen's listener threads; hand the buses to CyclicIO
     ...                             # hot loop: drivers.cyclic.CyclicIO (SYNC, targets, controlwords)
-    m.attach(); m.disable(); m.stop()
+    m.attach(); m.disable(); m.pre_operational(); m.close()   # attach resumes the master heartbeat
 
 Every failure is a :class:`hexacnc.errors.BusError` naming the node, its strut and the step.
 While attached the master produces its heartbeat (0x700 + 0x7F), which the drives consume
@@ -70,6 +70,7 @@ class Master:
             node.emcy.add_callback(self._emcy_cb(nd.index))
             self.nodes.append(node)
         self._hb_tasks: list = []
+        self._heartbeat_wanted = False
         self.attached = False
         self.attach()
 
@@ -97,10 +98,14 @@ class Master:
         for net in self.networks:
             net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
         self.attached = True
+        if self._heartbeat_wanted:
+            self.start_heartbeat()
 
     def detach(self) -> list[can.BusABC]:
         """Stop listener threads and the master heartbeat; the buses stay open. Returns them."""
+        wanted = self._heartbeat_wanted
         self.stop_heartbeat()
+        self._heartbeat_wanted = wanted
         for net in self.networks:
             if net.notifier is not None:
                 net.notifier.stop(2.0)
@@ -178,15 +183,18 @@ class Master:
     def start_heartbeat(self) -> None:
         """Produce the master heartbeat (0x700 + 0x7F, state operational) on every bus."""
         self.stop_heartbeat()
+        self._heartbeat_wanted = True
         if self.bus_cfg.heartbeat_ms > 0:
             for net in self.networks:
                 self._hb_tasks.append(net.send_periodic(0x700 + MASTER_NODE_ID, [5],
                                                         self.bus_cfg.heartbeat_ms * 1e-3))
 
     def stop_heartbeat(self) -> None:
+        """Stop producing the master heartbeat (the drives will fault 0x8130 once enabled)."""
         for t in self._hb_tasks:
             t.stop()
         self._hb_tasks = []
+        self._heartbeat_wanted = False
 
     # -- configuration -------------------------------------------------------------------------
     def configure(self) -> None:

@@ -77,6 +77,12 @@ def test_cyclic_targets_are_followed_by_the_simulated_drives():
             assert abs(io.pos_inc[i] - sim_pos[i]) <= 5                 # feedback frames reach the master
             assert io.status[i] & cia402.SW_DRIVE_FOLLOWS
         assert io.heartbeat_lost() == 0
+        # back to the slow path: the master resumes its heartbeat and disables the drives
+        rig.master.attach()
+        rig.master.disable()
+        time.sleep(rig.cfg.bus.heartbeat_timeout_ms * 1e-3 + 0.1)
+        assert rig.sim.states() == [cia402.SWITCH_ON_DISABLED] * 6
+        assert not any(code == cia402.EMCY_HEARTBEAT for _i, code, *_r in rig.master.emcy_log)
 
 
 def test_unanswering_node_is_named():
