@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 
 from ..errors import GcodeError
-from ..gcode import lexer, parse_program
+from ..gcode import expr, lexer, parse_program
 
 HELP = "interpreter throughput (lines/s) on the G-code corpus, target 50,000 lines/s on 3D_Chips.ngc"
 
@@ -47,7 +47,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _measure(text: str, name: str, runs: int) -> dict:
     nlines = len(text.split("\n")) - (1 if text.endswith("\n") else 0)
     lexer._SHAPES.clear()
-    lexer._FN_CACHE.clear()
+    expr._FN_CACHE.clear()
     times = []
     cpu = []
     outcome: dict = {}

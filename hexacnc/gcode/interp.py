@@ -28,7 +28,8 @@ import numpy as np
 from ..errors import GcodeError
 from . import blocks as B
 from .blocks import Block
-from .lexer import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, Line, Presplit, compile_template, parse_line
+from .expr import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, compile_template
+from .lexer import Line, Presplit, parse_line
 
 #: modal groups of the supported G codes (code x10)
 _G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 800: 1,
