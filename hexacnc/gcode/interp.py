@@ -15,13 +15,17 @@ Tool length: the controlled point is the tool tip, at ``tool_length_mm``
 along the platform tool axis from the tool reference point.  G43/G49 do not
 move the platform, so the programmed tool-tip position jumps by
 ``R(a,b,c) @ axis_platform * (new - old length)``; the next block starts there.
+
+Modules: :mod:`.expr` (expressions), :mod:`.lexer` (lines and shapes),
+:mod:`.flow` (O-words), :mod:`.motion` (offsets, tool length, lines, arcs),
+this one (modal state, the order of execution within a line, the run loop).
 """
 from __future__ import annotations
 
 import gc
 import math
 import re
-from dataclasses import dataclass, field, fields
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -29,7 +33,9 @@ from ..errors import GcodeError
 from . import blocks as B
 from .blocks import Block
 from .expr import MAX_PARAMETER, PREDEFINED as _PRED, ExprError, compile_template
+from .flow import FlowMixin, _Frame
 from .lexer import Line, Presplit, parse_line
+from .motion import _LINE, _RAPID, MotionMixin
 
 #: modal groups of the supported G codes (code x10)
 _G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 800: 1,
@@ -66,19 +72,6 @@ _M_UNSUPPORTED = {
 }
 _MSG = re.compile(r"\s*(msg|debug|print)\s*,", re.IGNORECASE)
 _SUBST = re.compile(r"#(\d+)|#<([^>]+)>")
-_O_LINE = re.compile(r"^[ \t]*(?:\([^)\n]*\)[ \t]*)*/?[ \t]*(?:[nN][ \t\d.]*)?[oO][ \t]*[\d<]",
-                    re.MULTILINE)
-_O_LINE_ONE = re.compile(_O_LINE.pattern)
-_LINEAR_TOL_MM = {25.4: 0.002 * 25.4, 1.0: 0.02}   #: arc end-radius tolerance (LinuxCNC-like)
-_R_TOL_MM = {25.4: 0.00005 * 25.4, 1.0: 0.0005}    #: R-arc chord tolerance
-_EPS = 1e-12
-_RAPID, _LINE, _ARC = B.RAPID, B.LINE, B.ARC
-# motion blocks are built with positional arguments (fast): the field order is part of the contract
-_POSITIONAL = ("kind", "line", "start", "end", "feed_mm_s", "inverse_time_s", "center", "normal", "turns",
-               "clockwise", "exact_stop", "blend_tolerance_mm", "tool_length_mm", "seconds", "spindle_rpm",
-               "coolant", "tool")
-if tuple(f.name for f in fields(Block))[:len(_POSITIONAL)] != _POSITIONAL:  # pragma: no cover
-    raise ImportError("hexacnc.gcode.blocks.Block fields were reordered; fix interp._POSITIONAL users")
 
 
 @dataclass
@@ -99,18 +92,6 @@ class Program:
         return [b for b in self.blocks if b.kind in B.MOTION_KINDS]
 
 
-class _Frame:
-    __slots__ = ("ret", "L", "saved", "label", "repeat", "line")
-
-    def __init__(self, ret, L, saved, label, line):
-        self.ret = ret
-        self.L = L
-        self.saved = saved
-        self.label = label
-        self.repeat: dict[int, int] = {}
-        self.line = line
-
-
 def _coord_index(key) -> int:
     if isinstance(key, int) and 1 <= key <= 9:
         return key
@@ -123,7 +104,7 @@ def _coord_index(key) -> int:
                      None, None, "value")
 
 
-class Interpreter:
+class Interpreter(FlowMixin, MotionMixin):
     """Interpret one program text; :meth:`run` returns the :class:`Program`."""
 
     def __init__(self, text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
@@ -220,101 +201,6 @@ class Interpreter:
             ln = parse_line(self.lines[idx], idx + 1)
             self.parsed[idx] = ln
         return ln
-
-    def _prescan(self, text: str, pre: Presplit) -> None:
-        """Match O-word structures (if/while/do/repeat/sub) before running."""
-        self.jump: dict[int, object] = {}
-        self.subs: dict[str, tuple[int, int]] = {}
-        self.do_end: set[int] = set()
-        stack: list[list] = []
-        idxs = pre.oword_lines(_O_LINE_ONE)
-        if idxs is None:
-            pos = 0
-            idx = 0
-            idxs = []
-            for m in _O_LINE.finditer(text):
-                idx += text.count("\n", pos, m.start())
-                pos = m.start()
-                idxs.append(idx)
-        for idx in idxs:
-            if idx >= len(self.lines):
-                break
-            ln = self._line(idx)
-            if ln.oword is None:
-                continue
-            if self.stop_at is not None and idx >= self.stop_at:
-                break
-            kw, label, _n = ln.oword
-
-            def err(msg):
-                return GcodeError(msg, idx + 1, ln.column("o"), "flow")
-
-            def pop(opening: tuple[str, ...]):
-                if not stack or stack[-1][0] not in opening or stack[-1][1] != label:
-                    what = f"o{stack[-1][1]} {stack[-1][0]} (line {stack[-1][2] + 1})" if stack else "nothing"
-                    raise err(f"o{label} {kw} does not close {what}")
-                return stack.pop()
-
-            if kw == "sub":
-                if any(s[0] == "sub" for s in stack):
-                    raise err(f"o{label} sub defined inside another subroutine")
-                if label in self.subs:
-                    raise err(f"subroutine o{label} defined twice")
-                stack.append(["sub", label, idx])
-            elif kw == "endsub":
-                s = pop(("sub",))
-                self.subs[label] = (s[2], idx)
-                self.jump[s[2]] = idx
-            elif kw == "if":
-                stack.append(["if", label, idx, []])
-            elif kw in ("elseif", "else"):
-                if not stack or stack[-1][0] != "if" or stack[-1][1] != label:
-                    raise err(f"o{label} {kw} without a matching o{label} if")
-                br = stack[-1][3]
-                if br and self._line(br[-1]).oword[0] == "else":
-                    raise err(f"o{label} {kw} after o{label} else")
-                br.append(idx)
-            elif kw == "endif":
-                s = pop(("if",))
-                chain = s[3] + [idx]
-                self.jump[s[2]] = chain[0]
-                for a, b in zip(chain[:-1], chain[1:]):
-                    self.jump[a] = (b, idx)
-            elif kw == "while":
-                if stack and stack[-1][0] == "do" and stack[-1][1] == label:
-                    s = stack.pop()
-                    self.jump[s[2]] = idx
-                    self.jump[idx] = s[2]
-                    self.do_end.add(idx)
-                else:
-                    stack.append(["while", label, idx])
-            elif kw == "endwhile":
-                s = pop(("while",))
-                self.jump[s[2]] = idx
-                self.jump[idx] = s[2]
-            elif kw == "do":
-                stack.append(["do", label, idx])
-            elif kw == "repeat":
-                stack.append(["repeat", label, idx])
-            elif kw == "endrepeat":
-                s = pop(("repeat",))
-                self.jump[s[2]] = idx
-                self.jump[idx] = s[2]
-            elif kw in ("break", "continue"):
-                for s in reversed(stack):
-                    if s[0] in ("while", "do", "repeat") and s[1] == label:
-                        self.jump[idx] = s[2]
-                        break
-                else:
-                    raise err(f"o{label} {kw} outside an o{label} while/do/repeat loop")
-            elif kw == "return":
-                subs = [s for s in stack if s[0] == "sub"]
-                if not subs or subs[-1][1] != label:
-                    raise err(f"o{label} return outside subroutine o{label}")
-        if stack:
-            s = stack[-1]
-            ln = self._line(s[2])
-            raise GcodeError(f"o{s[1]} {s[0]} is never closed", s[2] + 1, ln.column("o"), "flow")
 
     def _find_end(self) -> int | None:
         """Index of a closing '%' line (programs wrapped in %...%), else None."""
@@ -467,112 +353,6 @@ class Interpreter:
         return Program(name=self.name, blocks=blocks, line_count=len(self.lines), lines_executed=executed,
                        messages=self.messages, end_line=end_line, end_reason=end_reason,
                        final_pose=np.array(self.pos), units="mm" if self.u == 1.0 else "inch")
-
-    # -- O-words --------------------------------------------------------------------
-    def _ovals(self, ln: Line) -> tuple:
-        if ln.fn is None:
-            return ()
-        try:
-            res = ln.fn(self.P, self.L, self.G, self._sys, ln.k)
-        except (KeyError, ArithmeticError, ValueError, ExprError, IndexError, TypeError) as exc:
-            raise self._expr_error(ln, exc) from None
-        for v in res:
-            if not -1e300 < v < 1e300:
-                raise ln.error(f"value {v!r} is not a finite number", "o", "expression")
-        return res
-
-    def _oword(self, ln: Line, pc: int) -> int:
-        kw, label, _n = ln.oword
-        self.line_now = ln.num
-        jump = self.jump
-        if ln.comments:
-            self._comments(ln)
-        if self.seek and kw not in ("elseif", "else", "endif"):
-            raise ln.error("internal: seeking an O-word branch", "o", "flow")
-        if kw == "sub":
-            return jump[pc] + 1
-        if kw in ("endsub", "return"):
-            vals = self._ovals(ln)
-            if not self.frames:
-                raise ln.error(f"o{label} {kw} reached outside a subroutine call", "o", "flow")
-            if vals:
-                self.G["_value"] = vals[0]
-                self.G["_value_returned"] = 1.0
-            else:
-                self.G["_value"] = 0.0
-                self.G["_value_returned"] = 0.0
-            fr = self.frames.pop()
-            self.L = fr.L
-            self.P[1:31] = fr.saved
-            return fr.ret
-        if kw == "call":
-            vals = self._ovals(ln)
-            sub = self.subs.get(label)
-            if sub is None:
-                raise ln.error(f"subroutine o{label} is not defined in this program "
-                               "(subroutine files are not searched)", "o", "flow")
-            if len(self.frames) >= self.max_depth:
-                raise ln.error(f"subroutine calls nested deeper than {self.max_depth}", "o", "runaway")
-            self.frames.append(_Frame(pc + 1, self.L, self.P[1:31], label, ln.num))
-            self.L = {}
-            args = list(vals) + [0.0] * (30 - len(vals))
-            self.P[1:31] = args
-            return sub[0] + 1
-        if kw == "if":
-            if self._ovals(ln)[0] != 0.0:
-                return pc + 1
-            self.seek = True
-            return jump[pc]
-        if kw == "elseif":
-            nxt, endif = jump[pc]
-            if not self.seek:
-                return endif + 1
-            if self._ovals(ln)[0] != 0.0:
-                self.seek = False
-                return pc + 1
-            return nxt
-        if kw == "else":
-            if not self.seek:
-                return jump[pc][1] + 1
-            self.seek = False
-            return pc + 1
-        if kw == "endif":
-            self.seek = False
-            return pc + 1
-        if kw == "while":
-            if pc in self.do_end:
-                return jump[pc] + 1 if self._ovals(ln)[0] != 0.0 else pc + 1
-            return pc + 1 if self._ovals(ln)[0] != 0.0 else jump[pc] + 1
-        if kw == "endwhile":
-            return jump[pc]
-        if kw == "do":
-            return pc + 1
-        rep = self.frames[-1].repeat if self.frames else self._top_repeat
-        if kw == "repeat":
-            v = self._ovals(ln)[0]
-            count = int(v)
-            if count <= 0:
-                return jump[pc] + 1
-            rep[pc] = count
-            return pc + 1
-        if kw == "endrepeat":
-            start = jump[pc]
-            left = rep.get(start, 1) - 1
-            if left > 0:
-                rep[start] = left
-                return start + 1
-            rep.pop(start, None)
-            return pc + 1
-        start = jump[pc]
-        skw = self._line(start).oword[0]
-        end = jump[start]
-        if kw == "break":
-            rep.pop(start, None)
-            return end + 1
-        # continue
-        if skw == "while":
-            return start
-        return end  # do: evaluate the closing while; repeat: count down at endrepeat
 
     def _comments(self, ln: Line) -> None:
         for c in ln.comments:
@@ -884,213 +664,6 @@ class Interpreter:
 
     def _emit(self, b: Block) -> None:
         self.blocks.append(b)
-
-    # -- offsets and tool ---------------------------------------------------------------
-    def _refresh_offsets(self) -> None:
-        base = 5201 + 20 * self.cs
-        P = self.P
-        self.off = [P[base + i] + self.g92[i] for i in range(6)]
-
-    def _set_tool_length(self, new_len: float) -> None:
-        d = new_len - self.tool_len
-        if d != 0.0:
-            a, b, c = (math.radians(v) for v in self.pos[3:6])
-            ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
-            x, y, z = self.tool_axis
-            R = ((cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa),
-                 (sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa),
-                 (-sb, cb * sa, cb * ca))
-            for i in range(3):
-                self.pos[i] += d * (R[i][0] * x + R[i][1] * y + R[i][2] * z)
-            self.pos_arr = None
-        self.tool_len = new_len
-
-    def _g10(self, ln: Line, vals: dict) -> None:
-        if "l" not in vals:
-            raise ln.error("G10 needs an L word (L2 or L20)", "g100", "word")
-        lv = vals["l"]
-        if lv not in (2.0, 20.0):
-            raise ln.error(f"G10 L{lv:g} is not supported (only L2 and L20)", "l", "unsupported")
-        if "p" not in vals:
-            raise ln.error("G10 L2/L20 needs a P word (coordinate system 0..9)", "g100", "word")
-        p = vals["p"]
-        if p != int(p) or not 0 <= p <= 9:
-            raise ln.error(f"G10 P{p:g}: coordinate system must be 0..9", "p", "value")
-        if "r" in vals:
-            raise ln.error("G10 R (coordinate system rotation) is not supported", "r", "unsupported")
-        k = int(p) or self.cs
-        base = 5201 + 20 * k
-        u = self.u
-        for i, letter in ln.axes:
-            v = vals[letter] * (u if i < 3 else 1.0)
-            if lv == 2.0:
-                self.P[base + i] = v
-            else:  # L20: the current point gets coordinate v in that system
-                self.P[base + i] = self.pos[i] - self.g92[i] - v
-        if k == self.cs:
-            self._refresh_offsets()
-
-    def _g92(self, ln: Line, vals: dict, g: int) -> None:
-        if g == 920:
-            if not ln.axes:
-                raise ln.error("G92 needs at least one axis word", "g920", "word")
-            base = 5201 + 20 * self.cs
-            u = self.u
-            for i, letter in ln.axes:
-                v = vals[letter] * (u if i < 3 else 1.0)
-                self.g92[i] = self.pos[i] - self.P[base + i] - v
-        elif g in (921, 922):
-            self.g92 = [0.0] * 6
-        else:  # G92.3: restore from parameters
-            self.g92 = [self.P[5211 + i] for i in range(6)]
-        if g != 922:
-            for i in range(6):
-                self.P[5211 + i] = self.g92[i]
-            self.P[5210] = 1.0 if any(self.g92) else 0.0
-        self._refresh_offsets()
-
-    # -- motion ---------------------------------------------------------------------------
-    def _target(self, ln: Line, vals: dict, g53: bool) -> list[float]:
-        pos = self.pos
-        end = list(pos)
-        u = self.u
-        if g53:
-            for i, letter in ln.axes:
-                end[i] = vals[letter] * u if i < 3 else vals[letter]
-        elif self.absolute:
-            off = self.off
-            for i, letter in ln.axes:
-                end[i] = (vals[letter] * u if i < 3 else vals[letter]) + off[i]
-        else:
-            for i, letter in ln.axes:
-                end[i] = pos[i] + (vals[letter] * u if i < 3 else vals[letter])
-        return end
-
-    def _start_arr(self) -> np.ndarray:
-        a = self.pos_arr
-        if a is None:
-            a = np.array(self.pos)
-            a.flags.writeable = False
-            self.pos_arr = a
-        return a
-
-    def _feed_of(self, ln: Line, vals: dict, motion: int):
-        """-> (feed_mm_s, inverse_time_s, feed_deg_s) for a feed move."""
-        if self.inverse_time:
-            f = vals.get("f")
-            if f is None:
-                raise ln.error(f"G93 inverse-time G{motion // 10} move needs an F word on its line",
-                               f"g{motion}",
-                               "feed")
-            if f <= 0.0:
-                raise ln.error(f"inverse-time F{f:g} must be positive", "f", "feed")
-            return None, 60.0 / f
-        f = self.feed
-        if f <= 0.0:
-            raise ln.error(f"G{motion // 10} with zero feed rate (no F word yet)",
-                           f"g{motion}",
-                           "feed")
-        return f * self.u / 60.0, None
-
-    def _move(self, ln: Line, vals: dict, motion: int, g53: bool) -> None:
-        end = self._target(ln, vals, g53)
-        pos = self.pos
-        if end == pos:
-            return
-        start = self._start_arr()
-        e = np.array(end)
-        e.flags.writeable = False
-        if motion == 0:
-            b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
-                      self.tool_len, 0.0, 0.0, "off", self.tool)
-        else:
-            fm, inv = self._feed_of(ln, vals, motion)
-            b = Block(_LINE, ln.num, start, e, fm, inv, None, None, 0, False, self.exact_stop, self.blend,
-                      self.tool_len, 0.0, 0.0, "off", self.tool)
-            if fm is not None and end[0] == pos[0] and end[1] == pos[1] and end[2] == pos[2]:
-                b.feed_deg_s = b.feed_mm_s = self.feed / 60.0  # rotary-only: F is deg/min
-        self.blocks.append(b)
-        self.pos = end
-        self.pos_arr = e
-
-    def _arc(self, ln: Line, vals: dict, motion: int) -> None:
-        plane = self.plane
-        # plane axes (p, q) and normal axis w; CCW = positive rotation about +w
-        if plane == 170:
-            p, q, w, cp, cq, bad = 0, 1, 2, "i", "j", "k"
-        elif plane == 180:
-            p, q, w, cp, cq, bad = 2, 0, 1, "k", "i", "j"
-        else:
-            p, q, w, cp, cq, bad = 1, 2, 0, "j", "k", "i"
-        if bad in vals:
-            raise ln.error(f"{bad.upper()} word with an arc in the G{plane // 10} plane", bad, "word")
-        end = self._target(ln, vals, False)
-        start = self.pos
-        u = self.u
-        fm, inv = self._feed_of(ln, vals, motion)
-        turns = 0
-        if "p" in vals:
-            pv = vals["p"]
-            if pv != int(pv) or not 1 <= pv <= 10000:
-                raise ln.error(f"arc P{pv:g} (number of turns) must be an integer 1..10000", "p", "arc")
-            turns = int(pv) - 1
-        cw = motion == 20
-        sp, sq, ep, eq = start[p], start[q], end[p], end[q]
-        if "r" in vals:
-            if cp in vals or cq in vals:
-                raise ln.error("arc with both R and I/J/K words", "r", "arc")
-            r = vals["r"] * u
-            dp, dq = ep - sp, eq - sq
-            d = math.hypot(dp, dq)
-            if d < 1e-9:
-                raise ln.error("R-format arc with start equal to end (use I/J/K for full circles)", "r", "arc")
-            half = 0.5 * d
-            ar = abs(r)
-            if ar < _EPS:
-                raise ln.error("arc radius R0", "r", "arc")
-            if half > ar:
-                if half - ar > _R_TOL_MM[u]:
-                    raise ln.error(f"arc radius {ar / u:g} too small to reach the end point "
-                                   f"(half chord {half / u:g})", "r", "arc")
-                h = 0.0
-            else:
-                h = math.sqrt(ar * ar - half * half)
-            # left normal of the chord; CCW short arc has its centre on the left
-            nlp, nlq = -dq / d, dp / d
-            side = (1.0 if not cw else -1.0) * (1.0 if r > 0 else -1.0)
-            c_p = sp + 0.5 * dp + side * h * nlp
-            c_q = sq + 0.5 * dq + side * h * nlq
-        else:
-            if cp not in vals and cq not in vals:
-                raise ln.error(f"arc in the G{plane // 10} plane needs {cp.upper()}/{cq.upper()} "
-                               "words or R", f"g{motion}", "arc")
-            if self.arc_absolute:
-                c_p = vals.get(cp, 0.0) * u + self.off[p]
-                c_q = vals.get(cq, 0.0) * u + self.off[q]
-            else:
-                c_p = sp + vals.get(cp, 0.0) * u
-                c_q = sq + vals.get(cq, 0.0) * u
-            r0 = math.hypot(sp - c_p, sq - c_q)
-            r1 = math.hypot(ep - c_p, eq - c_q)
-            if r0 < 1e-9:
-                raise ln.error("arc with zero radius (centre at the start point)",
-                               cp if cp in vals else cq, "arc")
-            err = abs(r1 - r0)
-            if err > _LINEAR_TOL_MM[u] and err > 0.001 * r0:
-                raise ln.error(f"radius to the arc end differs from radius to the start by {err / u:.6g} "
-                               f"({r0 / u:.6g} vs {r1 / u:.6g})", cp if cp in vals else cq, "arc")
-        center = [0.0, 0.0, 0.0]
-        center[p], center[q], center[w] = c_p, c_q, start[w]
-        normal = [0.0, 0.0, 0.0]
-        normal[w] = 1.0
-        e = np.array(end)
-        e.flags.writeable = False
-        b = Block(_ARC, ln.num, self._start_arr(), e, fm, inv, np.array(center), np.array(normal),
-                  turns, cw, self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool)
-        self.blocks.append(b)
-        self.pos = end
-        self.pos_arr = e
-
 
 def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),

@@ -1,0 +1,235 @@
+"""O-word control flow of the interpreter: structure matching and execution.
+
+``sub/endsub/call/return``, ``if/elseif/else/endif``, ``while/endwhile``,
+``do/while``, ``repeat/endrepeat``, ``break``, ``continue``.  Structures are
+matched before the program runs (:meth:`FlowMixin._prescan`); at run time each
+O-word line returns the index of the next line to execute.
+"""
+from __future__ import annotations
+
+import re
+
+from ..errors import GcodeError
+from .expr import ExprError
+from .lexer import Line, Presplit
+
+#: a line starting with an O word (possibly after comments, '/' and an N word)
+_O_LINE = re.compile(r"^[ \t]*(?:\([^)\n]*\)[ \t]*)*/?[ \t]*(?:[nN][ \t\d.]*)?[oO][ \t]*[\d<]",
+                    re.MULTILINE)
+_O_LINE_ONE = re.compile(_O_LINE.pattern)
+
+class _Frame:
+    __slots__ = ("ret", "L", "saved", "label", "repeat", "line")
+
+    def __init__(self, ret, L, saved, label, line):
+        self.ret = ret
+        self.L = L
+        self.saved = saved
+        self.label = label
+        self.repeat: dict[int, int] = {}
+        self.line = line
+
+
+class FlowMixin:
+    """O-word handling of :class:`~hexacnc.gcode.interp.Interpreter` (uses its state)."""
+
+    def _prescan(self, text: str, pre: Presplit) -> None:
+        """Match O-word structures (if/while/do/repeat/sub) before running."""
+        self.jump: dict[int, object] = {}
+        self.subs: dict[str, tuple[int, int]] = {}
+        self.do_end: set[int] = set()
+        stack: list[list] = []
+        idxs = pre.oword_lines(_O_LINE_ONE)
+        if idxs is None:
+            pos = 0
+            idx = 0
+            idxs = []
+            for m in _O_LINE.finditer(text):
+                idx += text.count("\n", pos, m.start())
+                pos = m.start()
+                idxs.append(idx)
+        for idx in idxs:
+            if idx >= len(self.lines):
+                break
+            ln = self._line(idx)
+            if ln.oword is None:
+                continue
+            if self.stop_at is not None and idx >= self.stop_at:
+                break
+            kw, label, _n = ln.oword
+
+            def err(msg):
+                return GcodeError(msg, idx + 1, ln.column("o"), "flow")
+
+            def pop(opening: tuple[str, ...]):
+                if not stack or stack[-1][0] not in opening or stack[-1][1] != label:
+                    what = f"o{stack[-1][1]} {stack[-1][0]} (line {stack[-1][2] + 1})" if stack else "nothing"
+                    raise err(f"o{label} {kw} does not close {what}")
+                return stack.pop()
+
+            if kw == "sub":
+                if any(s[0] == "sub" for s in stack):
+                    raise err(f"o{label} sub defined inside another subroutine")
+                if label in self.subs:
+                    raise err(f"subroutine o{label} defined twice")
+                stack.append(["sub", label, idx])
+            elif kw == "endsub":
+                s = pop(("sub",))
+                self.subs[label] = (s[2], idx)
+                self.jump[s[2]] = idx
+            elif kw == "if":
+                stack.append(["if", label, idx, []])
+            elif kw in ("elseif", "else"):
+                if not stack or stack[-1][0] != "if" or stack[-1][1] != label:
+                    raise err(f"o{label} {kw} without a matching o{label} if")
+                br = stack[-1][3]
+                if br and self._line(br[-1]).oword[0] == "else":
+                    raise err(f"o{label} {kw} after o{label} else")
+                br.append(idx)
+            elif kw == "endif":
+                s = pop(("if",))
+                chain = s[3] + [idx]
+                self.jump[s[2]] = chain[0]
+                for a, b in zip(chain[:-1], chain[1:]):
+                    self.jump[a] = (b, idx)
+            elif kw == "while":
+                if stack and stack[-1][0] == "do" and stack[-1][1] == label:
+                    s = stack.pop()
+                    self.jump[s[2]] = idx
+                    self.jump[idx] = s[2]
+                    self.do_end.add(idx)
+                else:
+                    stack.append(["while", label, idx])
+            elif kw == "endwhile":
+                s = pop(("while",))
+                self.jump[s[2]] = idx
+                self.jump[idx] = s[2]
+            elif kw == "do":
+                stack.append(["do", label, idx])
+            elif kw == "repeat":
+                stack.append(["repeat", label, idx])
+            elif kw == "endrepeat":
+                s = pop(("repeat",))
+                self.jump[s[2]] = idx
+                self.jump[idx] = s[2]
+            elif kw in ("break", "continue"):
+                for s in reversed(stack):
+                    if s[0] in ("while", "do", "repeat") and s[1] == label:
+                        self.jump[idx] = s[2]
+                        break
+                else:
+                    raise err(f"o{label} {kw} outside an o{label} while/do/repeat loop")
+            elif kw == "return":
+                subs = [s for s in stack if s[0] == "sub"]
+                if not subs or subs[-1][1] != label:
+                    raise err(f"o{label} return outside subroutine o{label}")
+        if stack:
+            s = stack[-1]
+            ln = self._line(s[2])
+            raise GcodeError(f"o{s[1]} {s[0]} is never closed", s[2] + 1, ln.column("o"), "flow")
+
+    # -- O-words --------------------------------------------------------------------
+    def _ovals(self, ln: Line) -> tuple:
+        if ln.fn is None:
+            return ()
+        try:
+            res = ln.fn(self.P, self.L, self.G, self._sys, ln.k)
+        except (KeyError, ArithmeticError, ValueError, ExprError, IndexError, TypeError) as exc:
+            raise self._expr_error(ln, exc) from None
+        for v in res:
+            if not -1e300 < v < 1e300:
+                raise ln.error(f"value {v!r} is not a finite number", "o", "expression")
+        return res
+
+    def _oword(self, ln: Line, pc: int) -> int:
+        kw, label, _n = ln.oword
+        self.line_now = ln.num
+        jump = self.jump
+        if ln.comments:
+            self._comments(ln)
+        if self.seek and kw not in ("elseif", "else", "endif"):
+            raise ln.error("internal: seeking an O-word branch", "o", "flow")
+        if kw == "sub":
+            return jump[pc] + 1
+        if kw in ("endsub", "return"):
+            vals = self._ovals(ln)
+            if not self.frames:
+                raise ln.error(f"o{label} {kw} reached outside a subroutine call", "o", "flow")
+            if vals:
+                self.G["_value"] = vals[0]
+                self.G["_value_returned"] = 1.0
+            else:
+                self.G["_value"] = 0.0
+                self.G["_value_returned"] = 0.0
+            fr = self.frames.pop()
+            self.L = fr.L
+            self.P[1:31] = fr.saved
+            return fr.ret
+        if kw == "call":
+            vals = self._ovals(ln)
+            sub = self.subs.get(label)
+            if sub is None:
+                raise ln.error(f"subroutine o{label} is not defined in this program "
+                               "(subroutine files are not searched)", "o", "flow")
+            if len(self.frames) >= self.max_depth:
+                raise ln.error(f"subroutine calls nested deeper than {self.max_depth}", "o", "runaway")
+            self.frames.append(_Frame(pc + 1, self.L, self.P[1:31], label, ln.num))
+            self.L = {}
+            args = list(vals) + [0.0] * (30 - len(vals))
+            self.P[1:31] = args
+            return sub[0] + 1
+        if kw == "if":
+            if self._ovals(ln)[0] != 0.0:
+                return pc + 1
+            self.seek = True
+            return jump[pc]
+        if kw == "elseif":
+            nxt, endif = jump[pc]
+            if not self.seek:
+                return endif + 1
+            if self._ovals(ln)[0] != 0.0:
+                self.seek = False
+                return pc + 1
+            return nxt
+        if kw == "else":
+            if not self.seek:
+                return jump[pc][1] + 1
+            self.seek = False
+            return pc + 1
+        if kw == "endif":
+            self.seek = False
+            return pc + 1
+        if kw == "while":
+            if pc in self.do_end:
+                return jump[pc] + 1 if self._ovals(ln)[0] != 0.0 else pc + 1
+            return pc + 1 if self._ovals(ln)[0] != 0.0 else jump[pc] + 1
+        if kw == "endwhile":
+            return jump[pc]
+        if kw == "do":
+            return pc + 1
+        rep = self.frames[-1].repeat if self.frames else self._top_repeat
+        if kw == "repeat":
+            v = self._ovals(ln)[0]
+            count = int(v)
+            if count <= 0:
+                return jump[pc] + 1
+            rep[pc] = count
+            return pc + 1
+        if kw == "endrepeat":
+            start = jump[pc]
+            left = rep.get(start, 1) - 1
+            if left > 0:
+                rep[start] = left
+                return start + 1
+            rep.pop(start, None)
+            return pc + 1
+        start = jump[pc]
+        skw = self._line(start).oword[0]
+        end = jump[start]
+        if kw == "break":
+            rep.pop(start, None)
+            return end + 1
+        # continue
+        if skw == "while":
+            return start
+        return end  # do: evaluate the closing while; repeat: count down at endrepeat
