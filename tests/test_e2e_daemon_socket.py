@@ -162,3 +162,39 @@ def test_garbage_on_the_socket_does_not_disturb_a_running_move(cfg, machine, cli
     assert np.max(np.abs(np.asarray(st["struts_cmd_mm"]) - want)) <= 1.0 / cfg.bus.increments_per_mm
     daemon.move_to(cfg.home_pose, 80.0, name="home")
     assert client.call("wait", timeout_s=30.0)["state"] == "idle"
+
+
+def test_hexacnc_run_serves_status_to_hexacnc_status_processes(tmp_path):
+    """Separate processes, as a user runs them: ``hexacnc run`` then ``hexacnc status``."""
+    import json
+    import signal
+    import subprocess
+    import sys
+    sock = tempfile.mktemp(prefix="hxr", suffix=".sock", dir="/tmp")
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    run = subprocess.Popen([sys.executable, "-m", "hexacnc", "run", "--socket", sock, "--no-realtime",
+                            "--duration", "60"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+    try:
+        deadline = time.monotonic() + 30.0
+        while not os.path.exists(sock):
+            assert run.poll() is None, run.stdout.read().decode(errors="replace")
+            assert time.monotonic() < deadline, "hexacnc run did not open its socket"
+            time.sleep(0.05)
+        assert oct(os.stat(sock).st_mode & 0o777) == oct(0o660)
+        r = subprocess.run([sys.executable, "-m", "hexacnc", "status", "--socket", sock, "--json"],
+                           env=env, capture_output=True, text=True, timeout=30)
+        assert r.returncode == 0, r.stderr
+        st = json.loads(r.stdout)
+        assert st["state"] in ("idle", "fault") and len(st["struts_cmd_mm"]) == 6
+        r = subprocess.run([sys.executable, "-m", "hexacnc", "status", "--socket", sock + ".none"],
+                           env=env, capture_output=True, text=True, timeout=30)
+        assert r.returncode == 6
+    finally:
+        run.send_signal(signal.SIGTERM)
+        try:
+            out, _ = run.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            run.kill()
+            out, _ = run.communicate()
+    assert run.returncode == 0, out.decode(errors="replace")[-2000:]
+    assert not os.path.exists(sock)          # removed on shutdown

@@ -202,36 +202,7 @@ class SocketServer:
     # -- binding ----------------------------------------------------------------
     def _bind_unix(self) -> None:
         path = self.socket_path
-        if len(os.fsencode(path)) > 100:
-            raise HexacncError(f"socket path {path!r} is too long for a Unix socket (max 100 bytes)")
-        d = os.path.dirname(os.path.abspath(path))
-        if not os.path.isdir(d):
-            raise HexacncError(f"socket path {path!r}: directory {d} does not exist")
-        try:
-            st = os.lstat(path)
-        except FileNotFoundError:
-            st = None
-        if st is not None:
-            if not stat.S_ISSOCK(st.st_mode):
-                raise HexacncError(f"socket path {path!r} exists and is not a socket; refusing to replace it")
-            probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-            probe.settimeout(1.0)
-            try:
-                probe.connect(path)
-            except (ConnectionRefusedError, FileNotFoundError):
-                log.info("removing stale socket %s", path)
-                try:
-                    os.unlink(path)
-                except FileNotFoundError:
-                    pass
-            except OSError as exc:
-                raise HexacncError(f"socket path {path!r} exists and cannot be checked: "
-                                   f"{exc.strerror or exc}") from exc
-            else:
-                raise HexacncError(f"another daemon is serving {path!r}; stop it or choose another "
-                                   f"--socket / [daemon] socket_path")
-            finally:
-                probe.close()
+        check_socket_path(path, remove_stale=True)
         # bind under a temporary name, set 0660, then rename: no moment with wider permissions
         tmp = f"{path}.{os.getpid()}.{threading.get_ident() % 100000}.tmp"
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
@@ -708,9 +679,44 @@ class SocketServer:
         log.debug("%s: %s", conn.label(), why)
 
 
+def check_socket_path(path: str, remove_stale: bool = False) -> None:
+    """Raise HexacncError if ``path`` cannot be served: too long, no directory, not a socket, or
+    another daemon answers on it.  A stale socket file (nobody listening) is removed when
+    ``remove_stale``.  ``hexacnc run`` may call this before booting the drives."""
+    if len(os.fsencode(path)) > 100:
+        raise HexacncError(f"socket path {path!r} is too long for a Unix socket (max 100 bytes)")
+    d = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(d):
+        raise HexacncError(f"socket path {path!r}: directory {d} does not exist")
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        return
+    if not stat.S_ISSOCK(st.st_mode):
+        raise HexacncError(f"socket path {path!r} exists and is not a socket; refusing to replace it")
+    probe = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    probe.settimeout(1.0)
+    try:
+        probe.connect(path)
+    except (ConnectionRefusedError, FileNotFoundError):
+        if remove_stale:
+            log.info("removing stale socket %s", path)
+            try:
+                os.unlink(path)
+            except FileNotFoundError:
+                pass
+        return
+    except OSError as exc:
+        raise HexacncError(f"socket path {path!r} exists and cannot be checked: {exc.strerror or exc}") from exc
+    finally:
+        probe.close()
+    raise HexacncError(f"another daemon is serving {path!r}; stop it or choose another "
+                       f"--socket / [daemon] socket_path")
+
+
 def make_server(daemon: Any, cfg: Any, socket_path: str | None = None) -> SocketServer:
     """Factory: an unstarted :class:`SocketServer` for ``daemon``."""
     return SocketServer(daemon, cfg, socket_path)
 
 
-__all__ = ["SocketServer", "make_server"]
+__all__ = ["SocketServer", "check_socket_path", "make_server"]
