@@ -216,6 +216,29 @@ def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, 
     return rms_summary(resid), resid, rows
 
 
+def session_shift(cfg, res: FitResult, hold: Measurements, ctx_fit: Context) -> dict:
+    """Is the held-out set offset as a whole (another session: re-homing, a moved instrument)?
+
+    Per-strut mean of the held-out strut residual under the fitted model with nothing
+    re-referenced, against its standard error (full poses only).
+    """
+    _, resid, _ = evaluate_holdout(cfg, res, hold, ctx_fit, 0, "offsets")
+    s = resid["struts"]
+    rows = np.all(np.isfinite(s), axis=1)
+    if rows.sum() < 3:
+        return {}
+    mean = s[rows].mean(axis=0)
+    se = s[rows].std(axis=0, ddof=1) / math.sqrt(rows.sum())
+    z = np.abs(mean) / np.maximum(se, 1e-12)
+    return {"strut_mean_residual_mm": mean.tolist(), "strut_mean_residual_z": z.tolist(),
+            "session_shift_evident": bool(np.any(z > 5.0)),
+            "session_shift_note": ("the held-out struts are offset as a whole (up to "
+                                   f"{float(np.max(np.abs(mean))):.3g} mm, {float(np.max(z)):.0f} standard errors): "
+                                   "strut offsets moved between the sessions (re-homing) or the instrument moved; "
+                                   "no model fitted to the other session can predict that, re-reference with "
+                                   "--rereference-rows") if np.any(z > 5.0) else "no significant shift"}
+
+
 def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, opts: Options | None = None) -> Diagnosis:
     opts = opts or Options()
     limit_blas_threads(1)
@@ -292,6 +315,7 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         hold_info = {"path": holdout.path, "rows": holdout.n, "rereference_rows": k,
                      "rereferenced": (opts.rereference if k else "nothing"), "rows_evaluated": int(len(rows)),
                      "baseline_residuals": b_res, "extended_residuals": e_res}
+        hold_info.update(session_shift(cfg, extended.fit, holdout, ctx))
     nul = {"position_mm": None, "orientation_deg": None, "strut_mm": None}
     b_fit_rms = baseline.fit.rms()
     e_fit_rms = extended.fit.rms()

@@ -66,6 +66,10 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
         L.append(f"Held-out: `{h['path']}`, {h['rows']} poses; first {h['rereference_rows']} spent to re-reference "
                  f"({h['rereferenced']}), evaluated on {h['rows_evaluated']}. "
                  f"Gain (baseline/extended): {_fmt(res['gain']['holdout_rms_ratio'])}.")
+        if h.get("session_shift_evident"):
+            L.append("")
+            L.append("Held-out session: " + h["session_shift_note"] + "; per-strut mean residual (mm): "
+                     + ", ".join(f"{v:+.3g}" for v in h["strut_mean_residual_mm"]) + ".")
     L.append("")
     L.append("## Candidates")
     L.append("")
