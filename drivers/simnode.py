@@ -143,8 +143,8 @@ class SimDrive:
                 sw |= cia402.SW_FOLLOWING_ERROR
         if self.internal_limit:
             sw |= cia402.SW_INTERNAL_LIMIT
-        if abs(self.model.velocity_mm_s) < 1e-6 and abs(self.ferr_inc) <= 1:
-            sw |= cia402.SW_TARGET_REACHED
+        # bit 10 (target reached) is reserved in cyclic synchronous position mode: left clear, so
+        # the statusword (and its TPDO2 event) changes only with the state and the CSP flags
         return sw
 
     # -- SDO callbacks ----------------------------------------------------------------------
@@ -427,6 +427,9 @@ class SimDrive:
             else:
                 tp.countdown -= 1
         self.status_changed(now)
+        for tp in self.tpdos:           # statusword changes held back by the inhibit time
+            if tp.pending and now - tp.last_s >= tp.inhibit_s:
+                self.send_tpdo(tp, now)
 
     def step(self, dt: float, now: float) -> None:
         st = self.state

@@ -154,8 +154,9 @@ def test_stuck_strut_gives_following_error():
                            lambda k: [s + 100 * k for s in start], 2.0)
         assert ok, list(io.emcy)
         assert io.emcy[0][0] == 3 and io.emcy[0][1] == 0x8611
-        run(io, 20, lambda k: [s + 100 * k for s in start])
-        assert cia402.state_from_status(io.status[3]) == cia402.FAULT
+        ev, ok = run_until(io, lambda: cia402.state_from_status(io.status[3]) == cia402.FAULT,
+                           lambda k: start, 1.0)
+        assert ok, cia402.status_text(io.status[3])
         assert "following error" in cia402.emcy_text(io.emcy[0][1])
         assert cia402.state_from_status(io.status[0]) == cia402.OPERATION_ENABLED
 
