@@ -285,7 +285,7 @@ def test_endless_loop_is_stopped():
 @pytest.mark.parametrize("text, line, col, code", [
     ("G0 X1\n  G41 X2\n", 2, 3, "unsupported"),
     ("G0 X1\nM428\n", 2, 1, "unsupported"),
-    ("G28\n", 1, 1, "unsupported"),
+    ("G38.2 Z-1 F10\n", 1, 1, "unsupported"),
     ("G81 X1 Y1 Z-1 R1\n", 1, 1, "unsupported"),
     ("M100\n", 1, 1, "unsupported"),
     ("G0 U1\n", 1, 4, "unsupported"),
@@ -356,3 +356,17 @@ def test_program_from_config_with_tool_table(tmp_path):
     R = matrix_from_euler(*np.radians(cfg.home_pose[3:]))
     plat = b.start[:3] - R @ (tip0 + 62.5 * axis)
     assert plat == pytest.approx(cfg.home_pose[:3], abs=1e-9)
+
+
+def test_g28_g30_stored_positions():
+    home = [1.0, 2.0, 3.0, 0.0, 0.0, 5.0]
+    p = parse_program("G0 X10 Y10 Z10\nG28\nG0 X20\nG28 Z15\nG30.1\nG0 X0 Y0 Z0\nG91 G30 X1\n",
+                      g28_pose=home)
+    ends = [b.end.tolist() for b in moves(p)]
+    assert ends[1] == home                                  # all axes home
+    assert ends[3] == [20, 2, 15, 0, 0, 5]                  # intermediate point Z15 ...
+    assert ends[4] == [20, 2, 3, 0, 0, 5]                   # ... then only Z to its stored value
+    assert ends[6] == [1, 0, 0, 0, 0, 5]                    # G91: intermediate X+1
+    assert ends[7] == [20, 0, 0, 0, 0, 5]                   # G30 position stored by G30.1 (X only)
+    assert all(b.kind == "rapid" for b in moves(p))
+    assert err("G28.1 X1\n").code == "word"

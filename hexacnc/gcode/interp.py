@@ -43,11 +43,10 @@ _G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 800: 1,
             900: 3, 910: 3, 901: 4, 911: 4, 930: 5, 940: 5, 200: 6, 210: 6, 400: 7,
             430: 8, 490: 8, 540: 12, 550: 12, 560: 12, 570: 12, 580: 12, 590: 12, 591: 12,
             592: 12, 593: 12, 610: 13, 611: 13, 640: 13,
-            40: 0, 100: 0, 530: 0, 920: 0, 921: 0, 922: 0, 923: 0}
+            40: 0, 100: 0, 530: 0, 920: 0, 921: 0, 922: 0, 923: 0, 280: 0, 281: 0, 300: 0, 301: 0}
 _G_UNSUPPORTED = {
     50: "G5 splines", 51: "G5.1 quadratic splines", 52: "G5.2 NURBS", 70: "G7 lathe diameter mode",
-    80: "G8 lathe radius mode", 280: "G28 (go to predefined position)", 281: "G28.1",
-    300: "G30 (go to predefined position)", 301: "G30.1", 330: "G33 spindle-synchronised motion",
+    80: "G8 lathe radius mode", 330: "G33 spindle-synchronised motion",
     331: "G33.1 rigid tapping", 382: "G38.2 probing", 383: "G38.3 probing", 384: "G38.4 probing",
     385: "G38.5 probing", 410: "G41 cutter radius compensation",
     411: "G41.1 cutter radius compensation", 420: "G42 cutter radius compensation",
@@ -110,7 +109,7 @@ class Interpreter(FlowMixin, MotionMixin):
     def __init__(self, text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
                  tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                  block_delete: bool = True, max_lines: int = 20_000_000,
-                 max_blocks: int = 20_000_000, max_call_depth: int = 64):
+                 max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None):
         if not isinstance(text, str):
             raise GcodeError(f"program text must be str, got {type(text).__name__}", None, None, "syntax")
         self.name = name
@@ -166,6 +165,13 @@ class Interpreter(FlowMixin, MotionMixin):
             base = 5201 + 20 * k
             for i in range(6):
                 self.P[base + i] = offsets[k][i]
+        for base, stored in ((5161, g28_pose), (5181, g30_pose)):
+            if stored is not None:
+                v = [float(x) for x in stored]
+                if len(v) != 6 or not all(math.isfinite(x) for x in v):
+                    raise GcodeError(f"G28/G30 position must be 6 finite numbers, got {stored!r}", None, None,
+                                     "value")
+                self.P[base:base + 6] = v
         self.cs = 1
         self.P[5220] = 1.0
         self.g92 = [0.0] * 6
@@ -483,7 +489,9 @@ class Interpreter(FlowMixin, MotionMixin):
         # -- word usage
         g0 = groups.get(0)
         motion_g = groups.get(1)
-        axis_user = g0 if g0 in (100, 920) else None
+        axis_user = g0 if g0 in (100, 920, 280, 300) else None
+        if g0 in (281, 301) and ln.axes:
+            raise ln.error(f"G{g0 / 10:g} takes no axis words", ln.axes[0][1], "word")
         if axis_user is not None and motion_g is not None and motion_g != 800:
             raise ln.error(f"G{g0 / 10:g} and G{motion_g // 10} both use the axis words", f"g{motion_g}",
                            "modal")
@@ -632,6 +640,12 @@ class Interpreter(FlowMixin, MotionMixin):
             self._g10(ln, vals)
         elif g0 in (920, 921, 922, 923):
             self._g92(ln, vals, g0)
+        elif g0 in (280, 300):
+            self._g28(ln, vals, 5161 if g0 == 280 else 5181)
+        elif g0 in (281, 301):
+            base = 5161 if g0 == 281 else 5181
+            for i in range(6):
+                self.P[base + i] = self.pos[i]
         # -- motion
         if motion_g is not None:
             self.motion = motion_g
@@ -667,7 +681,8 @@ class Interpreter(FlowMixin, MotionMixin):
 
 def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
-                  block_delete: bool = True, max_lines: int = 20_000_000) -> Program:
+                  block_delete: bool = True, max_lines: int = 20_000_000, g28_pose=None,
+                  g30_pose=None) -> Program:
     """Interpret a whole RS274NGC program.
 
     ``start_pose``: (6,) tool-tip pose in the machine frame at the start (mm, deg;
@@ -676,12 +691,14 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     with a table, T words must name a listed tool; without one, any T is
     accepted but G43 needs a length.  ``tool_axis_platform``: unit tool axis in
     the platform frame (G43 shifts the controlled point along it).
-    ``block_delete``: skip lines starting with '/'.  Raises GcodeError.
+    ``block_delete``: skip lines starting with '/'.  ``g28_pose``/``g30_pose``:
+    the stored G28/G30 positions (#5161.., #5181..; machine tool-tip poses, mm
+    and deg; default zeros as in LinuxCNC).  Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
-                     max_lines=max_lines)
+                     max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()

@@ -95,6 +95,30 @@ class MotionMixin:
         self._refresh_offsets()
 
     # -- motion ---------------------------------------------------------------------------
+    def _g28(self, ln: Line, vals: dict, base: int) -> None:
+        """G28/G30: rapid through the point of the axis words (if any) to the stored position.
+
+        With axis words only those axes go to the stored position (LinuxCNC).
+        """
+        if ln.axes:
+            self._rapid_to(ln, self._target(ln, vals, False))
+            end = list(self.pos)
+            for i, _letter in ln.axes:
+                end[i] = self.P[base + i]
+        else:
+            end = self.P[base:base + 6]
+        self._rapid_to(ln, end)
+
+    def _rapid_to(self, ln: Line, end: list[float]) -> None:
+        if end == self.pos:
+            return
+        e = np.array(end)
+        e.flags.writeable = False
+        self.blocks.append(Block(_RAPID, ln.num, self._start_arr(), e, None, None, None, None, 0, False,
+                                 self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool))
+        self.pos = list(end)
+        self.pos_arr = e
+
     def _target(self, ln: Line, vals: dict, g53: bool) -> list[float]:
         pos = self.pos
         end = list(pos)
