@@ -343,6 +343,12 @@ class Interpreter(FlowMixin, MotionMixin):
             elif ln.gmot is not None:
                 self.motion = ln.gmot
                 self._plain(ln)
+            elif ln.arcok and ln.axes and self.motion in (20, 30):
+                vals = self._eval(ln)      # modal arc: only axis, F, I J K R P words
+                self.line_now = ln.num
+                if "f" in vals:
+                    self._set_feed(ln, vals["f"])
+                self._arc(ln, vals, self.motion)
             else:
                 r = self._execute(ln)
                 if r is not None:

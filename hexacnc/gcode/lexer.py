@@ -96,7 +96,7 @@ class Line:
     """One parsed source line (see module docstring)."""
 
     __slots__ = ("num", "raw", "delete", "words", "gs", "ms", "dyn", "fn", "k", "assigns",
-                 "oword", "comments", "cols", "axes", "plain", "empty", "gmot", "srcs")
+                 "oword", "comments", "cols", "axes", "plain", "empty", "gmot", "srcs", "arcok")
 
     def __init__(self, num: int, raw: str):
         self.num = num
@@ -117,6 +117,7 @@ class Line:
         self.empty = False
         self.gmot = None                 #: G0/G1 (0/10) as the only code with axis/F words: fast path
         self.srcs: tuple = ()            #: source of each computed value (to locate errors)
+        self.arcok = False               #: only axis/F/I/J/K/R/P words: fast path for modal arcs
 
     def column(self, letter: str) -> int:
         cols = self.cols
@@ -329,7 +330,7 @@ def _make_shape(shape: str, nnum: int):
     shared = {"gs": tpl.gs, "ms": tpl.ms, "dyn": tpl.dyn, "fn": staticmethod(tpl.fn) if tpl.fn else None,
               "assigns": tpl.assigns,
               "oword": None, "cols": None, "axes": tpl.axes, "empty": False, "gmot": tpl.gmot,
-              "srcs": tpl.srcs, "__slots__": ()}
+              "srcs": tpl.srcs, "arcok": tpl.arcok, "__slots__": ()}
     shared["plain"] = tpl.plain
     shared["delete"] = tpl.delete
     cls = type("ShapedLine", (_ShapedBase,), shared)
@@ -427,6 +428,8 @@ def _parse(ln: Line, s: str) -> None:
     simple = (not ln.ms and not ln.assigns and not ln.delete
               and all(a in "xyzabcf" for a in seen) and all(len(d) == 1 for d in ln.dyn))
     ln.plain = simple and not ln.gs
+    ln.arcok = (not ln.gs and not ln.ms and not ln.assigns and not ln.delete
+                and all(a in "xyzabcfijkrp" for a in seen) and all(len(d) == 1 for d in ln.dyn))
     if simple and len(ln.gs) == 1 and ln.gs[0] in (0, 10):
         ln.gmot = ln.gs[0]
     return c
