@@ -179,6 +179,13 @@ class Context:
         bad = np.linalg.norm(a, axis=1) < 1e-3
         a[bad] = np.cross(ax[bad], [1.0, 0.0, 0.0])
         self.joint_axis1 = a / np.linalg.norm(a, axis=1)[:, None]
+        axp = np.asarray(cfg.platform_axes, dtype=float)
+        ap = np.cross(axp, [0.0, 0.0, 1.0])
+        bad = np.linalg.norm(ap, axis=1) < 1e-3
+        ap[bad] = np.cross(axp[bad], [1.0, 0.0, 0.0])
+        self.joint_axis1_platform = ap / np.linalg.norm(ap, axis=1)[:, None]   #: platform frame
+        Tf = meas.T_frame
+        self.frame_thermal = Tf is not None and bool(np.all(np.isfinite(Tf))) and float(np.ptp(Tf)) >= 0.2
         self.stiffness = np.asarray(cfg.stiffness_N_per_mm, dtype=float)
 
     # -- applicability ------------------------------------------------------
@@ -219,10 +226,19 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           "L += compliance * f (f: static strut force, tension positive)",
                           lambda c, X, b, p: _sag_basis(c, X, b, p))
     if name == "thermal_expansion":
-        return CauseModel(name, ["expansion_ppm_per_K"], "ppm/K", 1.0, False,
-                          f"strut growth L += alpha * L * (T_strut - {T_REF_C:g} degC)",
-                          lambda c, X, b, p: ((c.q + np.asarray(c.cfg.strut_offset_mm)) * (c.T - T_REF_C)
-                                              * 1e-6)[..., None])
+        def th(c, X, b, p):
+            cols = [((c.q + np.asarray(c.cfg.strut_offset_mm)) * (c.T - T_REF_C) * 1e-6)[..., None]]
+            if c.frame_thermal:   # base joints move radially with the frame: b_i *= 1 + beta (T_frame - T_ref)
+                _, _, s_, L = strut_geometry(b, p, X)
+                u = s_ / L[..., None]
+                ub = np.einsum("nki,ki->nk", u, b)
+                cols.append((ub * (c.meas.T_frame[:, None] - T_REF_C) * 1e-6)[..., None])
+            return np.concatenate(cols, axis=2)
+        names = ["expansion_ppm_per_K"] + (["frame_expansion_ppm_per_K"] if ctx.frame_thermal else [])
+        return CauseModel(name, names, "ppm/K", 1.0, ctx.frame_thermal,
+                          f"strut growth L += alpha * L * (T_strut - {T_REF_C:g} degC)"
+                          + ("; base frame growth b_i *= 1 + beta * (T_frame - 20 degC)" if ctx.frame_thermal else ""),
+                          th)
     if name == "strut_scale":
         return CauseModel(name, [f"scale{i + 1}_ppm" for i in range(6)], "ppm", 1.0, False,
                           "gain error of each strut reading: L += s_i * q_i",
@@ -256,13 +272,18 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           so)
     if name == "joint_offset":
         def jo(c, X, b, p):
-            _, rp, s, L = strut_geometry(b, p, X)
+            R, rp, s, L = strut_geometry(b, p, X)
             u = s / L[..., None]
             ua = np.einsum("nki,ki->nk", u, c.joint_axis1)
-            return _diag(-np.sqrt(np.clip(1.0 - ua * ua, 0.0, 1.0)))
-        return CauseModel(name, [f"joint_offset{i + 1}_mm" for i in range(6)], "mm", 1.0, True,
-                          "base joints whose two axes do not meet: the strut pivot sits d_i off the "
-                          "first axis, L -= d_i * sqrt(1 - (u_i . a_i)^2)", jo)
+            ap = np.einsum("nij,kj->nki", R, c.joint_axis1_platform)
+            up = np.einsum("nki,nki->nk", u, ap)
+            return np.concatenate([_diag(-np.sqrt(np.clip(1.0 - ua * ua, 0.0, 1.0))),
+                                   _diag(-np.sqrt(np.clip(1.0 - up * up, 0.0, 1.0)))], axis=2)
+        return CauseModel(name, [f"base_joint_offset{i + 1}_mm" for i in range(6)]
+                          + [f"platform_joint_offset{i + 1}_mm" for i in range(6)], "mm", 1.0, True,
+                          "universal joints whose two axes do not meet: the strut pivot sits d_i off the "
+                          "joint's first axis a_i (base and platform side), L -= d_i * sqrt(1 - (u_i . a_i)^2)",
+                          jo)
     raise DataError(f"unknown cause {name!r}; known: {', '.join(CAUSES)}")
 
 

@@ -53,13 +53,16 @@ def sample_poses(cfg, rng: np.random.Generator, n: int, shrink: float = 0.9) -> 
 
 def _effect_lengths(effect: str, params: np.ndarray, ctx: Context, X: np.ndarray, base, plat) -> np.ndarray:
     """Physical strut-length change (N,6) mm of a hidden effect at true poses X (rad)."""
-    if effect == "joint_offset":   # exact: pivot d_i off the first axis along the strut's perpendicular part
-        _, _, s, L = strut_geometry(base, plat, X)
-        a = ctx.joint_axis1
-        sa = np.einsum("nki,ki->nk", s, a)
-        sperp = np.sqrt(np.maximum(L * L - sa * sa, 0.0))
-        Leff = np.sqrt(np.maximum(L * L - 2 * params[None] * sperp + params[None] ** 2, 0.0))
-        return L - Leff       # reading-side length = true |s| minus what the drive must add
+    if effect == "joint_offset":   # exact: each pivot sits d off its joint's first axis, towards the strut
+        R, _, s, L = strut_geometry(base, plat, X)
+        a = ctx.joint_axis1[None]
+        ap = np.einsum("nij,kj->nki", R, ctx.joint_axis1_platform)
+        nb = s - np.einsum("nki,nki->nk", s, np.broadcast_to(a, s.shape))[..., None] * a
+        nb /= np.linalg.norm(nb, axis=2)[..., None]
+        npl = s - np.einsum("nki,nki->nk", s, ap)[..., None] * ap
+        npl /= np.linalg.norm(npl, axis=2)[..., None]
+        eff = s - params[None, :6, None] * nb - params[None, 6:, None] * npl
+        return L - np.linalg.norm(eff, axis=2)   # the drive spans the pivots, not the joint centres
     if effect == "strut_nonlinearity":   # spool-like quadratic plus cubic lead error, in reading units
         # (the best straight line over the stroke removed: a pure gain error is strut_scale)
         t = (ctx.q - ctx.q_center) / ctx.q_half
@@ -74,7 +77,7 @@ def _random_params(effect: str, rng, ctx: Context) -> np.ndarray:
         return np.array([1.0])
     if effect == "session_offset":
         return rng.normal(size=6 * (len(ctx.sessions) - 1))
-    if effect == "strut_nonlinearity":
+    if effect in ("strut_nonlinearity", "joint_offset"):
         return rng.normal(size=12)
     return rng.normal(size=6)
 
