@@ -71,7 +71,8 @@ def lissajous_rows(cfg, start_rad, seconds: float, period_s: float) -> np.ndarra
     rows[:, 4] += env * math.radians(3.0) * np.sin(w * 0.11 * t)
     rows[:, 5] += env * math.radians(5.0) * np.sin(w * 0.07 * t)
     rows[:, 6] = 1 + (t // 1.0)               # a "line" per second
-    rows[-1, 7] = 1                           # FLAG_END
+    from ..daemon.shm import FLAG_END
+    rows[-1, 7] = FLAG_END
     return rows
 
 

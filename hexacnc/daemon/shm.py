@@ -96,7 +96,7 @@ STATE_NAMES = {ST_BOOT: "boot", ST_IDLE: "idle", ST_RUNNING: "running", ST_STOPP
                ST_FAULT: "fault", ST_DISABLED: "disabled", ST_EXITED: "exited"}
 
 # -- row flags -------------------------------------------------------------------------------
-FLAG_END = 1            #: last row of a stream (the pose is at rest): an empty ring after it is normal
+FLAG_END = 64           #: last row of a stream (at rest): an empty ring after it is normal (= planner's FLAG_END)
 
 MAGIC = 0x48455841434E43  # "HEXACNC"
 

@@ -1,0 +1,107 @@
+"""Programs for the daemon: G-code text -> interpreted blocks -> plan -> row source for the feeder.
+
+``plan_program(cfg, hx, text, name, start_rad, period_s) -> ProgramPlan``: the whole program is
+interpreted (:mod:`hexacnc.gcode`) from the tool tip of the pose the machine will be at when it
+starts, planned (:mod:`hexacnc.planner`, every strut-length, joint-angle, velocity, acceleration and
+jerk limit checked along the whole path) before anything moves.  Errors: ``GcodeError`` (line,
+column), ``PlanError`` (line, limit).
+
+:class:`ProgramSource` adapts the planner's ``PlanSampler`` (feed override, pause along the path,
+jerk-limited stop, M0/M1) to the feeder's source interface.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import PlanError
+from ..pose import matrix_from_euler
+from .shm import FLAG_END, ROW
+
+
+@dataclass
+class ProgramPlan:
+    source: "ProgramSource"
+    blocks: int
+    duration_s: float
+    end_rad: np.ndarray
+    summary: dict
+
+
+def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
+    """Tool reference point (tool length 0) of a platform pose (mm, rad) -> [x,y,z mm, a,b,c deg]."""
+    X = np.asarray(platform_rad, dtype=float)
+    R = matrix_from_euler(*X[3:6])
+    tip = X[:3] + R @ np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    return [float(v) for v in tip] + [math.degrees(float(v)) for v in X[3:6]]
+
+
+class ProgramSource:
+    """Feeder source over a :class:`hexacnc.planner.sampler.PlanSampler`."""
+
+    def __init__(self, plan, period_s: float, name: str):
+        self.plan = plan
+        self.sampler = plan.sampler(period_s)
+        self.name = name
+        self.finished = False
+        self.stopping = False
+        self._last = None
+
+    # -- control --------------------------------------------------------------------------
+    def pause(self) -> None:
+        self.sampler.pause()
+
+    def resume(self) -> None:
+        self.sampler.resume()
+
+    def stop(self) -> None:
+        self.stopping = True
+        self.sampler.stop()
+
+    def set_feed_override(self, f: float) -> None:
+        self.sampler.set_override(float(f))
+
+    @property
+    def paused(self) -> bool:
+        return self.sampler.state in ("pausing", "paused", "program_paused")
+
+    def progress(self) -> tuple[int, float, float]:
+        pct, left = self.sampler.progress
+        f = max(1e-3, self.sampler.override) if not self.paused else 1.0
+        return int(self.sampler.line), float(pct), float(left) / f
+
+    # -- rows ------------------------------------------------------------------------------
+    def next_rows(self, count: int) -> np.ndarray:
+        if self.finished:
+            return np.empty((0, ROW))
+        out = np.empty((count, ROW))
+        n = self.sampler.next_rows(out)
+        rows = out[:n]
+        if n:
+            self._last = rows[-1].copy()
+        if self.sampler.done:
+            self.finished = True
+            if n and int(rows[-1, 7]) & FLAG_END:
+                return rows
+            end = (self._last if self._last is not None else out[0]).copy()
+            end[7] = float(int(end[7]) | FLAG_END)
+            return np.vstack([rows, end[None, :]])
+        return rows
+
+
+def plan_program(cfg, hx, text: str, name: str, start_rad, period_s: float) -> ProgramPlan:
+    from ..gcode import program_from_config
+    from ..planner import plan_program as planner_plan
+    start = tool_tip_pose_deg(cfg, start_rad)
+    prog = program_from_config(text, name, cfg, start_pose=start)
+    plan = planner_plan(prog.blocks, cfg, hexapod=hx, period_s=period_s)
+    p0 = np.asarray(plan.start_pose_platform, dtype=float)
+    if float(np.max(np.abs(p0 - np.asarray(start_rad, dtype=float)))) > 1e-6:
+        raise PlanError(f"program {name!r} does not start where the machine is "
+                        f"(planned start {np.round(p0, 6).tolist()}, machine {np.round(start_rad, 6).tolist()})",
+                        limit="start")
+    src = ProgramSource(plan, period_s, name)
+    return ProgramPlan(source=src, blocks=len(prog.blocks), duration_s=float(plan.duration_s),
+                       end_rad=np.asarray(plan.end_pose_platform, dtype=float), summary=plan.summary())
