@@ -85,3 +85,18 @@ def test_path_simulation_chunks_and_errors(setup):
     stiff = CoupledModel(cfg.replace(stiffness_N_per_mm=np.asarray(cfg.stiffness_N_per_mm) * 10))
     c = simulate_path(stiff, gains, tr.poses[:n], tr.dt_s)
     assert max(c["strut_length_error_um"]["max_per_strut"]) < max(a["strut_length_error_um"]["max_per_strut"])
+
+
+def test_planner_trajectory_passes_through_program_poses():
+    from hexacnc.sim.program import planner_available, program_trajectory
+    if not planner_available():
+        pytest.skip("hexacnc.gcode / hexacnc.planner not importable")
+    cfg = load_config()
+    moves = synthetic_program(cfg, 10, seed=5)
+    tr, desc = program_trajectory(cfg, moves, 0.01, "planner")
+    assert "planner" in desc
+    assert np.allclose(tr.poses[-1], moves[-1].target, atol=1e-3)
+    # every programmed corner is visited (within the blend tolerance) in order
+    for m in moves:
+        d = np.min(np.linalg.norm(tr.poses[:, :3] - m.target[:3], axis=1))
+        assert d < 0.5

@@ -28,32 +28,34 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", help="machine description (default: embedded default)")
     parser.add_argument("--lines", type=int, default=1000, help="program lines for the dynamics run")
     parser.add_argument("--hours", type=float, default=2.5, help="thermal machine time")
+    parser.add_argument("--source", choices=("auto", "planner", "exact-stop"), default="auto",
+                        help="strut commands from the look-ahead planner (auto: if available) or exact-stop")
 
 
 def main(args: argparse.Namespace) -> int:
     from ..sim import thermal
     from ..sim.dynamics import CoupledModel, simulate_path
-    from ..sim.program import synthetic_program, trajectory
+    from ..sim.program import program_trajectory, synthetic_program
     from ..sim.report import worst_and_gains
 
     cfg = load_config(args.config)
     load0 = os.getloadavg()
     w0, c0 = time.perf_counter(), time.process_time()
-    res = thermal.run(cfg, thermal.ThermalScenario(duration_s=args.hours * 3600.0))
+    res = thermal.run(cfg, thermal.ThermalScenario(duration_s=args.hours * 3600.0, trajectory_source=args.source))
     w1, c1 = time.perf_counter(), time.process_time()
     th = {"machine_time_h": args.hours, "wall_time_s": w1 - w0, "cpu_time_s": c1 - c0,
           "target_wall_s": 60.0, "target_met": (w1 - w0) < 60.0,
-          "observer_updates": int(round(args.hours * 3600 * 10)),
+          "observer_updates": int(round(args.hours * 3600 * 10)), "speed_source": res["speed_source"],
           "peak_drift_z_um": res["peak_drift_z_um"], "reduction_pct": res["reduction_pct"],
           "heat_per_speed_W_s_mm": res["heat_per_speed_W_s_mm"]}
 
     model, _, worst, gains, _ = worst_and_gains(cfg, 3)
     t0 = time.perf_counter()
-    tr = trajectory(cfg, synthetic_program(cfg, args.lines), dt_s=cfg.cycle.period_s)
+    tr, desc = program_trajectory(cfg, synthetic_program(cfg, args.lines), cfg.cycle.period_s, args.source)
     t1, c1 = time.perf_counter(), time.process_time()
     path = simulate_path(model, gains, tr.poses, tr.dt_s, tr.line)
     t2, c2 = time.perf_counter(), time.process_time()
-    dy = {"lines": args.lines, "machine_time_s": tr.duration_s, "samples": len(tr.t_s),
+    dy = {"lines": args.lines, "source": desc, "machine_time_s": tr.duration_s, "samples": len(tr.t_s),
           "dt_s": tr.dt_s, "trajectory_wall_s": t1 - t0, "simulation_wall_s": t2 - t1,
           "simulation_cpu_s": c2 - c1, "realtime_ratio": tr.duration_s / (t2 - t1),
           "realtime_ratio_incl_trajectory": tr.duration_s / (t2 - t0), "target_ratio": 1.0,

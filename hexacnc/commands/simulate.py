@@ -31,6 +31,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     th.add_argument("--model-error", type=float, default=1.15,
                     help="true heat input / the observer's modelled heat input (default 1.15)")
     th.add_argument("--seed", type=int, default=1)
+    th.add_argument("--source", choices=("auto", "planner", "exact-stop"), default="auto",
+                    help="strut speed profile: look-ahead planner (auto: if available) or exact-stop profile")
     th.set_defaults(_sim=_thermal)
 
     dy = sub.add_parser("dynamics", help="eigenfrequencies over the workspace, path simulation along a program")
@@ -38,6 +40,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     dy.add_argument("--lines", type=int, default=1000, help="lines of the synthetic program (default 1000)")
     dy.add_argument("--grid", type=int, default=5, help="grid points per axis x, y, z (default 5)")
     dy.add_argument("--seed", type=int, default=1)
+    dy.add_argument("--source", choices=("auto", "planner", "exact-stop"), default="auto",
+                    help="strut commands: look-ahead planner (auto: if available) or exact-stop profile")
     dy.add_argument("--no-ringdown", action="store_true", help="skip the nonlinear ring-down check")
     dy.set_defaults(_sim=_dynamics)
 
@@ -80,7 +84,7 @@ def _thermal(args) -> int:
     out = _outdir(args)
     res = report.run_thermal(cfg, duration_s=args.hours * 3600.0, dt_s=1.0 / args.rate_hz,
                              heat_per_speed_W_s_mm=args.heat, target_drift_um=args.target_um,
-                             truth_heat_ratio=args.model_error, seed=args.seed)
+                             truth_heat_ratio=args.model_error, seed=args.seed, trajectory_source=args.source)
     report.write_json(res, os.path.join(out, "thermal.json"))
     if not args.no_plot:
         report.plot_thermal(res, os.path.join(out, "thermal.png"))
@@ -99,7 +103,7 @@ def _dynamics(args) -> int:
     cfg = load_config(args.config)
     out = _outdir(args)
     res = report.run_dynamics(cfg, lines=args.lines, n_grid=args.grid, seed=args.seed,
-                              ringdown_check=not args.no_ringdown)
+                              ringdown_check=not args.no_ringdown, source=args.source)
     report.write_json({**_public(res), "series": res["_series"]}, os.path.join(out, "dynamics.json"))
     tmp = os.path.join(out, "program.ngc.tmp")
     with open(tmp, "w", encoding="utf-8") as fh:

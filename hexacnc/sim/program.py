@@ -185,3 +185,64 @@ def trajectory(cfg, moves: list[Move], dt_s: float = 0.002, start=None,
         line[k0:k1] = ln
         k0 = k1
     return Trajectory(t_s=t, poses=poses, lengths_mm=hx.inverse_batch(poses), line=line, dt_s=dt_s)
+
+
+def to_gcode_tooltip(cfg, moves: list[Move], blend: bool = True) -> str:
+    """The move list as G-code for the interpreter: tool-tip coordinates in G54.
+
+    G54 is the machine's default work offset (``[planner] work_offset_mm``, the
+    home pose's angles as rotary origin); the tool tip is ``[tool]
+    tip_platform_mm`` with no tool length (G49).
+    """
+    from ..pose import matrices_from_euler
+    P = np.array([m.target for m in moves], dtype=float)
+    R = matrices_from_euler(np.radians(P[:, 3:]))
+    tip = P[:, :3] + R @ np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    wo = np.concatenate([np.asarray(cfg.planner.work_offset_mm, dtype=float),
+                         np.asarray(cfg.home_pose, dtype=float)[3:6]])
+    out = ["G21 G90 G94 G49 G54 " + ("G64" if blend else "G61")]
+    for m, t, p in zip(moves, tip, P):
+        x, y, z = t - wo[:3]
+        a, b, c = p[3:] - wo[3:]
+        w = f"X{x:.4f} Y{y:.4f} Z{z:.4f} A{a:.4f} B{b:.4f} C{c:.4f}"
+        out.append(f"G0 {w}" if m.rapid else f"G1 {w} F{m.feed_mm_s * 60.0:.1f}")
+    out.append("M2")
+    return "\n".join(out) + "\n"
+
+
+def planner_available() -> bool:
+    try:
+        import hexacnc.gcode  # noqa: F401
+        import hexacnc.planner  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def planned_trajectory(cfg, gcode_text: str, name: str = "program", dt_s: float | None = None) -> Trajectory:
+    """Interpret ``gcode_text`` (hexacnc.gcode) and plan it (hexacnc.planner, look-ahead, jerk-limited)."""
+    from ..gcode import program_from_config
+    from ..planner import plan_program
+    dt = float(cfg.cycle.period_s if dt_s is None else dt_s)
+    prog = program_from_config(gcode_text, name, cfg)
+    plan = plan_program(prog.blocks, cfg, period_s=dt)
+    rows = plan.rows()
+    poses = rows[:, :6].copy()
+    poses[:, 3:] = np.degrees(poses[:, 3:])
+    hx = Hexapod(cfg)
+    return Trajectory(t_s=np.arange(len(rows)) * dt, poses=poses, lengths_mm=hx.inverse_batch(poses),
+                      line=rows[:, 6].astype(np.int64), dt_s=dt)
+
+
+def program_trajectory(cfg, moves: list[Move], dt_s: float, source: str = "auto") -> tuple[Trajectory, str]:
+    """Strut commands of ``moves`` from the look-ahead planner (``source`` "planner", or "auto" when it is
+    available) or the exact-stop profile ("exact-stop"); returns the trajectory and a description."""
+    if source not in ("auto", "planner", "exact-stop"):
+        raise DataError(f"unknown trajectory source {source!r} (auto, planner, exact-stop)")
+    if source == "planner" or (source == "auto" and planner_available()):
+        tr = planned_trajectory(cfg, to_gcode_tooltip(cfg, moves), "synthetic", dt_s)
+        return tr, (f"synthetic {len(moves)}-line program (hexacnc.sim.program) through the G-code interpreter "
+                    f"and the look-ahead planner (G64 blending, jerk-limited), {tr.duration_s:.1f} s")
+    tr = trajectory(cfg, moves, dt_s=dt_s)
+    return tr, (f"synthetic {len(moves)}-line program (hexacnc.sim.program), exact-stop trapezoid profile, "
+                f"{tr.duration_s:.1f} s")

@@ -17,7 +17,7 @@ from .controller import compare
 from .dynamics import CoupledModel, drive_transfer_functions, eigen_grid, simulate_path, tune_conventional, \
     workspace_grid
 from .nonlinear import ringdown
-from .program import synthetic_program, to_gcode, trajectory
+from .program import program_trajectory, synthetic_program, to_gcode_tooltip
 
 
 def _plt():
@@ -65,12 +65,15 @@ def worst_and_gains(cfg, n_grid: int = 5):
     return model, grid, worst, gains, crit
 
 
-def run_dynamics(cfg, lines: int = 1000, n_grid: int = 5, seed: int = 1, ringdown_check: bool = True) -> dict:
+def run_dynamics(cfg, lines: int = 1000, n_grid: int = 5, seed: int = 1, ringdown_check: bool = True,
+                 source: str = "auto") -> dict:
     t0 = time.perf_counter()
     model, grid, worst, gains, crit = worst_and_gains(cfg, n_grid)
     eg = eigen_grid(model, grid, gains)
     moves = synthetic_program(cfg, lines, seed=seed)
-    tr = trajectory(cfg, moves, dt_s=cfg.cycle.period_s)
+    tp = time.perf_counter()
+    tr, desc = program_trajectory(cfg, moves, cfg.cycle.period_s, source)
+    t_plan = time.perf_counter() - tp
     path = simulate_path(model, gains, tr.poses, tr.dt_s, tr.line)
     ser = path.pop("_series")
     out = {
@@ -80,8 +83,7 @@ def run_dynamics(cfg, lines: int = 1000, n_grid: int = 5, seed: int = 1, ringdow
         "gains": gains.as_dict(), "critical_velocity_bandwidth_hz_at_worst": crit,
         "eigen": {k: v for k, v in eg.items() if k not in ("poses",)},
         "grid_points": len(grid),
-        "program": {"source": "synthetic milling program (hexacnc.sim.program), exact-stop trapezoid profile",
-                    "lines": lines, "duration_s": tr.duration_s},
+        "program": {"source": desc, "lines": lines, "duration_s": tr.duration_s, "trajectory_wall_s": t_plan},
         "path": path,
     }
     tf = drive_transfer_functions(model, gains, np.logspace(0, 3, 200))
@@ -95,7 +97,7 @@ def run_dynamics(cfg, lines: int = 1000, n_grid: int = 5, seed: int = 1, ringdow
     out["_series"] = {"t_s": _thin(ser["t_s"]).tolist(),
                       "tip_err_um": _thin(np.linalg.norm(ser["tip_um"], axis=1)).tolist(),
                       "ferr_um": _thin(ser["ferr_um"]).tolist(), "grid": grid.tolist()}
-    out["_gcode"] = to_gcode(moves)
+    out["_gcode"] = to_gcode_tooltip(cfg, moves)
     return out
 
 

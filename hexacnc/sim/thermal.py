@@ -9,7 +9,8 @@ The simulated machine ("truth") differs from the observer's model on purpose:
 * its heat input is ``truth_heat_ratio`` (1.15) times what the model assumes.
 
 Inputs: strut speeds from a program (:mod:`hexacnc.sim.program`: a synthetic
-milling program, exact-stop trapezoid profile) repeated under a varying feed
+milling program through the G-code interpreter and the look-ahead planner when
+they are available, else an exact-stop trapezoid profile) repeated under a varying feed
 override (phases), an ambient temperature that creeps and oscillates (HVAC),
 and a frame that follows the ambient with a long time constant.  The spindle
 housing warms while the spindle runs; the spindle shaft (what grows) follows the
@@ -43,7 +44,7 @@ from ..kinematics import Hexapod
 from ..pose import matrix_from_euler, pose_to_rad
 from ..thermal import ThermalObserver, discretise, spindle_growth_mm, strut_heat_model
 from ..transform import CycleTransform
-from .program import synthetic_program, trajectory
+from .program import program_trajectory, synthetic_program
 
 #: seed-like 2.5 h schedule: (minutes, feed override, spindle on)
 DEFAULT_PHASES = ((20, 1.0, True), (15, 0.6, True), (20, 1.3, True), (10, 0.0, False),
@@ -56,6 +57,7 @@ class ThermalScenario:
     dt_s: float = 0.1                       #: observer / daemon thermal rate
     phases: tuple = DEFAULT_PHASES          #: repeated to cover duration_s
     program_lines: int = 300
+    trajectory_source: str = "auto"         #: "auto" (planner if available), "planner", "exact-stop"
     truth_segments: int = 40
     truth_heat_ratio: float = 1.15          #: true heat / modelled heat
     heat_profile_ratio: float = 3.0         #: true source density base end / platform end
@@ -92,7 +94,8 @@ def _phase_arrays(sc: ThermalScenario, n: int):
 
 def strut_speed_profile(cfg, sc: ThermalScenario, n: int):
     """Mean |strut speed| (n,6) per step from the repeated program under the override phases."""
-    tr = trajectory(cfg, synthetic_program(cfg, sc.program_lines, seed=sc.seed), dt_s=0.01)
+    tr, desc = program_trajectory(cfg, synthetic_program(cfg, sc.program_lines, seed=sc.seed), 0.01,
+                                  sc.trajectory_source)
     travel = np.concatenate([np.zeros((1, 6)), np.cumsum(np.abs(np.diff(tr.lengths_mm, axis=0)), axis=0)])
     Tc = tr.t_s[-1]
     Dtot = travel[-1]
@@ -102,7 +105,7 @@ def strut_speed_profile(cfg, sc: ThermalScenario, n: int):
     r = tau - cyc * Tc
     D = cyc[:, None] * Dtot[None, :] + np.stack([np.interp(r, tr.t_s, travel[:, i]) for i in range(6)], 1)
     speed = np.diff(D, axis=0) / sc.dt_s
-    return speed, ov, spindle_on, tr
+    return speed, ov, spindle_on, tr, desc
 
 
 def _simulate_linear(models, dt, inputs, T0):
@@ -129,7 +132,7 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
     rng = np.random.default_rng(sc.seed)
     n = int(round(sc.duration_s / sc.dt_s))
     t = (np.arange(n) + 1) * sc.dt_s
-    speed, override, spindle_on, tr = strut_speed_profile(cfg, sc, n)
+    speed, override, spindle_on, tr, desc = strut_speed_profile(cfg, sc, n)
 
     hx = Hexapod(cfg)
     lengths = hx.lengths(cfg.home_pose)
@@ -259,8 +262,7 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
         "scenario": "from cold, varying feed override, spindle phases",
         "duration_h": sc.duration_s / 3600.0,
         "observer_rate_hz": 1.0 / sc.dt_s,
-        "speed_source": (f"synthetic {sc.program_lines}-line milling program (hexacnc.sim.program), exact-stop "
-                         f"trapezoid profile, {tr.duration_s:.1f} s per pass, repeated under feed override phases"),
+        "speed_source": desc + " per pass, repeated under feed override phases",
         "mean_strut_speed_mm_s": float(np.mean(np.abs(speed))),
         "heat_per_speed_W_s_mm": {"true": h_true, "model": h_model},
         "model_mismatch": {"truth_segments": nseg, "model_segments": obs.n, "truth_heat_ratio": sc.truth_heat_ratio,
