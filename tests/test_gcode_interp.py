@@ -370,3 +370,24 @@ def test_g28_g30_stored_positions():
     assert ends[7] == [20, 0, 0, 0, 0, 5]                   # G30 position stored by G30.1 (X only)
     assert all(b.kind == "rapid" for b in moves(p))
     assert err("G28.1 X1\n").code == "word"
+
+
+def test_call_depth_limit_and_return_from_inside_a_loop():
+    e = err("o<r> sub\n  o<r> call\no<r> endsub\no<r> call\n")
+    assert (e.code, e.line) == ("runaway", 2)
+    text = """o<find> sub
+  #<i> = 0
+  o1 while [#<i> LT 100]
+    #<i> = [#<i> + 1]
+    o2 if [#<i> * #<i> GT #1]
+      o<find> return [#<i>]
+    o2 endif
+  o1 endwhile
+o<find> endsub
+o<find> call [50]
+G0 X#<_value>
+o<find> call [10]
+G0 Y#<_value>
+"""
+    b = moves(parse_program(text))
+    assert b[0].end[0] == 8 and b[1].end[1] == 4
