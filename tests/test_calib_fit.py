@@ -103,3 +103,27 @@ def test_plan_beats_random_and_names_what_z_only_cannot_identify(cfg):
     assert any(n.startswith("base") for n in names)
     with pytest.raises(DataError, match="xyzabc"):
         plan(cfg, 10, "q")
+
+
+def test_cli_plan_and_synth_write_files(cfg, tmp_path):
+    out = tmp_path / "plan.csv"
+    rep = tmp_path / "plan.json"
+    assert cli(["calib", "plan", "--config", cfg.path, "--poses", "12", "--measure", "xyzabc",
+                "--candidates", "300", "--out", str(out), "--json", str(rep)]) == 0
+    lines = out.read_text().splitlines()
+    assert lines[0] == "x,y,z,a,b,c,q1,q2,q3,q4,q5,q6" and len(lines) == 13
+    from hexacnc.kinematics import Hexapod
+    hx = Hexapod(cfg)
+    for ln in lines[1:]:
+        v = [float(x) for x in ln.split(",")]
+        assert hx.limit_violations(v[:6]) == []
+        assert np.allclose(hx.readings(v[:6]), v[6:], atol=1e-5)
+    assert json.loads(rep.read_text())["indices"]["rank"] == 42
+    f, h, t = tmp_path / "f.csv", tmp_path / "h.csv", tmp_path / "t.json"
+    assert cli(["calib", "synth", "--config", cfg.path, "--effect", "backlash", "--seed", "3", "--poses", "20",
+                "--holdout-poses", "5", "--out", str(f), "--holdout", str(h), "--truth", str(t)]) == 0
+    assert json.loads(t.read_text())["effect"] == "backlash"
+    from hexacnc.calib.measurements import load_measurements
+    assert load_measurements(f).n == 20 and load_measurements(h).n == 5
+    assert cli(["calib", "synth", "--config", cfg.path, "--effect", "gremlins", "--out", str(f),
+                "--holdout", str(h)]) == 2

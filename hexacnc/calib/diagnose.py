@@ -247,10 +247,10 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
     ctx = Context(cfg, fit_meas, noise_mm, noise_deg)
     frame0 = initial_frame(cfg, fit_meas) if use_frame(fit_meas, opts.frame) else None
     n_geom = 42 + (12 if frame0 is not None else 0)
-    if fit_meas.n_observations < 12 or fit_meas.n_observations < 0.5 * n_geom:
+    if fit_meas.n_observations < n_geom:
         raise DataError(f"{fit_meas.path}: {fit_meas.n_observations} measured coordinates in {fit_meas.n} rows "
-                        f"cannot identify {n_geom} parameters (even with priors); measure at least "
-                        f"{n_geom} coordinates, ideally several times that")
+                        f"for {n_geom} parameters; measure at least {n_geom} coordinates, ideally several times "
+                        f"that (`hexacnc calib plan` picks the poses)")
     base = fit_model(cfg, ctx, [], frame0, opts)
     baseline = Model([], base, bic=bic(base, known))
     baseline.cv_rms = cv_score(cfg, fit_meas, ctx, base, [], frame0, opts)
