@@ -45,9 +45,11 @@ ETA_V = 1.0
 #: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
 FILTER_JERK_SHARE = 0.8
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
-RHO_J = 0.25
+RHO_J = 0.8
 #: share of the jerk limit an acceleration step at a junction may take
 RHO_STEP = 0.5
+#: extra grid offsets from both ends of every piece (s-units)
+GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
 #: s step of the central differences (mm or deg)
 FD_STEP = 0.01
 
@@ -394,11 +396,21 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
 
     # ---- grid -----------------------------------------------------------------
     h_p, nint, lmarg, amarg = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)), pc.sample_bound_mm)
-    counts = nint + 1
+    # uniform samples at the bounded spacing plus a geometric refinement near both ends of each
+    # piece (speed changes concentrate there; extra samples only tighten the bound)
+    loc = []
+    for m in range(path.n):
+        L_m = float(path.slen[m])
+        u = np.arange(int(nint[m]) + 1) * float(h_p[m])
+        u[-1] = L_m
+        ext = GRADE_MM[(GRADE_MM < 0.5 * L_m) & (GRADE_MM < h_p[m])]
+        if ext.size:
+            u = np.unique(np.concatenate([u, ext, L_m - ext]))
+        loc.append(u)
+    counts = np.array([u.shape[0] for u in loc], dtype=np.int64)
     pidx = np.repeat(np.arange(path.n), counts)
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    local = np.arange(pidx.shape[0]) - first[pidx]
-    sg = path.s0[pidx] + local * h_p[pidx]
+    sg = path.s0[pidx] + np.concatenate(loc)
     last = first + counts - 1
     sg[last] = path.s0 + path.slen
     Ng = sg.shape[0]
@@ -499,7 +511,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         if hd.pause or hd.optional:
             extra += 2 * hold_min
             pause_grid.append(g)
-        holds_s[g] = hold_min + extra
+        holds_s[g] = hold_min + extra + (2 * dt if extra > 0 else 0.0)
     holds_s[0] = max(holds_s[0], 0.0)
 
 
@@ -585,10 +597,9 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     ev_out = []
     pause_idx = []
     for g, hd in sorted(holds.items()):
-        hs = int(math.floor((TH[g]) / dt))
-        he = int(math.floor((TH[g] + holds_s[g]) / dt))
-        c0 = min(Nt - 1, hs + nf - 1)
-        c1 = min(Nt - 1, he)
+        # the smoothed table stands still once the filter window lies inside the raw hold
+        c0 = min(Nt - 1, int(math.ceil(TH[g] / dt - 1e-9)) + nf)
+        c1 = min(Nt - 1, max(c0, int(math.floor((TH[g] + holds_s[g]) / dt + 1e-9)) - 1))
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
         for blk in hd.kinds:
