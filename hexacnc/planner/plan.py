@@ -256,7 +256,8 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
     positions passed within T.  If the raw speed is at most sqrt(x_j) for all
-    positions within ``r_j = sqrt(x_j) T`` of s_j, that mean is at most sqrt(x_j):
+    positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
+    that mean is at most sqrt(x_j):
     so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.
     """
     N = x.shape[0]
@@ -520,7 +521,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_grid_for_lookup = sg
     xw = xlim.copy()
     xw[stop_all] = np.inf
-    xlim = _dilate_min(sg, xw, nf * dt)
+    xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
     xlim[stop_all] = 0.0
     hL, cL, eL, dL = h.tolist(), c.tolist(), e.tolist(), dd.tolist()
     iters = 0

@@ -1,0 +1,200 @@
+"""``hexacnc bench plan``: planner quality against TOPP-RA, and planning speed against execution time.
+
+(a) ``topp``: a five-axis test path (lines with A/B/C, helical arcs, G64 blends) is planned by
+    hexacnc; the same path (our strut lengths L(s) along the executed, blended path, as a cubic
+    spline per stop-to-stop section) is time-parameterised by TOPP-RA (``toppra``) under the same
+    strut velocity and acceleration limits.  Feed and angular-velocity limits are lifted for both
+    so that only the strut limits bind.  hexacnc also honours the jerk limit and stands still for
+    the smoothing window at every stop; TOPP-RA does not (its profile has unbounded jerk).
+    Reported: both durations, their ratio, hexacnc's measured peak utilisation.
+(b) ``corpus``: every program of the G-code corpus is interpreted and placed in the workspace
+    with a work offset chosen by the bench (G54 origin such that the centre of the program's
+    bounding box lands on the tool tip at the home pose; no scaling), then planned.  Reported per
+    file: planning time, planned duration, their ratio, or the reason it was refused.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..config import load_config
+from ..errors import HexacncError
+
+HELP = "planner benchmark: duration vs TOPP-RA (same path, same strut limits) and planning speed on the corpus"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--config", help="machine description (default: embedded default)")
+    parser.add_argument("--corpus", default=None,
+                        help="G-code corpus directory (default: <repo>/../shared/data/gcode)")
+    parser.add_argument("--skip-corpus", action="store_true", help="only the TOPP-RA comparison")
+    parser.add_argument("--skip-topp", action="store_true", help="only the corpus timing")
+    parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section")
+
+
+def _tip(cfg, P):
+    from ..pose import matrix_from_euler
+    P = np.asarray(P, dtype=float)
+    out = P.copy()
+    out[:3] = P[:3] + matrix_from_euler(*np.radians(P[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
+    return out
+
+
+def topp_path_blocks(cfg):
+    """A five-axis path in the default workspace: lines with rotations, helical arcs, one exact stop."""
+    from ..gcode.blocks import Block
+    home = np.asarray(cfg.home_pose, dtype=float)
+    offs = [[0, 0, 0, 0, 0, 0], [100, 0, 0, 0, 0, 0], [100, 100, -30, 8, 0, 0], [-100, 100, -30, 8, -6, 10],
+            [-100, -100, 20, -5, -6, 10], [60, -100, 20, -5, 5, -10], [60, 40, -60, 0, 5, -10],
+            [-40, 40, 0, 0, 0, 0], [-40, -40, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0]]
+    tips = [_tip(cfg, home + np.asarray(o, dtype=float)) for o in offs]
+    F = 1e6     # feed far above what the struts allow: only strut limits bind
+    blocks = []
+    line = 1
+    for i in range(len(tips) - 1):
+        a, b = tips[i], tips[i + 1]
+        if i == 6:
+            # a helical arc in XY around the midpoint (half turn plus the Z change)
+            ctr = 0.5 * (a[:3] + b[:3])
+            ctr[2] = a[2]
+            blocks.append(Block("arc", line, a, b, feed_mm_s=F, center=ctr, normal=np.array([0, 0, 1.0]),
+                                blend_tolerance_mm=0.5))
+        else:
+            blocks.append(Block("line", line, a, b, feed_mm_s=F, blend_tolerance_mm=0.5, exact_stop=(i == 3)))
+        line += 1
+    return blocks
+
+
+def bench_topp(cfg, gridpoints: int) -> dict:
+    import toppra as ta
+    import toppra.algorithm as algo
+    import toppra.constraint as constraint
+    from ..planner import path as P
+    from ..planner import plan_program
+
+    pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6, rapid_feed_mm_min=1e9)
+    cfg = cfg.replace(planner=pc)
+    blocks = topp_path_blocks(cfg)
+    t0 = time.perf_counter()
+    plan = plan_program(blocks, cfg)
+    t_plan = time.perf_counter() - t0
+    hx = plan.hexapod
+    path = plan.path
+    # sections between stops, on the executed (blended) path
+    stops = sorted({0.0, path.total} | {float(path.s0[m] + path.slen[m]) for m in path.stops_after})
+    vl = np.stack([-cfg.max_velocity_mm_s, cfg.max_velocity_mm_s], axis=1)
+    al = np.stack([-cfg.max_acceleration_mm_s2, cfg.max_acceleration_mm_s2], axis=1)
+    total = 0.0
+    sections = []
+    t1 = time.perf_counter()
+    for a, b in zip(stops[:-1], stops[1:]):
+        if b - a < 1e-9:
+            continue
+        # dense samples of L(s) on the section (2 samples per 0.05 mm at least)
+        n = max(200, int((b - a) / 0.05))
+        s = np.linspace(a, b, n + 1)
+        s_in = s.copy()
+        s_in[-1] = b - 1e-9
+        s_in[0] = a + 1e-9
+        X = path.platform(path.piece_at(s_in), s_in)
+        L = P.strut_lengths(X, hx.plat, hx.base)
+        spl = ta.SplineInterpolator(s - a, L)
+        inst = algo.TOPPRA([constraint.JointVelocityConstraint(vl), constraint.JointAccelerationConstraint(al)],
+                           spl, gridpoints=np.linspace(0, b - a, gridpoints + 1),
+                           parametrizer="ParametrizeConstAccel")
+        traj = inst.compute_trajectory(0, 0)
+        if traj is None:
+            raise HexacncError(f"TOPP-RA found no parameterisation of section [{a:.3f}, {b:.3f}]")
+        sections.append({"s_from": round(a, 4), "s_to": round(b, 4), "toppra_s": round(float(traj.duration), 6)})
+        total += float(traj.duration)
+    t_topp = time.perf_counter() - t1
+    return {
+        "path": f"{len(blocks)} moves (lines with A/B/C, helical arc), G64 P0.5, one exact stop",
+        "hexacnc_duration_s": round(plan.duration_s, 6),
+        "toppra_duration_s": round(total, 6),
+        "ratio": round(plan.duration_s / total, 6),
+        "within_5_percent": bool(plan.duration_s <= 1.05 * total),
+        "hexacnc_utilisation": {k: round(v, 6) for k, v in plan.utilisation.items()},
+        "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
+        "hexacnc_planning_s": round(t_plan, 4),
+        "toppra_planning_s": round(t_topp, 4),
+        "sections": sections,
+        "note": "TOPP-RA: strut velocity+acceleration only (no jerk limit, no standstill at stops); "
+                "hexacnc: also jerk-limited, stops held for the smoothing window",
+    }
+
+
+def _place(text: str, name: str, cfg):
+    """Interpret once at G54 = 0 to find the bounding box, then again with the centring work offset."""
+    from ..gcode.factory import program_from_config
+    from ..pose import matrix_from_euler
+    prog = program_from_config(text, name, cfg)
+    E = np.array([b.end for b in prog.blocks if getattr(b, "end", None) is not None])
+    if E.size == 0:
+        return prog, [0.0, 0.0, 0.0]
+    ctr = 0.5 * (E[:, :3].min(axis=0) + E[:, :3].max(axis=0))
+    home = np.asarray(cfg.home_pose, dtype=float)
+    tip_home = home[:3] + matrix_from_euler(*np.radians(home[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
+    off = tip_home - ctr
+    wo = [float(v) for v in off] + [float(v) for v in home[3:]]
+    return program_from_config(text, name, cfg, work_offsets={1: wo}), wo[:3]
+
+
+def bench_corpus(cfg, corpus: Path) -> dict:
+    from ..planner import plan_program
+    files = sorted(corpus.glob("*.ngc"))
+    out = []
+    sum_exec = 0.0
+    sum_plan = 0.0
+    for f in files:
+        rec = {"file": f.name}
+        try:
+            text = f.read_text(encoding="utf-8", errors="replace")
+            t0 = time.perf_counter()
+            prog, wo = _place(text, f.name, cfg)
+            t_interp = time.perf_counter() - t0
+            rec["work_offset_mm"] = [round(v, 3) for v in wo]
+            t0 = time.perf_counter()
+            plan = plan_program(prog.blocks, cfg)
+            t_plan = time.perf_counter() - t0
+        except HexacncError as exc:
+            rec.update({"planned": False, "reason": str(exc), "error": type(exc).__name__,
+                        "line": getattr(exc, "line", None), "limit": getattr(exc, "limit", None)})
+            out.append(rec)
+            continue
+        rec.update({"planned": True, "blocks": len(prog.blocks), "interpret_s": round(t_interp, 4),
+                    "planning_s": round(t_plan, 4), "duration_s": round(plan.duration_s, 4),
+                    "ratio": round(plan.duration_s / t_plan, 2),
+                    "utilisation": {k: round(v, 4) for k, v in plan.utilisation.items()},
+                    "iterations": plan.iterations})
+        sum_exec += plan.duration_s
+        sum_plan += t_plan
+        out.append(rec)
+    ratios = [r["ratio"] for r in out if r.get("planned")]
+    return {"corpus": str(corpus), "files": out,
+            "min_ratio": min(ratios) if ratios else None,
+            "total_ratio": round(sum_exec / sum_plan, 2) if sum_plan > 0 else None,
+            "target_ratio": 100.0,
+            "placement": "G54 origin = home tool-tip position minus the program's bounding-box centre; no scaling"}
+
+
+def main(args: argparse.Namespace) -> int:
+    cfg = load_config(args.config)
+    res: dict = {"bench": "plan", "machine": cfg.name, "cpu_count": os.cpu_count()}
+    if not args.skip_topp:
+        res["topp"] = bench_topp(cfg, args.gridpoints)
+    if not args.skip_corpus:
+        corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
+        if corpus.is_dir():
+            res["corpus"] = bench_corpus(cfg, corpus)
+        else:
+            res["corpus"] = {"skipped": f"no corpus at {corpus}"}
+    print(json.dumps(res))
+    return 0 if math.isfinite(0.0) else 1
