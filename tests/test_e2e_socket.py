@@ -39,9 +39,11 @@ from hexacnc import sag as sagmod              # noqa: E402
 @pytest.fixture(scope="module")
 def cfg():
     base = load_config(None)
-    # no real-time privileges in CI on a shared 2-core machine: a longer period and a lenient
-    # deadline-burst count keep scheduler noise from faulting the loop; limits are unchanged
-    cycle = dataclasses.replace(base.cycle, period_s=0.001, max_overruns_in_row=1000)
+    # Test machine: shared 2 cores, no SCHED_FIFO, other suites running. Measured there: bursts
+    # of 300 overrun cycles (150 ms stalls of the hot process), after which the simulated drives
+    # (another process) trail the catching-up command by > 1 mm. Tolerate those stalls (burst
+    # count, following error); strut length/joint/velocity limits stay exactly as configured.
+    cycle = dataclasses.replace(base.cycle, max_overruns_in_row=1000, following_error_mm=25.0)
     return base.replace(cycle=cycle)
 
 
@@ -86,6 +88,15 @@ def programmed_end_platform_pose(cfg, text: str) -> np.ndarray:
     return pose
 
 
+def work(cfg, x: float, y: float, z: float, a: float = 0.0, b: float = 0.0, c: float = 0.0) -> str:
+    """Axis words in G54 coordinates for a tool-tip pose given in machine coordinates
+    (the G54 origin is the interpreter's default for this machine)."""
+    from hexacnc.gcode.factory import machine_defaults
+    o = np.asarray(machine_defaults(cfg)["work_offsets"][1], dtype=float)
+    v = np.array([x, y, z, a, b, c]) - o
+    return " ".join(f"{k}{val:.4f}" for k, val in zip("XYZABC", v))
+
+
 def expected_struts_cmd_mm(cfg, hx: Hexapod, pose_deg: np.ndarray) -> np.ndarray:
     """What the cycle must command at rest at ``pose_deg``: geometric length minus sag elongation."""
     return hx.lengths(pose_deg) + sagmod.sag_compensation_mm(hx, pose_deg)
@@ -118,11 +129,11 @@ def test_program_over_socket_ends_on_the_inverse_kinematics_of_its_end_pose(cfg,
     hx = Hexapod(cfg)
     text = ("(e2e: lines with rotations, an arc, a dwell)\n"
             "G21 G90 G17\n"
-            "G0 X10 Y-5 Z-1140\n"
-            "G1 X20 Y5 Z-1130 A2 B-1 C3 F3000\n"
-            "G2 X30 Y15 I5 J5 F2000\n"
+            f"G0 {work(cfg, 10, -5, -1140)}\n"
+            f"G1 {work(cfg, 20, 5, -1130, 2, -1, 3)} F3000\n"
+            f"G2 {work(cfg, 30, 15, -1130, 2, -1, 3)} I5 J5 F2000\n"
             "G4 P0.05\n"
-            "G1 X25 Y12 Z-1125 A-1.5 B2 C-2 F2500\n"
+            f"G1 {work(cfg, 25, 12, -1125, -1.5, 2, -2)} F2500\n"
             "M2\n")
     st = _run(client, text, "e2e-end-pose")
     assert st["state"] == "idle" and st["fault"] is None
@@ -141,7 +152,7 @@ def test_program_over_socket_ends_on_the_inverse_kinematics_of_its_end_pose(cfg,
 
 def test_out_of_workspace_program_is_refused_with_its_line_before_motion(cfg, client):
     before = client.call("status")
-    text = "G21 G90\nG0 X10 Y0 Z-1140\nG1 X15 F3000\nG1 X900 F3000\nG1 X0\nM2\n"
+    text = f"G21 G90\nG0 {work(cfg, 10, 0, -1140)}\nG1 X15 F3000\nG1 X900 F3000\nG1 X0\nM2\n"
     with pytest.raises(P.DaemonError) as ei:
         client.call("program", text=text, name="too-far", reply_timeout_s=60.0)
     e = ei.value
@@ -154,10 +165,10 @@ def test_out_of_workspace_program_is_refused_with_its_line_before_motion(cfg, cl
     assert after["pose_cmd"] == before["pose_cmd"]
 
 
-def test_unsupported_gcode_is_refused_with_line_and_column(client):
+def test_unsupported_gcode_is_refused_with_line_and_column(cfg, client):
     before = client.call("status")
     with pytest.raises(P.DaemonError) as ei:
-        client.call("program", text="G21 G90\nG0 X1 Y1 Z-1140\nG33 Z-1150 K1\nM2\n", name="g33",
+        client.call("program", text=f"G21 G90\nG0 {work(cfg, 1, 1, -1140)}\nG33 Z-10 K1\nM2\n", name="g33",
                     reply_timeout_s=60.0)
     assert ei.value.code in ("unsupported", "gcode") and ei.value.line == 3
     assert ei.value.error.get("column") is not None
@@ -177,10 +188,9 @@ def test_random_small_programs_stay_within_limits_and_end_where_programmed(cfg, 
             z = rng.uniform(-1200, -1080)
             a, b, c = (rng.uniform(-6, 6) for _ in range(3))
             if rng.random() < 0.3:
-                lines.append(f"G0 X{x:.3f} Y{y:.3f} Z{z:.3f} A{a:.3f} B{b:.3f} C{c:.3f}")
+                lines.append(f"G0 {work(cfg, x, y, z, a, b, c)}")
             else:
-                lines.append(f"G1 X{x:.3f} Y{y:.3f} Z{z:.3f} A{a:.3f} B{b:.3f} C{c:.3f} "
-                             f"F{rng.uniform(600, 6000):.0f}")
+                lines.append(f"G1 {work(cfg, x, y, z, a, b, c)} F{rng.uniform(600, 6000):.0f}")
         lines.append("M2")
         text = "\n".join(lines) + "\n"
         try:
@@ -204,7 +214,7 @@ def test_send_command_against_the_real_daemon(cfg, machine, tmp_path, capsys):
     from hexacnc.cli import main as cli
     daemon, srv = machine
     p = tmp_path / "small.ngc"
-    p.write_text("G21 G90\nG1 X5 Y5 Z-1140 F3000\nG1 X0 Y0 Z-1150\nM2\n")
+    p.write_text(f"G21 G90\nG1 {work(cfg, 5, 5, -1140)} F3000\nG1 {work(cfg, 0, 0, -1150)}\nM2\n")
     rc = cli(["send", str(p), "--socket", srv.socket_path])
     out = capsys.readouterr()
     assert rc == 0, out
