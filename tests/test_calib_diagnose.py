@@ -126,3 +126,18 @@ def test_jugglebot_beats_plain_and_free_scale_refits(tmp_path):
     r = d.result
     assert "strut_scale" in [c["name"] for c in r["causes"]]
     assert r["extended"]["rms_holdout"]["strut_mm"] < 0.9 < r["baseline"]["rms_holdout"]["strut_mm"]
+
+
+def test_holdout_from_new_session_is_rereferenced(cfg):
+    s = synth.generate(cfg, 61, "strut_scale", n_fit=80, n_holdout=40, holdout_new_session_mm=0.5)
+    d = diagnose(cfg, s.fit, s.holdout, Options(noise_mm=s.noise_mm, noise_deg=s.noise_deg, frame="base"))
+    r = d.result
+    h = r["holdout"]
+    # the held-out session is not in the fit data: its first rows re-reference the strut offsets
+    assert h["rereference_rows"] == 6 and h["rows_evaluated"] == 34
+    assert h["session_shift_evident"] is True
+    check(s, r, "xyzabc")
+    # without re-referencing, the re-homed offsets dominate the held-out residual
+    d0 = diagnose(cfg, s.fit, s.holdout, Options(noise_mm=s.noise_mm, noise_deg=s.noise_deg, frame="base",
+                                                 rereference_rows=0, causes=("strut_scale",)))
+    assert d0.result["extended"]["rms_holdout"]["strut_mm"] > 10 * r["extended"]["rms_holdout"]["strut_mm"]

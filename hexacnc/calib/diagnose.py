@@ -195,25 +195,52 @@ def _session_unseen(fit_meas: Measurements, hold: Measurements) -> bool:
     return any(s not in known for s in hold.sessions())
 
 
-def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, k: int, how: str) -> tuple[dict, FitResult | None, np.ndarray]:
-    """RMS on the holdout rows k.. after re-referencing on rows 0..k-1 (k=0: none)."""
+def reference_groups(fit_meas: Measurements | None, hold: Measurements, k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(rows that re-reference, rows evaluated) per group of held-out rows.
+
+    k = 0: one group, nothing re-referenced.  Held-out sessions not seen in the fit
+    data: each such session spends its own first k rows.  Otherwise the first k rows
+    of the file re-reference everything.
+    """
+    allrows = np.arange(hold.n)
+    if k <= 0:
+        return [(allrows[:0], allrows)]
+    known = set(fit_meas.sessions()) if fit_meas is not None else set()
+    if hold.session is not None and fit_meas is not None and any(s not in known for s in hold.sessions()):
+        groups = []
+        for lab in hold.sessions():
+            idx = np.where(hold.session == lab)[0]
+            groups.append((idx[:k], idx[k:]) if lab not in known else (idx[:0], idx))
+        return groups
+    return [(allrows[:k], allrows[k:])]
+
+
+def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, k: int, how: str,
+                     fit_meas: Measurements | None = None) -> tuple[dict, dict, np.ndarray]:
+    """RMS on the held-out rows after re-referencing the strut offsets (and optionally the frame)
+    on the first k rows of each new session (see :func:`reference_groups`); k=0: nothing."""
     lay = res.layout
-    theta = res.theta.copy()
-    if k > 0:
-        ref = hold.subset(np.arange(k))
-        cref = Context(cfg, ref, ctx_fit.sigma[0], ctx_fit.sigma[3], fit_sessions=ctx_fit.sessions)
-        free = np.zeros(lay.n, dtype=bool)
-        free[36:42] = True
-        if how == "offsets+frame" and lay.frame is not None:
-            free[lay.frame] = True
-        rr = fit(cfg, cref, lay, theta_init=theta, free=free, max_iter=40)
-        theta = rr.theta
-    rows = np.arange(k, hold.n)
-    ev_meas = hold.subset(rows)
-    cte = Context(cfg, ev_meas, ctx_fit.sigma[0], ctx_fit.sigma[3], fit_sessions=ctx_fit.sessions)
-    ev = Evaluator(cfg, lay, cte)
-    resid = ev.residuals(theta)
-    return rms_summary(resid), resid, rows
+    parts = []
+    rows_all = []
+    for ref_rows, ev_rows in reference_groups(fit_meas, hold, k):
+        theta = res.theta.copy()
+        if len(ref_rows):
+            cref = Context(cfg, hold.subset(ref_rows), ctx_fit.sigma[0], ctx_fit.sigma[3],
+                           fit_sessions=ctx_fit.sessions)
+            free = np.zeros(lay.n, dtype=bool)
+            free[36:42] = True
+            if how == "offsets+frame" and lay.frame is not None:
+                free[lay.frame] = True
+            theta = fit(cfg, cref, lay, theta_init=theta, free=free, max_iter=40).theta
+        if not len(ev_rows):
+            continue
+        cte = Context(cfg, hold.subset(ev_rows), ctx_fit.sigma[0], ctx_fit.sigma[3], fit_sessions=ctx_fit.sessions)
+        parts.append(Evaluator(cfg, lay, cte).residuals(theta))
+        rows_all.append(ev_rows)
+    if not parts:
+        raise DataError(f"{hold.path}: re-referencing with {k} rows per new session leaves no held-out row to evaluate")
+    resid = {key: np.concatenate([p_[key] for p_ in parts]) for key in parts[0]}
+    return rms_summary(resid), resid, np.concatenate(rows_all)
 
 
 def session_shift(cfg, res: FitResult, hold: Measurements, ctx_fit: Context) -> dict:
@@ -309,10 +336,14 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         if k < 0 or k >= holdout.n:
             raise DataError(f"{holdout.path}: --rereference-rows {k} leaves no held-out row to evaluate "
                             f"({holdout.n} rows)")
-        b_hold, b_res, rows = evaluate_holdout(cfg, baseline.fit, holdout, ctx, k, opts.rereference)
-        e_hold, e_res, _ = evaluate_holdout(cfg, extended.fit, holdout, ctx, k, opts.rereference)
+        b_hold, b_res, rows = evaluate_holdout(cfg, baseline.fit, holdout, ctx, k, opts.rereference, fit_meas)
+        e_hold, e_res, _ = evaluate_holdout(cfg, extended.fit, holdout, ctx, k, opts.rereference, fit_meas)
         hold_ctx = Context(cfg, holdout, noise_mm, noise_deg)
+        groups = reference_groups(fit_meas, holdout, k)
         hold_info = {"path": holdout.path, "rows": holdout.n, "rereference_rows": k,
+                     "rereferenced_rows_total": int(sum(len(g[0]) for g in groups)),
+                     "rereference_scope": ("first k rows of each held-out session not in the fit data"
+                                           if len(groups) > 1 else "first k rows of the file"),
                      "rereferenced": (opts.rereference if k else "nothing"), "rows_evaluated": int(len(rows)),
                      "baseline_residuals": b_res, "extended_residuals": e_res}
         hold_info.update(session_shift(cfg, extended.fit, holdout, ctx))

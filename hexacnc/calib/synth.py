@@ -96,8 +96,13 @@ def _readings(effect, params, ctx_fn, X, base, plat, off, n_iter: int = 6):
 def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: int = 60,
              measure_set: str = "xyzabc", noise_mm: float = 0.005, noise_deg: float = 0.0005,
              magnitude_range: tuple[float, float] = (10.0, 40.0), joint_sigma_mm: float = 0.5,
-             offset_sigma_mm: float = 1.0, registration: bool = False, sessions: int = 3) -> SynthSet:
-    """One seeded fit + holdout pair.  ``magnitude_range`` is in units of ``noise_mm``."""
+             offset_sigma_mm: float = 1.0, registration: bool = False, sessions: int = 3,
+             holdout_new_session_mm: float = 0.0) -> SynthSet:
+    """One seeded fit + holdout pair.  ``magnitude_range`` is in units of ``noise_mm``.
+
+    ``holdout_new_session_mm`` > 0: the held-out rows come from a new session (label
+    ``new``) whose strut offsets moved by that RMS amount (re-homing).
+    """
     if effect != "none" and effect not in CAUSES:
         raise ValueError(f"unknown effect {effect!r}")
     rng = np.random.default_rng(seed)
@@ -155,6 +160,9 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
             m.q = q
             return Context(cfg, m, noise_mm, noise_deg, fit_sessions=ctx_fit0.sessions)
         m.q = _readings(effect, params, ctx_fn, Xr, base, plat, off)
+        if rows.start == n_fit and holdout_new_session_mm > 0:
+            m.q = m.q - rng.normal(0.0, holdout_new_session_mm, 6)[None]
+            m.session = np.array(["new"] * len(Xr), dtype=object)
         y = measure(Xr, frame)
         y[:, :3] += rng.normal(0, noise_mm, (len(Xr), 3))
         y[:, 3:] += rng.normal(0, noise_deg, (len(Xr), 3))
