@@ -184,13 +184,13 @@ def test_random_small_programs_stay_within_limits_and_end_where_programmed(cfg, 
     for k in range(4):
         lines = ["G21 G90"]
         for _ in range(rng.randrange(2, 5)):
-            x, y = rng.uniform(-60, 60), rng.uniform(-60, 60)
-            z = rng.uniform(-1200, -1080)
-            a, b, c = (rng.uniform(-6, 6) for _ in range(3))
-            if rng.random() < 0.3:
+            x, y = rng.uniform(-40, 40), rng.uniform(-40, 40)
+            z = rng.uniform(-1190, -1110)
+            a, b, c = (rng.uniform(-5, 5) for _ in range(3))
+            if rng.random() < 0.4:
                 lines.append(f"G0 {work(cfg, x, y, z, a, b, c)}")
             else:
-                lines.append(f"G1 {work(cfg, x, y, z, a, b, c)} F{rng.uniform(600, 6000):.0f}")
+                lines.append(f"G1 {work(cfg, x, y, z, a, b, c)} F{rng.uniform(3000, 9000):.0f}")
         lines.append("M2")
         text = "\n".join(lines) + "\n"
         try:
