@@ -255,7 +255,8 @@ def test_override_pause_resume_stop_are_jerk_limited_and_on_path(cfg):
     # at standstill while paused, and at the end of the stop
     k = events["paused_at"]
     assert np.abs(rows[k + 1:k + 300, :6] - rows[k, :6]).max() < 1e-9
-    assert np.abs(rows[-1, :6] - rows[-2, :6]).max() < 1e-6
+    # the stop ends at rest: the last cycle moves less than 0.05 mm/s (the feed was 120 mm/s)
+    assert np.linalg.norm(rows[-1, :3] - rows[-2, :3]) / plan.dt < 0.05
     assert s.progress[0] < 100.0                    # stopped before the end
     # every row on the planned path
     assert on_path_distance(cfg, plan, rows).max() < 0.01

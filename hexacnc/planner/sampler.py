@@ -25,13 +25,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError
+from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Trajectory
 
 from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING, ETA
 
 #: samples per governor block and look-ahead of the governor (seconds)
 GOV_BLOCK = 20
 GOV_LOOKAHEAD_S = 0.6
+CAP_LOOKAHEAD_S = 4.0
 #: override range accepted by set_override (the plan's headroom may cap it further)
 MAX_OVERRIDE = 2.0
 #: caps on the rate's derivatives (1/s, 1/s^2): 0 -> 1 in no less than ~40 ms
@@ -56,10 +57,22 @@ def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
         for k in range(1, W + 1):                   # W blocks ahead
             w[:-k] = np.maximum(w[:-k], a[k:])
         out[name] = w
+    # override above 1 only where the nominal leaves room, looking CAP_LOOKAHEAD_S ahead so that a
+    # slow (headroom-limited) ramp back down completes in time; never below 1 (the plan itself is valid)
+    Wc = max(1, int(math.ceil(CAP_LOOKAHEAD_S / (GOV_BLOCK * dt))))
+    mx = {}
+    for name in ("uv", "ua", "uj"):
+        w = out[name].copy()
+        k = 1
+        while k <= Wc:                               # doubling: max over [b, b + Wc]
+            step = min(k, Wc + 1 - k)
+            w[:-step] = np.maximum(w[:-step], w[step:])
+            k += step
+        mx[name] = w
     with np.errstate(divide="ignore"):
-        cap = np.minimum(1.0 / np.maximum(out["uv"], 1e-12), np.sqrt(0.98 / np.maximum(out["ua"], 1e-12)))
-        cap = np.minimum(cap, np.cbrt(0.98 / np.maximum(out["uj"], 1e-12)))
-    out["cap"] = np.minimum(cap, MAX_OVERRIDE)
+        cap = np.minimum(0.99 / np.maximum(mx["uv"], 1e-12), np.sqrt(0.85 / np.maximum(mx["ua"], 1e-12)))
+        cap = np.minimum(cap, np.cbrt(0.85 / np.maximum(mx["uj"], 1e-12)))
+    out["cap"] = np.clip(cap, 1.0, MAX_OVERRIDE)
     return out
 
 
@@ -87,15 +100,20 @@ class PlanSampler:
         self.state = RUN
         self.done = self.n == 0
         g = plan.gov
-        self._uv, self._ua, self._uj = g["uv"].tolist(), g["ua"].tolist(), g["uj"].tolist()
-        self._va, self._ajr, self._vjr = g["va"].tolist(), g["ajr"].tolist(), g["vjr"].tolist()
+        self._g = g
+        self._nb = g["cap"].shape[0]
+        self._W = max(1, int(math.ceil(GOV_LOOKAHEAD_S / (GOV_BLOCK * plan.dt))))
         self._cap = g["cap"].tolist()
+        self._lim = None
+        self._lim_tgt = None
         self._pauses = sorted(plan.pause_idx)
         self._next_pause = 0
         self._otg = Ruckig(1, self.period_s)        # never the third (cloud) argument
         self._inp = InputParameter(1)
         self._inp.control_interface = ControlInterface.Velocity
         self._out = OutputParameter(1)
+        self._otg_offline = Ruckig(1)               # duration estimates (never the cloud argument)
+        self._traj = Trajectory(1)
         self.rows_written = 0
 
     # -- commands --------------------------------------------------------------------
@@ -145,30 +163,56 @@ class PlanSampler:
         return self.f
 
     # -- rows ----------------------------------------------------------------------------
-    def _limits(self, b: int, f: float, tgt: float) -> tuple[float, float]:
-        """Ruckig limits for the rate: max |f'| and |f''| that keep the strut bounds with margin 0.97.
+    def _limits_window(self, b0: int, b1: int, f: float, tgt: float) -> tuple[float, float]:
+        """Ruckig limits for the rate over governor blocks b0..b1 (margin 0.97 of every strut limit).
 
-        With ``fh = max(f, target)``: ``A = (0.97 - fh^2 ua) / va`` (capped so the cross term
-        ``3 fh A a/J`` takes at most 30 % of the jerk headroom) and
-        ``J = (0.97 - fh^3 uj - 3 fh A ajr) / vjr``; both independent of the current f'.
+        With ``fh = max(f, target)`` and the block maxima: ``A = (0.97 - fh^2 ua) / va`` (capped so
+        the cross term ``3 fh A a/J`` takes at most 30 % of the jerk headroom) and
+        ``J = (0.97 - fh^3 uj - 3 fh A ajr) / vjr``.
         """
+        g = self._g
+        sl = slice(max(0, b0), min(self._nb, b1 + 1))
+        ua, uj, va = float(g["ua"][sl].max()), float(g["uj"][sl].max()), float(g["va"][sl].max())
+        ajr, vj = float(g["ajr"][sl].max()), float(g["vjr"][sl].max())
         fh = f if f > tgt else tgt
-        va = self._va[b]
-        vj = self._vjr[b]
-        hj = 0.97 - fh * fh * fh * self._uj[b]
-        ha = 0.97 - fh * fh * self._ua[b]
-        if hj < 0.01:
-            hj = 0.01
-        if ha < 0.01:
-            ha = 0.01
+        hj = max(0.01, 0.97 - fh * fh * fh * uj)
+        ha = max(0.01, 0.97 - fh * fh * ua)
         A = ha / va if va > 1e-12 else A_MAX
-        ajr = self._ajr[b]
         if fh > 0 and ajr > 1e-12:
             A = min(A, 0.3 * hj / (3.0 * fh * ajr))
         A = min(max(A, 1e-4), A_MAX)
         J = (hj - 3.0 * fh * A * ajr) / vj if vj > 1e-12 else J_MAX
         J = min(max(J, 1e-3), J_MAX)
         return A, J
+
+    def _transition_limits(self, b: int, tgt: float) -> tuple[float, float]:
+        """Constant limits for a whole transition: the window grows until it covers the transition."""
+        nbk = max(4, self._W)
+        A = J = None
+        for _ in range(6):
+            A, J = self._limits_window(b - 1, b + nbk, self.f, tgt)
+            dur = self._duration(tgt, A, J)
+            need = int((max(self.f, tgt) * dur / self.plan.dt) / GOV_BLOCK) + 2
+            if need <= nbk:
+                break
+            nbk = need
+        return A, J
+
+    def _duration(self, tgt: float, A: float, J: float) -> float:
+        inp = self._inp
+        inp.current_position = [0.0]
+        inp.current_velocity = [self.f]
+        inp.current_acceleration = [self.fd]
+        inp.target_velocity = [tgt]
+        inp.target_acceleration = [0.0]
+        inp.max_velocity = [MAX_OVERRIDE + 1.0]
+        inp.max_acceleration = [A]
+        inp.max_jerk = [J]
+        try:
+            res = self._otg_offline.calculate(inp, self._traj)
+        except RuckigError:
+            return 10.0
+        return float(self._traj.duration) if res in (Result.Working, Result.Finished) else 10.0
 
     def _target(self, b: int) -> float:
         if self.state in (PAUSING, STOPPING, PAUSED, PROGRAM_PAUSED, DONE):
@@ -208,7 +252,10 @@ class PlanSampler:
                 cnt += 1
                 continue
             else:
-                A, J = self._limits(b, self.f, tgt)
+                if self._lim is None or tgt != self._lim_tgt:
+                    self._lim = self._transition_limits(b, tgt)
+                    self._lim_tgt = tgt
+                A, J = self._lim
                 inp.current_position = [self.k * self.plan.dt]
                 inp.current_velocity = [self.f]
                 inp.current_acceleration = [self.fd]
@@ -230,6 +277,7 @@ class PlanSampler:
                     nf, nfd = max(0.0, o.new_velocity[0]), o.new_acceleration[0]
                 if abs(nf - tgt) < 1e-9 and abs(nfd) < 1e-7:
                     nf, nfd = tgt, 0.0
+                    self._lim = None
                 self.k, self.f, self.fd = nk, nf, nfd
                 ks[cnt] = self.k
                 if self.state == STOPPING:
