@@ -104,3 +104,20 @@ def test_systemd_unit_has_the_required_keys():
     for key in ("Type=notify", "Restart=on-failure", "LimitRTPRIO=", "LimitMEMLOCK=", "WatchdogSec=",
                 "ExecStart=/usr/local/bin/hexacnc run --config"):
         assert key in text, key
+
+
+def test_bus_layout_over_the_limit_is_refused_at_start_with_the_figures():
+    import dataclasses
+
+    import pytest
+
+    from hexacnc.config import load_config
+    from hexacnc.daemon.core import Daemon
+    from hexacnc.errors import BusError
+
+    cfg = load_config(None)
+    cfg = cfg.replace(bus=dataclasses.replace(cfg.bus, layout="single", buses=1, feedback_divider=1))
+    with pytest.raises(BusError) as e:
+        Daemon(cfg)
+    msg = str(e.value)
+    assert "does not fit" in msg and "us per cycle" in msg and "% of the 500 us period" in msg

@@ -390,12 +390,9 @@ class Daemon:
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
-            rows = point_to_point(self.cfg, self.hx, start, pose_deg, float(feed_mm_s), self.period_s)
-            job = Job(name=name, source=ArraySource(self.cfg, self.hx, rows, self.period_s, name),
-                      start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
-                      duration_s=(len(rows) - 1) * self.period_s)
-            self._queue(job)
-        return {"blocks": 1, "duration_s": job.duration_s}
+        # planning and checks outside the lock: the feeder thread must never wait for them
+        rows = point_to_point(self.cfg, self.hx, start, pose_deg, float(feed_mm_s), self.period_s)
+        return self._queue_planned(rows, start, name)
 
     def queue_rows(self, rows, name: str = "rows", check: bool = True) -> dict:
         """Queue precomputed rows (N, 8) that start at the current pose (tests, tools)."""
@@ -404,11 +401,17 @@ class Daemon:
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
-            if check:
-                check_rows(self.cfg, self.hx, np.vstack([np.r_[start, 0, 0][None, :], rows]), self.period_s)
-            job = Job(name=name, source=ArraySource(self.cfg, self.hx, rows, self.period_s, name),
-                      start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
-                      duration_s=(len(rows) - 1) * self.period_s)
+        if check:
+            check_rows(self.cfg, self.hx, np.vstack([np.r_[start, 0, 0][None, :], rows]), self.period_s)
+        return self._queue_planned(rows, start, name)
+
+    def _queue_planned(self, rows: np.ndarray, start: np.ndarray, name: str) -> dict:
+        src = ArraySource(self.cfg, self.hx, rows, self.period_s, name)
+        job = Job(name=name, source=src, start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
+                  duration_s=(len(rows) - 1) * self.period_s)
+        with self.lock:
+            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                raise HexacncError("another motion was queued meanwhile; plan again")
             self._queue(job)
         return {"blocks": 1, "duration_s": job.duration_s}
 
