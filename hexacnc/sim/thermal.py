@@ -108,21 +108,30 @@ def strut_speed_profile(cfg, sc: ThermalScenario, n: int):
     return speed, ov, spindle_on, tr, desc
 
 
-def _simulate_linear(models, dt, inputs, T0):
-    """Run 6 strut models; inputs (n,6,3); returns mean T (n,6) and T at every segment (n,6,nseg)."""
+def _simulate_linear(models, dt, inputs, T0, pidx, T_ref):
+    """Run 6 strut models on inputs (n,6,3).
+
+    Returns growth (n,6) mm relative to ``T_ref``, mean temperature (n,6) and the
+    temperatures at segments ``pidx`` (n,6,p): only what the scenario needs, so
+    memory stays O(n) per strut.
+    """
     disc = [discretise(m.A, m.B, dt) for m in models]
     Ad = np.stack([d[0] for d in disc])
     Bd = np.stack([d[1] for d in disc])
+    C = np.stack([m.C for m in models])
     n = inputs.shape[0]
     nseg = models[0].n
     T = np.full((6, nseg), T0, dtype=float)
-    out = np.empty((n, 6, nseg))
-    # B u for all steps at once, then the recursion
-    Bu = np.einsum("ijk,nik->nij", Bd, inputs)
+    growth = np.empty((n, 6))
+    mean = np.empty((n, 6))
+    probe = np.empty((n, 6, len(pidx)))
+    Cs = C.sum(axis=1)
     for k in range(n):
-        T = np.einsum("ijk,ik->ij", Ad, T) + Bu[k]
-        out[k] = T
-    return out
+        T = np.einsum("ijk,ik->ij", Ad, T) + np.einsum("ijk,ik->ij", Bd, inputs[k])
+        growth[k] = np.einsum("ij,ij->i", T, C) - T_ref * Cs
+        mean[k] = T.mean(axis=1)
+        probe[k] = T[:, pidx]
+    return growth, mean, probe
 
 
 def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
@@ -169,12 +178,14 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
     u_env = np.zeros((n, 6, 3))
     u_env[:, :, 1] = Ta[:, None]
     u_env[:, :, 2] = Tf[:, None]
-    T_heat = _simulate_linear(truth, sc.dt_s, u_heat, 0.0)
-    T_env = _simulate_linear(truth, sc.dt_s, u_env, sc.T0_C)
-    Cg = np.stack([m.C for m in truth])                     # (6, nseg) mm/K
+    # probes: the observer's probed segment centres located on the truth grid
+    m_obs = strut_heat_model(cfg.thermal, float(lengths[0]))
+    centres = m_obs.segment_centres_mm() / m_obs.length_mm
+    probe_segs = list(cfg.thermal.probes)
+    pidx = [min(nseg - 1, int(c * nseg)) for c in centres[probe_segs]]
     Tref = cfg.thermal.reference_temperature_C
-    g_heat = np.einsum("nij,ij->ni", T_heat, Cg)            # growth per W/(mm/s)
-    g_env = np.einsum("nij,ij->ni", T_env - Tref, Cg)
+    g_heat, mean_heat, probe_heat = _simulate_linear(truth, sc.dt_s, u_heat, 0.0, pidx, 0.0)
+    g_env, mean_env, probe_env = _simulate_linear(truth, sc.dt_s, u_env, sc.T0_C, pidx, Tref)
 
     # tool-tip map at the measuring pose (home), linear, for the calibration
     X = pose_to_rad(cfg.home_pose)
@@ -203,15 +214,13 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
         h_true = float(sc.heat_per_speed_W_s_mm)
     h_model = h_true / sc.truth_heat_ratio
     growth_true = g_heat * h_true + g_env                   # (n,6) mm
-    T_true = T_heat * h_true + T_env                        # (n,6,nseg)
+    mean_true = mean_heat * h_true + mean_env               # (n,6) mean strut temperature
+    probe_true = probe_heat * h_true + probe_env            # (n,6,p)
 
-    # probes: observer segment centres located on the truth grid
     mcfg = cfg.replace(thermal=dataclasses.replace(cfg.thermal, heat_per_speed_W_s_mm=h_model))
     obs = ThermalObserver(mcfg, sc.dt_s)
-    centres = obs.models[0].segment_centres_mm() / obs.models[0].length_mm
-    pidx = [min(nseg - 1, int(c * nseg)) for c in centres[list(obs.probes)]]
     noise = cfg.thermal.probe_noise_K
-    probes = T_true[:, :, pidx] + rng.normal(0.0, noise, (n, 6, len(pidx)))
+    probes = probe_true + rng.normal(0.0, noise, (n, 6, len(pidx)))
     Ta_meas = Ta + rng.normal(0.0, noise, n)
     Tf_meas = Tf + rng.normal(0.0, noise, n)
     Tsp_meas = Tsp + rng.normal(0.0, sc.spindle_probe_noise_K, n)
@@ -241,7 +250,7 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
                 Ra = matrix_from_euler(*Xa[3:])
                 tip_act = Xa[:3] + Ra @ (tip + g_sp_true[k] * axis)
                 out.append((tip_act - home_tip) * 1e3)
-            dT = float(np.mean(T_true[k].mean(axis=1)) - Tf[k])
+            dT = float(np.mean(mean_true[k]) - Tf[k])
             rows.append([t[k], *out[0], *out[1], dT, float(np.mean(growth_true[k]) * 1e3),
                          float(np.mean(est[k]) * 1e3), g_sp_true[k] * 1e3, override[k]])
             if progress:
