@@ -133,7 +133,8 @@ def cv_score(cfg, meas: Measurements, ctx: Context, model_fit: FitResult, causes
         ctx_te = Context(cfg, meas.subset(test), ctx.sigma[0], ctx.sigma[3], fit_sessions=ctx.sessions)
         lay = model_fit.layout
         # warm start from the full-data fit
-        r = fit(cfg, ctx_tr, lay, theta_init=model_fit.theta, X_init=model_fit.evaluator.X[train], max_iter=20)
+        r = fit(cfg, ctx_tr, lay, theta_init=model_fit.theta, X_init=model_fit.evaluator.X[train], max_iter=20,
+                rel_tol=1e-6)
         ev = Evaluator(cfg, lay, ctx_te, model_fit.evaluator.X[test])
         rv, _ = ev.evaluate(r.theta)
         nd = int(ctx_te.mask.sum())
@@ -279,6 +280,7 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
                         f"for {n_geom} parameters; measure at least {n_geom} coordinates, ideally several times "
                         f"that (`hexacnc calib plan` picks the poses)")
     base = fit_model(cfg, ctx, [], frame0, opts)
+    base.noise_known = known
     baseline = Model([], base, bic=bic(base, known))
     baseline.cv_rms = cv_score(cfg, fit_meas, ctx, base, [], frame0, opts)
     timings = {"baseline_s": time.perf_counter() - t0}
@@ -303,6 +305,7 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
                 table[c]["verdict"] = "absorbed by geometry: cannot be told apart from a geometric error"
                 continue
             r = fit_model(cfg, ctx, chosen + [c], frame0, opts, warm=current.fit)
+            r.noise_known = known
             m = Model(chosen + [c], r, bic=bic(r, known))
             m.cv_rms = cv_score(cfg, fit_meas, ctx, r, chosen + [c], frame0, opts)
             gain = current.cv_rms / m.cv_rms

@@ -31,6 +31,7 @@ class FitResult:
     jac: np.ndarray = field(repr=False, default=None)      #: whitened data Jacobian at theta (free columns)
     basis: np.ndarray = field(repr=False, default=None)    #: (P, k) theta = theta_init + basis @ z
     jac_z: np.ndarray = field(repr=False, default=None)    #: whitened data Jacobian w.r.t. z
+    noise_known: bool = True   #: False: covariance scaled by chi^2/dof (noise estimated from the residual)
     _cov: np.ndarray | None = field(repr=False, default=None)
 
     @property
@@ -57,6 +58,8 @@ class FitResult:
             Cz = np.linalg.pinv(A * D[:, None] * D[None, :], rcond=1e-14) * D[:, None] * D[None, :]
             Tf = T[self.free]
             self._cov = Tf @ Cz @ Tf.T
+            if not self.noise_known:
+                self._cov = self._cov * max(1.0, self.chi2_red)
         return self._cov
 
 
@@ -92,10 +95,11 @@ def gauge_basis(layout: Layout, fix_gauge: bool) -> np.ndarray:
 
 def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None, free: np.ndarray | None = None,
         max_iter: int = 60, X_init: np.ndarray | None = None, tol: float = 1e-3,
-        fix_gauge: bool = True) -> FitResult:
+        fix_gauge: bool = True, rel_tol: float = 1e-9) -> FitResult:
     """Levenberg-Marquardt with column scaling; returns a :class:`FitResult`.
 
-    ``tol``: stop when the whitened cost (chi^2) drops by less than this.
+    ``tol``, ``rel_tol``: stop when the whitened cost (chi^2) drops by less than
+    ``max(tol, rel_tol * cost)``.
     ``free``: mask of parameters to fit (default all); with a registered frame
     and all geometry free, the 12 gauge directions are removed (:func:`gauge_basis`).
     """
@@ -141,7 +145,7 @@ def fit(cfg, ctx: Context, layout: Layout, theta_init: np.ndarray | None = None,
                 lam = max(lam / 5.0, 1e-9)
                 improved = True
                 # converged: chi^2 moves by less than tol (statistically nothing) or a tiny step
-                if drop < max(tol, 1e-6 * cost) or float(np.max(np.abs(step))) < 1e-9:
+                if drop < max(tol, rel_tol * cost) or float(np.max(np.abs(step))) < 1e-9:
                     converged = True
                 break
             ev.X = X_saved

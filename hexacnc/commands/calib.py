@@ -122,6 +122,7 @@ def _fit(args) -> int:
                         f"parameters; measure more poses (at least {n_par} coordinates, ideally several times "
                         f"that; `hexacnc calib plan` picks them)")
     res = fit_model(cfg, ctx, causes, frame0, opts)
+    res.noise_known = known
     rms = res.rms()
     nom = nominal_rms(cfg, meas, frame)
     rep = {
