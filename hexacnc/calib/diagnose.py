@@ -72,6 +72,7 @@ class Diagnosis:
     baseline_holdout: dict | None = None
     extended_holdout: dict | None = None
     timings: dict = field(default_factory=dict)
+    hold_info: dict | None = None          #: held-out residual arrays for the report
 
 
 def noise_defaults(cfg, noise_mm, noise_deg) -> tuple[float, float, bool]:
@@ -411,9 +412,7 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         result["gain"].update({k2: _ratio1(b_hold.get(k2), e_hold.get(k2)) for k2 in ("position_mm", "orientation_deg", "strut_mm")})
     timings["total_s"] = time.perf_counter() - t0
     result["timing_s"] = timings
-    d = Diagnosis(result, baseline, extended, ctx, hold_ctx, rows, b_hold, e_hold, timings)
-    d.hold_info = hold_info
-    return d
+    return Diagnosis(result, baseline, extended, ctx, hold_ctx, rows, b_hold, e_hold, timings, hold_info)
 
 
 def _ratio1(a, b):

@@ -314,7 +314,7 @@ class Layout:
 
 
 def build_layout(cfg, ctx: Context, causes=(), frame: np.ndarray | None = None, prior_joint_mm: float = 5.0,
-                 prior_offset_mm: float = 50.0, frame_init: np.ndarray | None = None) -> Layout:
+                 prior_offset_mm: float = 50.0) -> Layout:
     hx = Hexapod(cfg)
     names = list(PARAM_NAMES)
     theta0 = [hx.parameters()]

@@ -102,7 +102,7 @@ def write_diagnosis_report(rd: ReportDir, diag, cfg) -> None:
     b_fit = diag.baseline.fit.residuals()
     e_fit = diag.extended.fit.residuals()
     panels = [("rigid 42-parameter model, fit data", b_fit), ("extended model, fit data", e_fit)]
-    hi = getattr(diag, "hold_info", None)
+    hi = diag.hold_info
     if hi:
         panels += [("rigid model, held-out", hi["baseline_residuals"]), ("extended model, held-out", hi["extended_residuals"])]
     plots.workspace_before_after(rd.path("residuals_workspace.png"), panels,
