@@ -224,3 +224,35 @@ def test_send_command_against_the_real_daemon(cfg, machine, tmp_path, capsys):
     assert cli(["send", str(bad), "--socket", srv.socket_path]) == 3
     assert f"{bad}:3" in capsys.readouterr().err
     assert cli(["status", "--socket", srv.socket_path, "--json"]) == 0
+
+
+def test_send_ctrl_c_stops_the_program_under_control(cfg, machine, tmp_path):
+    """``hexacnc send`` as a separate process; SIGINT asks for a controlled stop; exit code 5."""
+    import signal
+    import subprocess
+    import sys
+    daemon, srv = machine
+    p = tmp_path / "long.ngc"
+    p.write_text(f"G21 G90\nG1 {work(cfg, 40, 0, -1150)} F600\nG1 {work(cfg, -40, 0, -1150)}\nM2\n")
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    proc = subprocess.Popen([sys.executable, "-m", "hexacnc", "send", str(p), "--socket", srv.socket_path],
+                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        with P.Client.unix(srv.socket_path) as obs:
+            deadline = time.monotonic() + 20.0
+            while obs.call("status")["state"] != "running":
+                assert proc.poll() is None, proc.communicate()
+                assert time.monotonic() < deadline
+                time.sleep(0.05)
+            time.sleep(0.5)
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+            assert proc.returncode == 5, (out, err)
+            assert "stopping" in err and "stopped" in err
+            st = obs.call("status")
+            assert st["state"] == "idle" and st["fault"] is None
+            assert st["program"]["stopped"] is True and st["program"]["percent"] < 100.0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()

@@ -135,3 +135,14 @@ def test_status_watch_json_lines(env, capsys):
 def test_status_connection_error_exits_6(env, capsys):
     srv, daemon, d = env
     assert cli(["status", "--socket", os.path.join(d, "none.sock")]) == 6
+
+
+def test_send_reports_a_pause_and_finishes_after_resume(env, capsys):
+    srv, daemon, d = env
+    daemon.block_s = 0.03
+    threading.Timer(0.2, daemon.pause).start()
+    threading.Timer(0.8, daemon.resume).start()
+    rc = cli(["send", _prog(d, "G1 X1\n" * 30), "--socket", srv.socket_path])
+    out = capsys.readouterr()
+    assert rc == 0, out
+    assert "paused at line" in out.err and "finished" in out.out

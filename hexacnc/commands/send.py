@@ -271,6 +271,25 @@ def _run(client, args, path: str, name: str, text: str, out: TextIO, err: TextIO
             signal.signal(signal.SIGINT, old)
 
 
+def _stdin_is_tty() -> bool:
+    try:
+        return sys.stdin is not None and sys.stdin.isatty()
+    except (ValueError, OSError):
+        return False
+
+
+def _enter_pressed() -> bool:
+    import select
+    try:
+        r, _, _ = select.select([sys.stdin], [], [], 0)
+    except (ValueError, OSError):
+        return False
+    if r:
+        sys.stdin.readline()
+        return True
+    return False
+
+
 def _follow(client, prog: Progress, blocks: Any, name: str, interrupted: dict, err: TextIO) -> int:
     from ..daemon import protocol as P
 
@@ -279,7 +298,14 @@ def _follow(client, prog: Progress, blocks: Any, name: str, interrupted: dict, e
     wait_id = client.send("wait", timeout_s=P.MAX_WAIT_S)
     seen_active = False
     stop_sent = False
+    # a program pause (M0/M1) or a pause waits for this client, which controls motion: on a
+    # terminal, Enter resumes
+    interactive = _stdin_is_tty()
+    paused_shown = False
     while True:
+        if interactive and paused_shown and _enter_pressed():
+            client.send("resume")
+            paused_shown = False
         if interrupted["n"] and not stop_sent:
             stop_sent = True
             prog.finish()
@@ -294,6 +320,14 @@ def _follow(client, prog: Progress, blocks: Any, name: str, interrupted: dict, e
                 if msg.get("state") in ("running", "paused", "stopping"):
                     seen_active = True
                 prog.update(msg)
+                if msg.get("state") == "paused" and not paused_shown and not stop_sent:
+                    paused_shown = True
+                    prog.finish()
+                    how = "press Enter to resume, Ctrl-C to stop" if interactive else \
+                        "this client controls motion; run on a terminal to resume with Enter"
+                    print(f"{name}: paused at line {msg.get('line')} ({how})", file=err)
+                elif msg.get("state") != "paused":
+                    paused_shown = False
             continue
         if rid != wait_id:
             if not msg.get("ok") and msg.get("error", {}).get("code") not in (None,):
