@@ -322,8 +322,21 @@ def test_bad_requests_get_error_replies_and_the_connection_lives(served, msg, co
 
 def test_extra_fields_are_ignored(served):
     srv, d = served
-    r = Raw(srv.socket_path).req("status", future_field=[1, 2])
-    assert r["ok"]
+    c = Raw(srv.socket_path)
+    assert c.req("status", future_field=[1, 2])["ok"]
+    c.send_obj({"id": 8, "op": "status", 5: "int key", b"k": "bin key"})
+    assert c.recv()["ok"] is True
+
+
+def test_binary_keys_are_not_field_names(served):
+    srv, d = served
+    c = Raw(srv.socket_path)
+    c.send_obj({b"id": 1, b"op": b"status"})
+    r = c.recv()
+    assert _err(r)["code"] == "missing_field" and r["id"] is None
+    c.send_obj({"id": 2, "op": b"status"})
+    assert _err(c.recv())["code"] == "bad_type"
+    assert c.req("status")["ok"]
 
 
 def test_undecodable_bytes_close_only_that_connection(served):
@@ -336,6 +349,9 @@ def test_undecodable_bytes_close_only_that_connection(served):
     bad2 = Raw(srv.socket_path)
     bad2.send_bytes(b"\xa3\xff\xfe\xfd")            # str with invalid UTF-8
     assert bad2.closed_within(3.0)
+    bad3 = Raw(srv.socket_path)
+    bad3.send_bytes(b"\x81\x91\x01\x02")            # map with an array as key: no Python map
+    assert bad3.closed_within(3.0)
     assert good.req("status")["ok"]
     assert good.recv(1.0)["stream"] == "status"     # its stream keeps flowing
     assert Raw(srv.socket_path).req("hello")["ok"]  # and new clients are accepted

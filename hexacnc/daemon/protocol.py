@@ -282,7 +282,9 @@ class Decoder:
 
     def __init__(self, max_bytes: int = MAX_MESSAGE_BYTES):
         self.max_bytes = int(max_bytes)
-        self._u = msgpack.Unpacker(raw=False, max_buffer_size=self.max_bytes, strict_map_key=True)
+        # non-string map keys decode (and then fail validation with a reply); only what cannot
+        # become a Python object at all (bad bytes, invalid UTF-8, unhashable keys) is fatal
+        self._u = msgpack.Unpacker(raw=False, max_buffer_size=self.max_bytes, strict_map_key=False)
         self.too_large = False
 
     def feed(self, data: bytes) -> None:
