@@ -312,7 +312,10 @@ class HotLoop:
         pos_count = io.pos_count
         pos_seen = [0] * 6
         # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check
-        n_hist = max(2, min(32, 2 * int(getattr(self.cfg.bus, "feedback_divider", 1)) + 2))
+        # transport allowance: 2 feedback periods + 2 cycles, at least 5 ms (the drives check their
+        # own following error exactly, 0x6065/0x6066; this is the controller's backstop)
+        n_hist = max(2 * int(getattr(self.cfg.bus, "feedback_divider", 1)) + 2, int(math.ceil(0.005 / self.dt)))
+        n_hist = min(n_hist, 64)
         hist_cmd = self.hist_cmd = [0.0] * (6 * n_hist)
         self._fill_hist(self.l0)
         h_slot = 0
