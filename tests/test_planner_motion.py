@@ -282,3 +282,30 @@ def test_sampler_is_continuous_across_chunks_and_periods(cfg):
     run(s)
     assert s.progress == (100.0, 0.0) and s.done
     assert math.isfinite(plan.min_joint_margin_deg)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_pause_on_a_plan_at_the_strut_limits(cfg, seed):
+    """Pause while the nominal plan uses ~99 % velocity / ~93 % acceleration: still within limits, on
+    the path, and at rest within half a second."""
+    from hexacnc.bench.plan import topp_path_blocks
+    plan = plan_program(topp_path_blocks(cfg), cfg)
+    assert plan.utilisation["velocity"] > 0.9
+    tp = np.random.default_rng(seed).uniform(0.3, plan.duration_s - 0.5)
+    ev = {}
+
+    def hook(s, n):
+        if n * plan.dt > tp and "p" not in ev:
+            ev["p"] = n
+            s.pause()
+        if s.state == "paused" and "at" not in ev:
+            ev["at"] = n
+        if "at" in ev and n > ev["at"] + 200 and "r" not in ev:
+            ev["r"] = n
+            s.resume()
+    s = plan.sampler()
+    rows = run(s, chunk=20, hook=hook)
+    assert s.done and "r" in ev
+    assert (ev["at"] - ev["p"]) * plan.dt < 0.5
+    assert max(utilisation(cfg, rows, plan.dt)) <= 1.0
+    assert on_path_distance(cfg, plan, rows).max() < 0.01

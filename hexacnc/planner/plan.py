@@ -167,7 +167,9 @@ def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
     # singularity (checked at the samples)
     J = np.concatenate([u, np.cross(rp, u) / hx.char_length_mm], axis=2)
     with np.errstate(all="ignore"):
-        cond = np.linalg.cond(J)
+        ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", J, J))      # singular values squared
+        cond = np.sqrt(ev[:, -1] / np.maximum(ev[:, 0], 1e-300))
+        cond = np.where(ev[:, 0] > 0, cond, np.inf)
     bad = (np.any(lo < 0, axis=1) | np.any(hi < 0, axis=1) | np.any(jb < 0, axis=1) | np.any(jp < 0, axis=1)
            | ~np.isfinite(cond) | (cond > hx.max_condition))
     if bad.any():

@@ -106,6 +106,7 @@ class PlanSampler:
         self._cap = g["cap"].tolist()
         self._lim = None
         self._lim_tgt = None
+        self._lim_age = 0
         self._pauses = sorted(plan.pause_idx)
         self._next_pause = 0
         self._otg = Ruckig(1, self.period_s)        # never the third (cloud) argument
@@ -255,6 +256,15 @@ class PlanSampler:
                 if self._lim is None or tgt != self._lim_tgt:
                     self._lim = self._transition_limits(b, tgt)
                     self._lim_tgt = tgt
+                    self._lim_age = 0
+                else:
+                    self._lim_age += 1
+                    if tgt < self.f and self._lim_age >= 40:
+                        # slowing down frees headroom (f^2 a, f^3 j shrink): raise the limits, never lower
+                        self._lim_age = 0
+                        A2, J2 = self._transition_limits(b, tgt)
+                        if A2 >= self._lim[0] and J2 >= self._lim[1]:
+                            self._lim = (A2, J2)
                 A, J = self._lim
                 inp.current_position = [self.k * self.plan.dt]
                 inp.current_velocity = [self.f]
