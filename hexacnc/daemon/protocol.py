@@ -226,7 +226,9 @@ def error_from_exception(exc: BaseException, req_id: int | None, state: str | No
                            column=_int_or_none(exc.column), reason=str(raw or code))
     if isinstance(exc, PlanError):
         raw = getattr(exc, "code", None)
-        code = raw if raw in PROGRAM_CODES else LIMIT
+        # a planner code other than the stable ones (e.g. "empty") is about the program's
+        # content, not a machine limit
+        code = raw if raw in PROGRAM_CODES else (LIMIT if raw in (None, "limit") else GCODE)
         limit = exc.limit if isinstance(exc.limit, str) else (None if exc.limit is None else str(exc.limit))
         return error_reply(req_id, code, str(exc), _int_or_none(exc.line), limit=limit, reason=str(raw or code))
     if isinstance(exc, HexacncError):
