@@ -43,7 +43,7 @@ ETA = 0.95
 #: fraction of the velocity limit the nominal plan may use
 ETA_V = 1.0
 #: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
-FILTER_JERK_SHARE = 0.8
+FILTER_JERK_SHARE = 1.0
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.8
 #: share of the jerk limit an acceleration step at a junction may take
