@@ -538,7 +538,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     path, events = P.build_path(blocks, cfg)
     T_f = float(np.max(2.0 * amax / jmax)) / FILTER_JERK_SHARE
     nf = max(1, int(math.ceil(T_f / dt)))
-    hold_min = nf * dt
+    hold_min = nf * dt + 2 * dt      # the smoothed motion rests for at least two cycles at a stop
 
     if path.n == 0:
         # no motion: a standstill at the start pose (if any) for dwells
