@@ -59,6 +59,7 @@ class Model:
     fit: FitResult
     cv_rms: float = math.nan             #: whitened CV residual RMS
     bic: float = math.nan
+    nl_degree: int = 3                   #: strut_nonlinearity degree used by this model
 
 
 @dataclass
@@ -117,6 +118,46 @@ def fit_model(cfg, ctx: Context, causes, frame0: np.ndarray | None, opts: Option
         r0 = fit(cfg, ctx, lay, free=free, max_iter=30)
         theta, X0 = r0.theta, r0.evaluator.X
     return fit(cfg, ctx, lay, theta_init=theta, X_init=X0)
+
+
+NL_DEGREES = (3, 5, 7)
+
+
+def _set_nl(ctx: Context, model: "Model") -> None:
+    """Context options of strut_nonlinearity for the layouts built from now on."""
+    ctx.nl_degree = getattr(model, "nl_degree", ctx.nl_degree)
+    ctx.nl_linear = "strut_scale" not in model.causes
+
+
+def _fit_candidate(cfg, ctx: Context, chosen: list[str], c: str, frame0, opts: "Options", warm: FitResult,
+                   known: bool, current_degree: int) -> "Model":
+    """Fit chosen + [c]; strut_nonlinearity picks its polynomial degree by BIC.
+
+    ``ctx``'s strut_nonlinearity options are restored before returning; the fitted
+    layout keeps the ones it was built with.
+    """
+    keep_deg, keep_lin = ctx.nl_degree, ctx.nl_linear
+    try:
+        ctx.nl_linear = "strut_scale" not in chosen   # with a gain term unless strut_scale came first
+        ctx.nl_degree = current_degree
+        if c != "strut_nonlinearity":
+            r = fit_model(cfg, ctx, chosen + [c], frame0, opts, warm=warm)
+            r.noise_known = known
+            m = Model(chosen + [c], r, bic=bic(r, known))
+            m.nl_degree = current_degree
+            return m
+        best = None
+        for deg in NL_DEGREES:
+            ctx.nl_degree = deg
+            r = fit_model(cfg, ctx, chosen + [c], frame0, opts, warm=warm)
+            r.noise_known = known
+            m = Model(chosen + [c], r, bic=bic(r, known))
+            m.nl_degree = deg
+            if best is None or m.bic < best.bic - 1e-9:
+                best = m
+        return best
+    finally:
+        ctx.nl_degree, ctx.nl_linear = keep_deg, keep_lin
 
 
 def _folds(n: int, k: int) -> list[np.ndarray]:
@@ -186,7 +227,8 @@ def signature_analysis(base_fit: FitResult, cfg, ctx: Context, causes, frame0, o
             sv = np.linalg.svd(Qa.T @ Qb, compute_uv=False)
             cos_min = float(sv[min(Qa.shape[1], Qb.shape[1]) - 1]) if len(sv) else 0.0
             if cos_min > 0.98:
-                out["inseparable_pairs"].append({"a": a, "b": b, "cos_max": cosmax, "cos_min": cos_min})
+                out["inseparable_pairs"].append({"a": a, "b": b, "cos_max": cosmax, "cos_min": cos_min,
+                                                 "nested": Qa.shape[1] != Qb.shape[1]})
     return out
 
 
@@ -302,28 +344,34 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         for c in cands:
             if c in chosen:
                 continue
+            if c == "strut_scale" and "strut_nonlinearity" in chosen and ctx.nl_linear:
+                table[c]["verdict"] = "nested in strut_nonlinearity (a gain error is the P1 term of its map)"
+                continue
             if (sig["separable_fraction"].get(c) or 0.0) < 1e-4:
                 table[c]["verdict"] = "absorbed by geometry: cannot be told apart from a geometric error"
                 continue
-            r = fit_model(cfg, ctx, chosen + [c], frame0, opts, warm=current.fit)
-            r.noise_known = known
-            m = Model(chosen + [c], r, bic=bic(r, known))
-            m.cv_rms = cv_score(cfg, fit_meas, ctx, r, chosen + [c], frame0, opts)
+            m = _fit_candidate(cfg, ctx, chosen, c, frame0, opts, current.fit, known, current.nl_degree)
+            m.cv_rms = cv_score(cfg, fit_meas, ctx, m.fit, chosen + [c], frame0, opts)
             gain = current.cv_rms / m.cv_rms
             dbic = m.bic - current.bic
-            entry = {"cv_gain": gain, "delta_bic": dbic, "chi2_red": r.chi2_red,
+            entry = {"cv_gain": gain, "delta_bic": dbic, "chi2_red": m.fit.chi2_red,
                      "n_parameters": len(m.fit.layout.cause_models[c].names)}
+            if c == "strut_nonlinearity":
+                entry["degree"] = m.nl_degree
             table[c].setdefault("rounds", []).append(entry)
             if not chosen:
                 first_round[c] = m
             ok = gain >= 1.0 + opts.min_cv_gain and dbic <= -opts.min_delta_bic
-            if ok and (best is None or m.cv_rms < best[1].cv_rms):
+            # among the candidates that pass cross-validation, the information criterion decides
+            # (a nested, larger model never wins over the smaller one that explains the data)
+            if ok and (best is None or m.bic < best[1].bic):
                 best = (c, m, entry)
         if best is None:
             break
         chosen.append(best[0])
         table[best[0]]["selected_in_round"] = len(chosen)
         current = best[1]
+        _set_nl(ctx, current)
     timings["selection_s"] = time.perf_counter() - t0 - timings["baseline_s"]
     extended = current
     # holdout
@@ -364,6 +412,14 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         sd = np.sqrt(np.maximum(np.diag(C)[pos], 0.0))
         contrib = _contribution_mm(cfg, extended.fit, c)
         params = {nm: float(v) for nm, v in zip(cm.names, extended.fit.theta[sl])}
+        if c == "strut_nonlinearity":
+            qh = extended.fit.evaluator.ctx.q_half
+            params["degree"] = extended.nl_degree
+            for i in range(6):
+                if f"p1_strut{i + 1}_mm" in params:   # the gain part of the map, as a scale error
+                    params[f"gain{i + 1}_ppm"] = params[f"p1_strut{i + 1}_mm"] / qh[i] * 1e6
+            params["stroke_center_mm"] = extended.fit.evaluator.ctx.q_center.tolist()
+            params["stroke_half_mm"] = qh.tolist()
         if c == "elastic_sag" and params["compliance_mm_per_kN"] > 0:
             params["equivalent_stiffness_N_per_mm"] = 1000.0 / params["compliance_mm_per_kN"]
         entry = table[c]["rounds"][table[c]["selected_in_round"] - 1]
@@ -377,7 +433,8 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
                          "separable_fraction": sig["separable_fraction"].get(c),
                          "contribution_mm": contrib,
                          "cannot_be_told_apart_from": [p["b"] if p["a"] == c else p["a"]
-                                                       for p in sig["inseparable_pairs"] if c in (p["a"], p["b"])]},
+                                                       for p in sig["inseparable_pairs"]
+                                                       if c in (p["a"], p["b"]) and not p["nested"]]},
         })
     # chi2 before each cause
     prev_chi = baseline.fit.chi2_red

@@ -184,6 +184,9 @@ class Context:
         bad = np.linalg.norm(ap, axis=1) < 1e-3
         ap[bad] = np.cross(axp[bad], [1.0, 0.0, 0.0])
         self.joint_axis1_platform = ap / np.linalg.norm(ap, axis=1)[:, None]   #: platform frame
+        #: strut_nonlinearity: polynomial degree and whether its gain (P1) term is included
+        self.nl_degree = 3
+        self.nl_linear = True
         Tf = meas.T_frame
         self.frame_thermal = Tf is not None and bool(np.all(np.isfinite(Tf))) and float(np.ptp(Tf)) >= 0.2
         self.stiffness = np.asarray(cfg.stiffness_N_per_mm, dtype=float)
@@ -244,15 +247,19 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           "gain error of each strut reading: L += s_i * q_i",
                           lambda c, X, b, p: _diag(c.q * 1e-6))
     if name == "strut_nonlinearity":
-        def nl(c, X, b, p):
+        deg = int(ctx.nl_degree)
+        first = 1 if ctx.nl_linear else 2
+        orders = list(range(first, deg + 1))
+
+        def nl(c, X, b, p, orders=orders):
             t = (c.q - c.q_center) / c.q_half
-            p2 = 0.5 * (3 * t * t - 1)
-            p3 = 0.5 * (5 * t ** 3 - 3 * t)
-            return np.concatenate([_diag(p2), _diag(p3)], axis=2)
-        return CauseModel(name, [f"p2_strut{i + 1}_mm" for i in range(6)] + [f"p3_strut{i + 1}_mm" for i in range(6)],
+            P = np.polynomial.legendre.legvander(t.ravel(), max(orders)).reshape(t.shape + (max(orders) + 1,))
+            return np.concatenate([_diag(P[..., k]) for k in orders], axis=2)
+        return CauseModel(name, [f"p{k}_strut{i + 1}_mm" for k in orders for i in range(6)],
                           "mm", 1.0, False,
-                          "smooth nonlinear reading-to-length map: L += c2_i P2(t) + c3_i P3(t), "
-                          "t = reading normalised over the configured stroke (Legendre polynomials)", nl)
+                          "smooth reading-to-length map of each strut: L += sum_k c_k,i P_k(t), Legendre "
+                          f"polynomials of degree {first}..{deg} in t = reading normalised over the configured "
+                          "stroke (P1 is a gain error: P1 coefficient / half stroke = scale)", nl)
     if name == "backlash":
         return CauseModel(name, [f"half_backlash{i + 1}_mm" for i in range(6)], "mm", 1.0, False,
                           "offset that flips with the approach direction of each strut (row order): "

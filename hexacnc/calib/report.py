@@ -47,7 +47,11 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
             L.append(f"- **{c['name']}**: {c['model']}. Contribution {ev['contribution_mm']:.4g} mm RMS on the struts; "
                      f"cross-validated residual {ev['cv_gain']:.3g}x smaller with it; BIC change "
                      f"{ev['delta_bic']:.1f}.")
-            top = sorted(c["parameters"].items(), key=lambda kv: -abs(kv[1]))[:6]
+            top = sorted(((k, v) for k, v in c["parameters"].items() if isinstance(v, (int, float))
+                          and k in c["parameter_std"]), key=lambda kv: -abs(kv[1]))[:6]
+            if c["name"] == "strut_nonlinearity" and "gain1_ppm" in c["parameters"]:
+                L.append("  Gain part of the map (scale error per strut, ppm): " + ", ".join(
+                    f"{c['parameters'][f'gain{i}_ppm']:.0f}" for i in range(1, 7)))
             L.append("  Parameters: " + ", ".join(
                 f"{k} = {v:.4g} ± {c['parameter_std'].get(k, float('nan')):.2g}" for k, v in top)
                 + (" ..." if len(c["parameters"]) > 6 else ""))
@@ -80,10 +84,16 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
         note = c.get("reason") or c.get("verdict") or ("selected" if c.get("selected_in_round") else "")
         L.append(f"| {name} | {_fmt(c.get('separable_fraction'))} | {_fmt(r0.get('cv_gain'))} | "
                  f"{_fmt(r0.get('delta_bic'))} | {note} |")
-    if res.get("inseparable"):
+    pairs = [p for p in res.get("inseparable", []) if not p.get("nested")]
+    nested = [p for p in res.get("inseparable", []) if p.get("nested")]
+    if pairs:
         L.append("")
         L.append("Candidate pairs this data cannot separate: "
-                 + "; ".join(f"{p['a']} / {p['b']}" for p in res["inseparable"]) + ".")
+                 + "; ".join(f"{p['a']} / {p['b']}" for p in pairs) + ".")
+    if nested:
+        L.append("")
+        L.append("Nested candidates (one model contains the other; the information criterion prefers the "
+                 "smaller when it suffices): " + "; ".join(f"{p['a']} / {p['b']}" for p in nested) + ".")
     L.append("")
     L.append("'Separable from geometry': fraction of a candidate's signature that the 42 geometric parameters "
              "(and frame registration) cannot absorb; near 0 means a geometric error looks the same.")
