@@ -256,3 +256,34 @@ def test_send_ctrl_c_stops_the_program_under_control(cfg, machine, tmp_path):
         if proc.poll() is None:
             proc.kill()
             proc.communicate()
+
+
+def test_pause_and_resume_a_program_over_the_socket_still_ends_on_its_end_pose(cfg, client):
+    hx = Hexapod(cfg)
+    text = (f"G21 G90\nG1 {work(cfg, 30, 0, -1150)} F1500\nG1 {work(cfg, 30, 30, -1140, 2, 0, 0)}\n"
+            f"G1 {work(cfg, 0, 0, -1150)}\nM2\n")
+    assert client.call("program", text=text, name="pausable")["blocks"] >= 3
+    time.sleep(0.4)
+    client.call("pause")
+    deadline = time.monotonic() + 10.0
+    while client.call("status")["state"] != "paused":
+        assert time.monotonic() < deadline
+        time.sleep(0.02)
+    # the pause decelerates along the path to rest (after the rows already queued to the loop)
+    p1, t_rest = client.call("status")["pose_cmd"], time.monotonic() + 3.0
+    while True:
+        time.sleep(0.1)
+        p2 = client.call("status")["pose_cmd"]
+        if p2 == p1:
+            break
+        assert time.monotonic() < t_rest, "still moving 3 s after pause"
+        p1 = p2
+    time.sleep(0.3)
+    st = client.call("status")
+    assert st["pose_cmd"] == p1 and st["state"] == "paused"
+    assert 0.0 < st["program"]["percent"] < 100.0
+    client.call("resume")
+    st = client.call("wait", timeout_s=60.0)
+    assert st["state"] == "idle" and st["fault"] is None and st["program"]["percent"] == pytest.approx(100.0)
+    want = expected_struts_cmd_mm(cfg, hx, programmed_end_platform_pose(cfg, text))
+    assert np.max(np.abs(np.asarray(st["struts_cmd_mm"]) - want)) <= 1.0 / cfg.bus.increments_per_mm
