@@ -310,3 +310,20 @@ def test_array_source_pause_decelerates_along_the_path():
     assert np.allclose(allrows[:, 1:3], rows[0, 1:3])    # on the path (a line along x)
     assert np.all(np.diff(allrows[:, 0]) >= -1e-12)      # never backwards
     assert allrows[-1, 7] == S.FLAG_END and allrows[-1, 0] == pytest.approx(100.0)
+
+
+def test_thermal_and_spindle_offsets_are_slewed_into_the_commands(rig):
+    cfg, hx, sh, io, lp = rig()
+    before = np.array(io.log[-1], float)
+    for i in range(6):
+        sh.s[S.S_THERMAL_TGT + i] = 0.010 * (i + 1)      # struts grew 10..60 um
+    n0 = len(io.log)
+    _run(lp, 2000)                                       # 1 s: at most 2 um/s of slew
+    h, s = sh.read_status()
+    app = np.array(s[S.S_THERMAL_APP:S.S_THERMAL_APP + 6])
+    assert np.all(app > 0.0015) and np.all(app <= 0.002 * 1.03 + 2e-5)     # slew-limited
+    after = np.array(io.log[-1], float)
+    # a longer strut is commanded shorter by the growth (increments of 0.1 um)
+    assert np.allclose((before - after) / cfg.bus.increments_per_mm, app, atol=2e-4)
+    assert_commands_within_limits(cfg, io, n0)
+    assert sh.h[S.H_FAULT] == 0

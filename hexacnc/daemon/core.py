@@ -151,6 +151,10 @@ class Daemon:
         self.closed = False
         self._feeder: threading.Thread | None = None
         self.feed_hold = False          #: tests: the setpoint source stops delivering (dead source)
+        self._temps: dict | None = None   #: latest temperatures from set_temperatures
+        self._observer = None
+        self._thermal_t = 0.0
+        self._travel_last = None
         self._stats_cache: tuple[float, dict] = (0.0, {})
         self._last_fault_logged = 0
         self._notifier = None
@@ -270,6 +274,7 @@ class Daemon:
             try:
                 sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
                 self._feed_once(sh, ahead)
+                self._thermal_once(sh)
             except Exception:       # never let the feeder die silently: the loop would fault
                 log.exception("feeder error")
             time.sleep(FEED_PERIOD_S)
@@ -319,6 +324,58 @@ class Daemon:
                     self.stop_requested = False
                 log.info("%s %s", "stopped" if src.stopping else "finished", job.name)
                 self.cv.notify_all()
+
+    # ------------------------------------------------------------------ thermal
+    THERMAL_DT_S = 0.1
+
+    def set_temperatures(self, ambient_C: float, frame_C: float, probes_C=None,
+                         spindle_C: float | None = None) -> None:
+        """Temperature readings from the machine's sensors (any rate; the observer runs at 10 Hz).
+
+        ``probes_C``: (6, n_probes) readings of the ``[thermal] probes`` segments, or None (the
+        model then predicts from the strut travel alone).  Until the first call no thermal
+        offset is applied: without temperatures there is nothing honest to compensate.
+        """
+        vals = [ambient_C, frame_C] + ([] if spindle_C is None else [spindle_C])
+        if not all(isinstance(v, (int, float)) and math.isfinite(v) and -50.0 <= v <= 200.0 for v in vals):
+            raise HexacncError(f"temperatures must be finite degC in [-50, 200], got {vals}")
+        probes = None
+        if probes_C is not None:
+            probes = np.asarray(probes_C, dtype=float)
+            n = len(self.cfg.thermal.probes)
+            if probes.shape != (6, n):
+                raise HexacncError(f"probes_C must be 6 x {n} readings ([thermal] probes), got {probes.shape}")
+        with self.lock:
+            self._temps = {"ambient": float(ambient_C), "frame": float(frame_C), "probes": probes,
+                           "spindle": None if spindle_C is None else float(spindle_C)}
+
+    def _thermal_once(self, sh: S.Shared) -> None:
+        now = time.monotonic()
+        if self._temps is None or now - self._thermal_t < self.THERMAL_DT_S:
+            return
+        dt = now - self._thermal_t if self._thermal_t else self.THERMAL_DT_S
+        self._thermal_t = now
+        from ..thermal import spindle_growth_mm, thermal_observer
+        with self.lock:
+            t = dict(self._temps)
+        travel = np.array(sh.s[S.S_TRAVEL:S.S_TRAVEL + 6])
+        speed = np.zeros(6) if self._travel_last is None else (travel - self._travel_last) / max(dt, 1e-3)
+        self._travel_last = travel
+        if self.cfg.thermal.enabled:
+            if self._observer is None:
+                self._observer = thermal_observer(self.cfg, self.THERMAL_DT_S)
+                self._observer.reset(t["frame"])
+            if t["probes"] is not None:
+                off = self._observer.update(speed, t["ambient"], t["frame"], t["probes"])
+            else:
+                off = self._observer.predict_only(speed, t["ambient"], t["frame"])
+            if np.all(np.isfinite(off)) and np.all(np.abs(off) < 5.0):
+                for i in range(6):
+                    sh.s[S.S_THERMAL_TGT + i] = float(off[i])
+        if t["spindle"] is not None:
+            g = spindle_growth_mm(t["spindle"], self.cfg)
+            if math.isfinite(g) and abs(g) < 5.0:
+                sh.s[S.S_SPINDLE_TGT] = float(g)
 
     def _abort_jobs(self, why: str) -> None:
         if self.current is not None:
@@ -596,6 +653,8 @@ class Daemon:
             "struts_cmd_mm": s[S.S_STRUT_CMD:S.S_STRUT_CMD + 6],
             "struts_act_mm": s[S.S_STRUT_ACT:S.S_STRUT_ACT + 6],
             "following_error_max_mm": s[S.S_FOLLOW_MAX:S.S_FOLLOW_MAX + 6],
+            "thermal_offsets_mm": s[S.S_THERMAL_APP:S.S_THERMAL_APP + 6],
+            "spindle_growth_mm": s[S.S_SPINDLE_APP],
             "statuswords": h[S.H_STATUSWORDS:S.H_STATUSWORDS + 6],
             "line": h[S.H_LINE],
             "fault": fault,

@@ -44,6 +44,9 @@ PUBLISH_EVERY = 8
 ENABLE_TIMEOUT_NS = 2_000_000_000
 #: a strut command step below this (mm per cycle) counts as standstill
 STANDSTILL_MM = 1e-7
+#: thermal/spindle growth offsets are slewed at most this fast (mm/s), every THERMAL_EVERY cycles
+THERMAL_SLEW_MM_S = 0.002
+THERMAL_EVERY = 16
 
 # CiA 402 controlwords / statusword masks (values from CiA 402-2; the tables live in drivers.cia402)
 CW_DISABLE_VOLTAGE = 0x0000
@@ -144,6 +147,7 @@ class HotLoop:
         self.resync = False
         self.stats_reset = False
         self.hist_cmd = [0.0] * 6
+        self.travel = [0.0] * 6
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -283,6 +287,12 @@ class HotLoop:
             h[S.H_STATUSWORDS + i] = io.statusword[i]
             h[S.H_DRIVE_STATE + i] = 1 if _op_enabled(io.statusword[i]) else 0
         s[S.S_FK_RES] = ct.fk_residual_mm
+        tr = self.travel
+        th = ct.thermal_mm
+        for i in range(6):
+            s[S.S_TRAVEL + i] = tr[i]
+            s[S.S_THERMAL_APP + i] = th[i]
+        s[S.S_SPINDLE_APP] = ct.spindle_growth_mm
         h[S.H_STATUS_SEQ] += 1
 
     # ------------------------------------------------------------------ the cycle
@@ -311,6 +321,10 @@ class HotLoop:
         emcy_seen = self.emcy_seen
         pos_count = io.pos_count
         pos_seen = [0] * 6
+        travel = self.travel
+        shs = sh.s
+        th_step = THERMAL_SLEW_MM_S * self.dt * THERMAL_EVERY
+        th_app = ct.thermal_mm
         # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check
         # transport allowance: 2 feedback periods + 2 cycles, at least 5 ms (the drives check their
         # own following error exactly, 0x6065/0x6066; this is the controller's backstop)
@@ -419,6 +433,15 @@ class HotLoop:
                                 self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
                                 break
                     state = self.state
+                # ---------------------------------------------------------- thermal / spindle offsets
+                if (cycles & (THERMAL_EVERY - 1)) == 0 and state != ST_STOPPING:
+                    for i in range(6):
+                        d = shs[S.S_THERMAL_TGT + i] - th_app[i]
+                        if d != 0.0:
+                            th_app[i] += th_step if d > th_step else (-th_step if d < -th_step else d)
+                    d = shs[S.S_SPINDLE_TGT] - ct.spindle_growth_mm
+                    if d != 0.0:
+                        ct.spindle_growth_mm += th_step if d > th_step else (-th_step if d < -th_step else d)
                 # ---------------------------------------------------------- setpoint + transform
                 if state == ST_RUNNING or state == ST_IDLE:
                     r = h[S.H_RING_R]
@@ -536,6 +559,8 @@ class HotLoop:
                 h_slot = h_slot + 1 if h_slot + 1 < n_hist else 0
                 for i in range(6):
                     v = out[i]
+                    d = v - l0[i]
+                    travel[i] += d if d >= 0.0 else -d
                     hist_cmd[hb_ + i] = v
                     t = round((v - off[i]) * ipm)
                     target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)

@@ -69,7 +69,12 @@ S_BUS_LOAD = 42         #: worst-case bus load of the layout (fraction of the pe
 S_FK_RES = 43           #: last FK residual, mm
 S_PERIOD = 44           #: configured period, s
 S_FAULT_VALUE = 45      #: F_LIMIT: CycleTransform.fail_value
-N_STATUS = 64
+S_THERMAL_TGT = 46      #: 6: strut growth estimate from the supervisor's thermal observer, mm
+S_THERMAL_APP = 52      #: 6: growth applied by the loop (slewed towards the target), mm
+S_SPINDLE_TGT = 58      #: spindle growth target, mm
+S_SPINDLE_APP = 59      #: spindle growth applied, mm
+S_TRAVEL = 60           #: 6: cumulative commanded strut travel, mm (thermal model input)
+N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)
 RING_ROWS = 1 << 15     #: 16 s at 0.5 ms
