@@ -129,6 +129,12 @@ class PipeBus(can.BusABC):
         self._pos = p + REC
         return msg, False
 
+    def recv(self, timeout: float | None = None):
+        """One frame or None; python-can's generic loop skipped (this bus has no filters)."""
+        if not self._filters and (timeout == 0.0 or self._have - self._pos >= REC):
+            return self._recv_internal(timeout)[0]
+        return super().recv(timeout)
+
     def fileno(self) -> int:
         return self._fd
 
