@@ -66,3 +66,35 @@ def test_simulate_rejects_bad_arguments(tmp_path, capsys):
     assert cli_main(["simulate", "thermal", "--hours", "-1", "--out", str(tmp_path)]) == 2
     assert "--hours" in capsys.readouterr().err
     assert cli_main(["simulate", "dynamics", "--lines", "1", "--out", str(tmp_path)]) == 2
+
+
+def test_plugs_into_the_simulated_drives():
+    pytest.importorskip("canopen")
+    import math
+    import time
+
+    from drivers.cyclic import EV_EMCY, SEND_OK
+    from drivers.testing import SimRig
+
+    with SimRig(model_factory=coupled_model_factory()) as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        io = rig.cyclic()
+        amp = [20000, -15000, 10000, -5000, 30000, 25000]        # up to 3 mm
+        n = 600
+        ev = 0
+        lag = 0
+        for k in range(n + 300):
+            s = 0.5 - 0.5 * math.cos(math.pi * min(k, n) / n)
+            assert io.send([start[i] + round(amp[i] * s) for i in range(6)]) == SEND_OK
+            time.sleep(0.0005)
+            ev |= io.poll()
+            if k == n // 2:
+                pos = rig.sim.positions_inc()
+                tgt = [start[i] + round(amp[i] * s) for i in range(6)]
+                lag = max(abs(pos[i] - tgt[i]) for i in range(6))
+        assert not ev & EV_EMCY, list(io.emcy)
+        final = rig.sim.positions_inc()
+        for i in range(6):
+            assert abs(final[i] - (start[i] + amp[i])) <= 5, (i, final[i], start[i] + amp[i])
+        assert lag > 0          # the coupled drives lag while moving (realistic following error)
