@@ -528,3 +528,14 @@ def test_motion_op_flood_is_bounded(served):
     assert codes and set(codes) == {"busy"}
     assert sum(r["ok"] for r in replies) >= 64
     assert c.req("status")["ok"]
+
+
+def test_pipelined_flood_is_answered_completely_and_fairly(served):
+    srv, d = served
+    a, b = Raw(srv.socket_path), Raw(srv.socket_path)
+    n = 3000
+    a.send_bytes(b"".join(msgpack.packb({"id": i, "op": "status"}) for i in range(n)))
+    t0 = time.monotonic()
+    assert b.req("status")["ok"] and time.monotonic() - t0 < 1.0
+    ids = [a.recv(10.0)["id"] for _ in range(n)]
+    assert ids == list(range(n))            # every request answered once, in order

@@ -191,8 +191,10 @@ def validate_request(msg: Any) -> Request:
 
 # -- replies ----------------------------------------------------------------
 def ok_reply(req_id: int | None, **fields: Any) -> dict:
-    out = {"id": req_id, "ok": True}
-    out.update(fields)
+    out = dict(fields)
+    out.pop("error", None)
+    out["id"] = req_id            # framing keys always win over payload keys of the same name
+    out["ok"] = True
     return out
 
 

@@ -58,6 +58,8 @@ _STREAM_BACKLOG_BYTES = 256 * 1024
 _WAIT_SLICE_S = 0.2
 #: outstanding "wait" requests per client
 _MAX_WAITS_PER_CLIENT = 4
+#: requests handled per client per loop pass (the rest waits for the next pass: fairness)
+_MAX_BATCH = 64
 #: motion ops queued but not done, per client
 _MAX_MOTION_PENDING = 64
 #: subscriptions per client
@@ -72,7 +74,7 @@ class _Conn:
     """One client connection (touched only by the selector thread, except ``alive``)."""
 
     __slots__ = ("sock", "num", "kind", "peer", "dec", "out", "authenticated", "closing", "alive",
-                 "subs", "waits", "motion_pending", "client_name", "registered_mask", "created")
+                 "subs", "waits", "motion_pending", "client_name", "registered_mask", "created", "backlog")
 
     def __init__(self, sock: socket.socket, num: int, kind: str, peer: str, max_bytes: int):
         self.sock = sock
@@ -89,6 +91,7 @@ class _Conn:
         self.motion_pending = 0
         self.client_name = ""
         self.created = time.monotonic()
+        self.backlog = False                  # decoded data left for the next pass
         self.registered_mask = 0
 
     def label(self) -> str:
@@ -132,6 +135,7 @@ class SocketServer:
         self._wake_r: socket.socket | None = None
         self._wake_w: socket.socket | None = None
         self._results: queue.SimpleQueue = queue.SimpleQueue()
+        self._pass_status: dict | None = None
         self._conns: dict[int, _Conn] = {}
         self._controller: _Conn | None = None
         self._next_num = 1
@@ -280,8 +284,19 @@ class SocketServer:
                 time.sleep(0.01)
 
     def _once(self) -> None:
+        self._pass_status = None
         timeout = self._next_stream_due() - time.monotonic()
         timeout = min(max(timeout, 0.0), 0.5)
+        backlog = [c for c in self._conns.values() if c.backlog]
+        if backlog:
+            timeout = 0.0
+        for conn in backlog:
+            if conn.alive and not conn.closing:
+                try:
+                    self._process(conn)
+                except Exception:
+                    log.exception("%s: unexpected error; closing it", conn.label())
+                    self._drop(conn, "internal error")
         for key, mask in self._sel.select(timeout):
             tag = key.data
             if tag == "wake":
@@ -359,19 +374,36 @@ class SocketServer:
             return                         # ignore anything after a fatal error
         try:
             conn.dec.feed(data)
+        except ProtocolError as exc:
+            self._bad_stream(conn, exc)
+            return
+        self._process(conn)
+
+    def _process(self, conn: _Conn) -> None:
+        """Handle up to _MAX_BATCH decoded requests; flag the connection if more are buffered."""
+        conn.backlog = False
+        n = 0
+        try:
             for msg in conn.dec.messages():
                 self._handle(conn, msg)
+                n += 1
                 if conn.closing or not conn.alive:
-                    break
+                    return
+                if n >= _MAX_BATCH:
+                    conn.backlog = True
+                    return
         except ProtocolError as exc:
-            self.stats["closed_bad"] += 1
-            log.warning("%s: %s; closing the connection", conn.label(), exc)
-            if conn.dec.too_large:
-                self._send(conn, P.error_reply(None, P.TOO_LARGE, str(exc)))
-                conn.closing = True
-                self._flush(conn)
-            else:
-                self._drop(conn, "undecodable message")
+            self._bad_stream(conn, exc)
+
+    def _bad_stream(self, conn: _Conn, exc: ProtocolError) -> None:
+        self.stats["closed_bad"] += 1
+        log.warning("%s: %s; closing the connection", conn.label(), exc)
+        if conn.dec.too_large:
+            self._send(conn, P.error_reply(None, P.TOO_LARGE, str(exc)))
+            conn.closing = True
+            self._flush(conn)
+        else:
+            self._drop(conn, "undecodable message")
 
     # -- requests -------------------------------------------------------------
     def _handle(self, conn: _Conn, msg: Any) -> None:
@@ -411,8 +443,11 @@ class SocketServer:
             return None
 
     def _status(self) -> dict:
-        st = self.daemon.status()
-        return P.plain(st)
+        """The daemon's status as plain types; read at most once per loop pass (a copy each time)."""
+        st = self._pass_status
+        if st is None:
+            st = self._pass_status = P.plain(self.daemon.status())
+        return dict(st)
 
     def _op_hello(self, conn: _Conn, req: P.Request) -> None:
         conn.client_name = str(req.fields.get("client", ""))[:64]
