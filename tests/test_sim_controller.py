@@ -29,6 +29,14 @@ def test_coupled_settles_faster_than_cascade(result):
     assert r["coupled"]["peak_drive_force_N"] <= r["force_budget"] * r["conventional"]["peak_drive_force_N"]
 
 
+def test_coupled_controller_survives_model_error(result):
+    # heavier carrier, softer struts than designed for: still stable, settled, and faster
+    m = result[0]["model_error_check"]
+    assert np.isfinite(m["coupled"]["settling_time_s"])
+    assert m["coupled"]["final_um"] == pytest.approx(50.0, abs=1.0)
+    assert m["coupled"]["settling_time_s"] < m["conventional"]["settling_time_s"]
+
+
 def test_dead_time_matters(result):
     # with a much longer dead time in the loop the same aggressive design is no longer good
     r, model, gains, worst = result

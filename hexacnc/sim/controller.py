@@ -122,8 +122,14 @@ class StepExperiment:
         return self._kal
 
     # -- simulation ----------------------------------------------------------------------------------
-    def simulate(self, dz_mm: float = 0.05, duration_s: float = 0.5, design: dict | None = None) -> dict:
-        """Step of the tool tip by ``dz_mm``; ``design`` None: conventional cascade only."""
+    def simulate(self, dz_mm: float = 0.05, duration_s: float = 0.5, design: dict | None = None,
+                 plant: "StepExperiment | None" = None) -> dict:
+        """Step of the tool tip by ``dz_mm``; ``design`` None: conventional cascade only.
+
+        ``plant``: another experiment (same pose and cycle, different machine parameters) whose
+        model is simulated while the controller keeps this one's (model-error check).
+        """
+        pl = self if plant is None else plant
         dL = self.step_lengths(dz_mm)
         xs = self.steady_state(dL)
         n, d = NX, self.d
@@ -153,9 +159,9 @@ class StepExperiment:
             u_in[0:6] = r_drv
             u_in[6:12] = u_drv
             for _ in range(self.sub):
-                x = self.Ah @ x + self.Bh @ u_in
+                x = pl.Ah @ x + pl.Bh @ u_in
                 t_out.append(t_out[-1] + self.Ts / self.sub)
-                z_out.append(float(self.T[2] @ x[IY]))
+                z_out.append(float(pl.T[2] @ x[IY]))
                 fmax = max(fmax, float(np.max(np.abs(x[IF]))))
             if design is not None:
                 # predict with the known inputs, correct with the drive feedback
@@ -212,12 +218,22 @@ def compare(model: CoupledModel, gains: Gains, pose_deg, dz_mm: float = 0.05, du
         raise RuntimeError("no stable coupled design in the sweep")
     des, coup = best
     keys = ("settling_time_s", "overshoot_pct", "rise_time_s", "final_um", "peak_drive_force_N")
+    # model error: the machine is heavier (+25 % carrier mass and inertia) and its struts softer (-20 %)
+    # than the model both controllers were tuned / designed on
+    cfg = model.cfg
+    off = cfg.replace(mass_kg=cfg.mass_kg * 1.25, inertia_kg_mm2=np.asarray(cfg.inertia_kg_mm2) * 1.25,
+                      stiffness_N_per_mm=np.asarray(cfg.stiffness_N_per_mm) * 0.8)
+    ex_off = StepExperiment(CoupledModel(off, model.hx), gains, pose_deg)
+    rob = {"plant_change": "carrier mass and inertia +25 %, strut stiffness -20 %",
+           "conventional": {k: v for k, v in ex.simulate(dz_mm, duration_s, None, ex_off).items() if k in keys},
+           "coupled": {k: v for k, v in ex.simulate(dz_mm, duration_s, des, ex_off).items() if k in keys}}
     return {
         "pose": list(map(float, pose_deg)), "step_um": dz_mm * 1e3, "cycle_s": ex.Ts,
         "dead_time_s": ex.d * ex.Ts, "gains": gains.as_dict(),
         "conventional": {k: conv[k] for k in keys},
         "coupled": {**{k: coup[k] for k in keys}, "rho": des["rho"]},
         "force_budget": force_budget,
+        "model_error_check": rob,
         "speedup": (conv["settling_time_s"] / coup["settling_time_s"]) if coup["settling_time_s"] > 0 else math.inf,
         "sweep": sweep,
         "_series": {"t_s": conv["t_s"], "conventional_um": conv["z_um"], "coupled_um": coup["z_um"]},
