@@ -36,7 +36,7 @@ from ..errors import PlanError
 from ..gcode import blocks as B
 from ..kinematics import Hexapod
 from . import path as P
-from .topp import accel_coefficients, forward_backward, interval_times
+from .topp import IncrementalTopp, accel_coefficients, interval_times
 
 #: fraction of the acceleration and jerk limits the nominal plan may use
 ETA = 0.95
@@ -672,14 +672,18 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     xw[stop_all] = np.inf
     xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
     xlim[stop_all] = 0.0
-    hL, cL, eL, dL = h.tolist(), c.tolist(), e.tolist(), dd.tolist()
+    topp = IncrementalTopp(h, c, e, dd)
+    changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
     exact = False
     exact_iters = 0
     for iters in range(1, 40):
         xl = xlim * factor
-        x = forward_backward(hL, xl, cL, eL, dL)
+        if iters == 1:
+            x = topp.solve(xl)
+        elif changed:
+            x = topp.solve_ranges(xl, changed)
         try:
             s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
         except FloatingPointError as exc:
@@ -703,6 +707,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                 print("   worst at t", jw * dt, "s", s_f[jw], "piece", pm, "kind", path.kind[pm], "line",
                       path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
                       "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
+        changed = []
         if not bad.any():
             if exact:
                 break
@@ -733,6 +738,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             g1 = min(Ng, int(np.searchsorted(s_grid_for_lookup, hi_s, side="right")) + 1)
             f = float(np.min(fac[j0:j1 + 1]))
             factor[g0:g1] *= f
+            changed.append((g0, g1 - 1))
     else:
         raise PlanError(f"could not meet the strut dynamic limits (velocity {uv.max():.3f}, acceleration "
                         f"{ua.max():.3f}, jerk {uj.max():.3f} of the limits) after {iters} iterations",

@@ -120,3 +120,156 @@ def interval_times(h: np.ndarray, x: np.ndarray) -> np.ndarray:
 
 def isqrt_safe(x: float) -> float:
     return math.sqrt(x) if x > 0 else 0.0
+
+
+class IncrementalTopp:
+    """The forward-backward pass, redone only where a speed limit changed.
+
+    Lowering ``xlim`` on ``[lo, hi]`` changes the controllable bound K at and upstream of the
+    change until it meets its old value, and the speeds x from there downstream until they meet
+    theirs; everything else is kept.  Results are identical to a full :func:`forward_backward`.
+    """
+
+    def __init__(self, h: np.ndarray, c: np.ndarray, e: np.ndarray, d: np.ndarray):
+        self.hl = h.tolist()
+        self.cl = c.tolist()
+        self.el = e.tolist()
+        self.dl = d.tolist()
+        self.K = None
+        self.x = None
+        self.xl = None
+
+    def solve(self, xlim: np.ndarray, lo: int = 0, hi: int | None = None) -> np.ndarray:
+        xl_new = np.maximum(xlim, 0.0).tolist()
+        N = len(xl_new)
+        if self.K is None or hi is None:
+            self.xl = xl_new
+            self.K = [0.0] * N
+            self.x = [0.0] * N
+            self._backward(N - 1, 0, full=True)
+            self._forward(0, N - 1, full=True)
+            return np.array(self.x)
+        hi = min(N - 1, hi)
+        lo = max(0, lo)
+        self.xl[lo:hi + 1] = xl_new[lo:hi + 1]
+        kfirst, klast = self._backward(hi, lo, full=False)
+        if kfirst is not None:
+            self._forward(max(0, kfirst - 1), klast, full=False)
+        return np.array(self.x)
+
+    def _backward(self, start: int, lo: int, full: bool):
+        K, xl, hl, cl, dl = self.K, self.xl, self.hl, self.cl, self.dl
+        N = len(K)
+        kfirst = klast = None
+        if start == N - 1:
+            if K[-1] != xl[-1] or full:
+                if K[-1] != xl[-1]:
+                    kfirst = klast = N - 1
+                K[-1] = xl[-1]
+            start = N - 2
+        for k in range(start, -1, -1):
+            xk = xl[k]
+            nxt = K[k + 1]
+            hk = hl[k]
+            if hk <= 0.0:
+                xk = xk if xk < nxt else nxt
+            else:
+                h2 = 2.0 * hk
+                ck = cl[k]
+                dk = dl[k]
+                for i in range(6):
+                    coef = 1.0 + h2 * dk[i]
+                    if coef > 1e-12:
+                        v = (nxt - h2 * ck[i]) / coef
+                        if v < xk:
+                            xk = v
+                if xk < 0.0:
+                    xk = 0.0
+            if xk != K[k]:
+                K[k] = xk
+                kfirst = k
+                if klast is None:
+                    klast = k
+            elif not full and k < lo:
+                break
+        return kfirst, klast
+
+    def _forward(self, start: int, klast: int, full: bool) -> None:
+        K, x, hl, el, dl, xl = self.K, self.x, self.hl, self.el, self.dl, self.xl
+        N = len(K)
+        if start == 0:
+            x[0] = K[0] if K[0] < xl[0] else xl[0]
+        for k in range(start, N - 1):
+            xk = x[k]
+            hk = hl[k]
+            kn = K[k + 1]
+            if hk <= 0.0:
+                xn = xk if xk < kn else kn
+            else:
+                ek = el[k]
+                dk = dl[k]
+                u = (kn - xk) / (2.0 * hk)
+                for i in range(6):
+                    v = ek[i] + dk[i] * xk
+                    if v < u:
+                        u = v
+                xn = xk + 2.0 * hk * u
+                if xn < 0.0:
+                    xn = 0.0
+                elif xn > kn:
+                    xn = kn
+            if not full and k + 1 > klast and xn == x[k + 1]:
+                break
+            x[k + 1] = xn
+
+    def solve_ranges(self, xlim: np.ndarray, ranges) -> np.ndarray:
+        """Like :meth:`solve` for several disjoint changed ranges ``[(lo, hi), ...]``."""
+        if self.K is None:
+            return self.solve(xlim)
+        xl_new = np.maximum(xlim, 0.0)
+        N = len(self.K)
+        rs = sorted((max(0, int(a)), min(N - 1, int(b))) for a, b in ranges if b >= a)
+        for a, b in rs:
+            self.xl[a:b + 1] = xl_new[a:b + 1].tolist()
+        changed = []
+        for a, b in reversed(rs):
+            kf, kl = self._backward(b, a, full=False)
+            if kf is not None:
+                changed.append((kf, kl))
+        reach = -1
+        for kf, kl in sorted(changed):
+            if kl <= reach:
+                continue
+            reach = self._forward_to(max(0, kf - 1), kl)
+        return np.array(self.x)
+
+    def _forward_to(self, start: int, klast: int) -> int:
+        """Forward pass from ``start`` until past ``klast`` and unchanged; returns the last index written."""
+        K, x, hl, el, dl, xl = self.K, self.x, self.hl, self.el, self.dl, self.xl
+        N = len(K)
+        if start == 0:
+            x[0] = K[0] if K[0] < xl[0] else xl[0]
+        k = start
+        for k in range(start, N - 1):
+            xk = x[k]
+            hk = hl[k]
+            kn = K[k + 1]
+            if hk <= 0.0:
+                xn = xk if xk < kn else kn
+            else:
+                ek = el[k]
+                dk = dl[k]
+                u = (kn - xk) / (2.0 * hk)
+                for i in range(6):
+                    v = ek[i] + dk[i] * xk
+                    if v < u:
+                        u = v
+                xn = xk + 2.0 * hk * u
+                if xn < 0.0:
+                    xn = 0.0
+                elif xn > kn:
+                    xn = kn
+            if k + 1 > klast and xn == x[k + 1]:
+                return k
+            x[k + 1] = xn
+        return N - 1
