@@ -148,3 +148,25 @@ def test_planner_needs_no_network(cfg, monkeypatch):
         if s.state == "paused":
             s.resume()
     assert s.done and n > 0
+
+
+def test_incremental_topp_equals_full_pass():
+    from hexacnc.planner.topp import IncrementalTopp, accel_coefficients, forward_backward
+    rng = np.random.default_rng(7)
+    N = 2000
+    h = rng.uniform(0.1, 1, N - 1)
+    h[rng.integers(0, N - 1, 40)] = 0.0
+    c, e, d, xm = accel_coefficients(rng.normal(size=(N, 6)), 0.01 * rng.normal(size=(N, 6)), np.full(6, 100.0))
+    xl = np.minimum(rng.uniform(10, 1000, N), xm)
+    xl[[0, 700, N - 1]] = 0.0
+    it = IncrementalTopp(h, c, e, d)
+    assert np.array_equal(it.solve(xl), forward_backward(h, xl, c, e, d))
+    for _ in range(15):
+        ranges = []
+        for _ in range(int(rng.integers(1, 5))):
+            lo = int(rng.integers(0, N - 10))
+            hi = lo + int(rng.integers(0, 80))
+            ranges.append((lo, hi))
+            xl = xl.copy()
+            xl[lo:hi + 1] *= rng.uniform(0.3, 1.0)
+        assert np.array_equal(it.solve_ranges(xl, ranges), forward_backward(h, xl, c, e, d))
