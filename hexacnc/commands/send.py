@@ -354,6 +354,11 @@ def _follow(client, prog: Progress, blocks: Any, name: str, interrupted: dict, e
                 if not prog.quiet:
                     print(f"{name}: finished", file=prog.out)
                 return EXIT_OK
+            aborted = progress_of(msg).get("aborted")
+            if aborted and progress_of(msg).get("name") == name:
+                prog.finish()
+                print(f"hexacnc send: {name} aborted at line {msg.get('line')}: {aborted}", file=err)
+                return EXIT_STOPPED
             if seen_active or stop_sent or time.monotonic() - t_queued > _START_GRACE_S:
                 prog.finish()
                 print(f"hexacnc send: {name} stopped at line {msg.get('line')} before its end", file=err)
