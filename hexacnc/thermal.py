@@ -45,6 +45,11 @@ from .errors import ConfigError, DataError
 #: input order of B: strut speed magnitude, ambient temperature, frame temperature
 U_SPEED, U_AMBIENT, U_FRAME = 0, 1, 2
 
+#: observer status after a step
+STATUS_OK = "ok"                    #: predicted and corrected with the probes
+STATUS_PREDICTED = "predicted"      #: a probe read NaN: model prediction only
+STATUS_BAD_INPUT = "bad_input"      #: speed / ambient / frame not finite: estimate held
+
 
 def _thermal_cfg(cfg):
     """Accept a MachineConfig or a ThermalConfig."""
@@ -218,6 +223,8 @@ class ThermalObserver:
     ``T_est`` (6, n) is the estimated temperature field in degC; the estimate
     starts at ``T0_C`` (default the reference temperature) or at :meth:`reset`.
     ``heat_scale`` scales the model's heat input (1.0: as configured).
+    ``status`` after each step: ``"ok"``, ``"predicted"`` (a probe read NaN) or
+    ``"bad_input"`` (non-finite speed/ambient/frame: estimate held).
     """
 
     def __init__(self, cfg, dt_s: float, lengths_mm: Sequence[float] | None = None,
@@ -264,6 +271,7 @@ class ThermalObserver:
         self._pidx = np.array(self.probes)
         self.T_est = np.full((6, n), self.T_ref if T0_C is None else float(T0_C))
         self.offsets_mm = np.zeros(6)
+        self.status = STATUS_OK
         self._u = np.empty((6, 3))
         self._compute_offsets()
 
@@ -280,9 +288,19 @@ class ThermalObserver:
         self.offsets_mm = np.einsum("ij,ij->i", self.T_est - self.T_ref, self.C)
 
     def predict_only(self, speed_mm_s, T_ambient_C: float, T_frame_C: float) -> np.ndarray:
-        """Advance the model without a measurement (probe dropout); returns offsets_mm."""
+        """Advance the model without a measurement (probe dropout); returns offsets_mm.
+
+        Non-finite inputs leave the estimate unchanged (``status`` says so).
+        """
+        v = np.asarray(speed_mm_s, dtype=float)
+        if v.shape != (6,):
+            raise DataError(f"speed_mm_s must have 6 values, got shape {v.shape}")
+        if not (np.all(np.isfinite(v)) and math.isfinite(T_ambient_C) and math.isfinite(T_frame_C)):
+            self.status = STATUS_BAD_INPUT
+            return self.offsets_mm
+        self.status = STATUS_PREDICTED
         u = self._u
-        u[:, U_SPEED] = np.abs(np.asarray(speed_mm_s, dtype=float))
+        u[:, U_SPEED] = np.abs(v)
         u[:, U_AMBIENT] = T_ambient_C
         u[:, U_FRAME] = T_frame_C
         self.T_est = np.einsum("ijk,ik->ij", self.Ad, self.T_est) + np.einsum("ijk,ik->ij", self.Bd, u)
@@ -300,10 +318,13 @@ class ThermalObserver:
         if y.shape != (6, len(self.probes)):
             raise DataError(f"probes_C must have shape (6, {len(self.probes)}), got {y.shape}")
         self.predict_only(speed_mm_s, T_ambient_C, T_frame_C)
+        if self.status == STATUS_BAD_INPUT:
+            return self.offsets_mm
         innov = y - self.T_est[:, self._pidx]
         if not np.all(np.isfinite(innov)):
-            return self.offsets_mm  # keep the prediction when a probe reads NaN
+            return self.offsets_mm  # keep the prediction when a probe reads NaN (status: predicted)
         self.T_est += np.einsum("ijk,ik->ij", self.K, innov)
+        self.status = STATUS_OK
         self._compute_offsets()
         return self.offsets_mm
 

@@ -129,8 +129,15 @@ def test_update_rejects_bad_shapes_and_survives_nan(cfg):
     with pytest.raises(DataError):
         obs.update(np.zeros(6), 20.0, 20.0, np.zeros((6, 3)))
     y = np.full((6, len(obs.probes)), np.nan)
-    off = obs.update(np.zeros(6), 20.0, 20.0, y)
-    assert np.all(np.isfinite(off))
+    off = obs.update(np.full(6, 50.0), 20.0, 20.0, y)
+    assert np.all(np.isfinite(off)) and obs.status == "predicted"
+    before = obs.T_est.copy()
+    off = obs.update(np.full(6, 50.0), float("nan"), 20.0, np.full((6, len(obs.probes)), 20.0))
+    assert obs.status == "bad_input" and np.array_equal(obs.T_est, before) and np.all(np.isfinite(off))
+    with pytest.raises(DataError):
+        obs.update(np.zeros(5), 20.0, 20.0, np.zeros((6, len(obs.probes))))
+    obs.update(np.zeros(6), 20.0, 20.0, np.full((6, len(obs.probes)), 20.0))
+    assert obs.status == "ok"
 
 
 def test_spindle_growth(cfg):
