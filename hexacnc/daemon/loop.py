@@ -325,13 +325,18 @@ class HotLoop:
         shs = sh.s
         th_step = THERMAL_SLEW_MM_S * self.dt * THERMAL_EVERY
         th_app = ct.thermal_mm
-        # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check
-        # transport allowance: 2 feedback periods + 2 cycles, at least 5 ms (the drives check their
-        # own following error exactly, 0x6065/0x6066; this is the controller's backstop)
-        n_hist = max(2 * int(getattr(self.cfg.bus, "feedback_divider", 1)) + 2, int(math.ceil(0.005 / self.dt)))
-        n_hist = min(n_hist, 64)
+        # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check: a
+        # fresh sample is compared with the commands sent within its transport allowance, which is
+        # 2 feedback periods + 2 cycles (at least 5 ms) plus the feedback backlog measured per drive
+        # (SYNCs sent / divider - samples received since enabling), capped at n_hist cycles
+        div = max(1, int(getattr(self.cfg.bus, "feedback_divider", 1)))
+        n_hist = 64
+        min_w = min(n_hist, max(2 * div + 2, int(math.ceil(0.005 / self.dt))))
         hist_cmd = self.hist_cmd = [0.0] * (6 * n_hist)
         self._fill_hist(self.l0)
+        sends = 0
+        fb_base = 0
+        fb_cnt = list(pos_count)
         h_slot = 0
         statusword = io.statusword
         follow_max = self.follow_max
@@ -420,7 +425,14 @@ class HotLoop:
                             pos_seen[i] = pos_count[i]
                             a_i = act[i]
                             lo = hi = l0[i]
-                            for k in range(n_hist):
+                            w = min_w + div * ((sends - fb_base) // div - (pos_count[i] - fb_cnt[i]))
+                            if w > n_hist:
+                                w = n_hist
+                            elif w < min_w:
+                                w = min_w
+                            k = h_slot
+                            for _ in range(w):
+                                k = k - 1 if k > 0 else n_hist - 1
                                 v = hist_cmd[k * 6 + i]
                                 if v < lo:
                                     lo = v
@@ -530,6 +542,9 @@ class HotLoop:
                                 self.cw[i] = CW_ENABLE_OPERATION
                             self.seed_from_feedback()
                             self.resync = True
+                            fb_base = sends
+                            for i in range(6):
+                                fb_cnt[i] = pos_count[i]
                             for i in range(6):
                                 emcy_seen[i] = emcy_count[i]
                             state = self.state = ST_IDLE
@@ -567,6 +582,7 @@ class HotLoop:
                     l2[i] = l1[i]
                     l1[i] = l0[i]
                     l0[i] = v
+                sends += 1
                 if io.send() != 0 and state != ST_FAULT and self.fault == F_NONE:
                     self._fault(F_BUS, 0, 1)
                 # ---------------------------------------------------------- feedback: FK
