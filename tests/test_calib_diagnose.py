@@ -147,3 +147,17 @@ def test_holdout_from_new_session_is_rereferenced(cfg):
     d0 = diagnose(cfg, s.fit, s.holdout, Options(noise_mm=s.noise_mm, noise_deg=s.noise_deg, frame="base",
                                                  rereference_rows=0, causes=("strut_scale",)))
     assert d0.result["extended"]["rms_holdout"]["strut_mm"] > 10 * r["extended"]["rms_holdout"]["strut_mm"]
+
+
+def test_readings_outside_the_stroke_are_rejected(cfg, tmp_path):
+    s = synth.generate(cfg, 71, "none", n_fit=60, n_holdout=5)
+    s.fit.q = s.fit.q / 1000.0          # metres instead of mm
+    fit_csv = tmp_path / "fit.csv"
+    write_measurements(fit_csv, s.fit)
+    out = tmp_path / "out.json"
+    assert cli(["diagnose", "--config", cfg.path, "--data", str(fit_csv), "--json", str(out)]) == 2
+    assert cli(["calib", "fit", "--config", cfg.path, "--data", str(fit_csv), "--out", str(tmp_path / "c.toml")]) == 2
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["fit.csv"]
+    from hexacnc.errors import DataError
+    with pytest.raises(DataError, match="line 2, q1 .* outside its stroke"):
+        diagnose(cfg, s.fit, None, Options())

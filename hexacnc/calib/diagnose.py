@@ -117,7 +117,32 @@ def fit_model(cfg, ctx: Context, causes, frame0: np.ndarray | None, opts: Option
         free[lay.frame] = True
         r0 = fit(cfg, ctx, lay, free=free, max_iter=30)
         theta, X0 = r0.theta, r0.evaluator.X
-    return fit(cfg, ctx, lay, theta_init=theta, X_init=X0)
+    res = fit(cfg, ctx, lay, theta_init=theta, X_init=X0)
+    bad = ~res.evaluator.converged
+    if bad.any():
+        lines = ctx.meas.lines[bad] if ctx.meas.lines is not None else np.where(bad)[0] + 1
+        raise DataError(f"{ctx.meas.path}: the readings of {int(bad.sum())} row(s) (line(s) "
+                        f"{', '.join(str(int(x)) for x in lines[:10])}{' ...' if bad.sum() > 10 else ''}) give no "
+                        f"pose of this machine even after fitting; are the readings in mm and does the config "
+                        f"({cfg.path}) describe this machine?")
+    return res
+
+
+def check_readings(cfg, meas: Measurements, margin: float = 0.05) -> None:
+    """Readings must put every strut inside its configured stroke (with a margin): else the units
+    or the machine description are wrong, and a fit would only hide it."""
+    L = meas.q + np.asarray(cfg.strut_offset_mm)[None]
+    lo = np.asarray(cfg.min_length_mm)
+    hi = np.asarray(cfg.max_length_mm)
+    tol = margin * (hi - lo)
+    bad = (L < lo - tol) | (L > hi + tol)
+    if bad.any():
+        k, i = (int(v) for v in np.argwhere(bad)[0])
+        line = int(meas.lines[k]) if meas.lines is not None else k + 1
+        raise DataError(f"{meas.path}: line {line}, q{i + 1} = {meas.q[k, i]:g} mm puts strut {i + 1} at "
+                        f"{L[k, i]:.1f} mm, outside its stroke [{lo[i]:g}, {hi[i]:g}] mm of {cfg.path} "
+                        f"({int(bad.any(axis=1).sum())} row(s) affected): wrong units (see --map scale) or "
+                        f"the wrong machine description")
 
 
 NL_DEGREES = (3, 5, 7)
@@ -315,6 +340,9 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
     limit_blas_threads(1)
     t0 = time.perf_counter()
     noise_mm, noise_deg, known = noise_defaults(cfg, opts.noise_mm, opts.noise_deg)
+    check_readings(cfg, fit_meas)
+    if holdout is not None:
+        check_readings(cfg, holdout)
     ctx = Context(cfg, fit_meas, noise_mm, noise_deg)
     frame0 = initial_frame(cfg, fit_meas) if use_frame(fit_meas, opts.frame) else None
     n_geom = 42 + (12 if frame0 is not None else 0)

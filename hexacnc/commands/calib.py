@@ -94,7 +94,7 @@ def _plan(args) -> int:
 
 
 def _fit(args) -> int:
-    from ..calib.diagnose import Options, fit_model, nominal_rms, noise_defaults, use_frame
+    from ..calib.diagnose import Options, check_readings, fit_model, nominal_rms, noise_defaults, use_frame
     from ..calib.identify import parameter_table, strongest_correlations, unidentifiable_directions
     from ..calib.measurements import atomic_write_text, load_measurements
     from ..calib.model import Context, initial_frame
@@ -107,6 +107,7 @@ def _fit(args) -> int:
     meas = load_measurements(args.data, args.map, min_rows=3)
     causes = list(parse_causes(args.causes)) if args.causes.strip() else []
     noise_mm, noise_deg, known = noise_defaults(cfg, args.noise_mm, args.noise_deg)
+    check_readings(cfg, meas)
     ctx = Context(cfg, meas, noise_mm, noise_deg)
     for c in causes:
         why = ctx.applicable(c)
