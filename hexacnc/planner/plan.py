@@ -720,7 +720,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         with np.errstate(divide="ignore"):
             fac = np.where(viol_v, np.minimum(fac, (ETA_V * 0.999 / np.maximum(uv, 1e-12)) ** 2 * 0.98), fac)
             fac = np.where(viol_a, np.minimum(fac, ETA / np.maximum(ua, 1e-12) * 0.97), fac)
-            fac = np.where(viol_j, np.minimum(fac, (ETA / np.maximum(uj, 1e-12)) ** (2.0 / 3.0) * 0.95), fac)
+            fac = np.where(viol_j, np.minimum(fac, ETA / np.maximum(uj, 1e-12) * 0.9), fac)
         fac = np.maximum(fac, 0.3)
         if iters > 25 or exact_iters > 8:
             fac = np.minimum(fac, 0.7)
