@@ -655,7 +655,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     holds_s = np.zeros(Ng)
     pause_grid = []
     for g in stop_idx:
-        holds_s[g] = hold_min
+        # the program's start and end need no hold: the smoothing starts from rest and its tail
+        # (T of the final position) brings the motion to rest
+        if 0 < g < Ng - 1:
+            holds_s[g] = hold_min
     for g, hd in holds.items():
         extra = hd.seconds
         if hd.pause or hd.optional:
