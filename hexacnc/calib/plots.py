@@ -98,3 +98,37 @@ def cause_plot(path, name: str, q: np.ndarray, X: np.ndarray, dl: np.ndarray, un
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def position_vectors(path, panels: list[tuple[str, dict]], title: str) -> bool:
+    """Horizontal position residuals as arrows over the workspace, vertical ones as colour.
+
+    One panel per model; arrows share one scale so before/after compare directly.
+    False when x and y are not measured.
+    """
+    c0 = panels[0][1]["coords"]
+    if not (np.isfinite(c0[:, 0]).any() and np.isfinite(c0[:, 1]).any()):
+        return False
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(panels), figsize=(6 * len(panels), 5.4), squeeze=False)
+    big = max(float(np.nanmax(np.hypot(r["coords"][:, 0], r["coords"][:, 1]))) for _, r in panels)
+    zmax = max(float(np.nanmax(np.abs(r["coords"][:, 2]))) if np.isfinite(r["coords"][:, 2]).any() else 0.0
+               for _, r in panels) or 1.0
+    for ax, (name, res) in zip(axes[0], panels):
+        X, c = res["poses"], res["coords"]
+        span = float(np.ptp(X[:, 0]) + np.ptp(X[:, 1])) / 2 or 1.0
+        k = 0.08 * span / max(big, 1e-12)
+        dz = np.nan_to_num(c[:, 2]) if np.isfinite(c[:, 2]).any() else np.zeros(len(c))
+        sc = ax.scatter(X[:, 0], X[:, 1], c=dz, cmap="coolwarm", vmin=-zmax, vmax=zmax, s=14)
+        ax.quiver(X[:, 0], X[:, 1], np.nan_to_num(c[:, 0]) * k, np.nan_to_num(c[:, 1]) * k,
+                  angles="xy", scale_units="xy", scale=1.0, width=0.004)
+        ax.set_title(f"{name}\narrow = x/y residual ({big:.3g} mm longest), colour = z residual")
+        ax.set_xlabel("platform x (mm, base frame)")
+        ax.set_ylabel("platform y (mm)")
+        ax.set_aspect("equal", adjustable="datalim")
+        fig.colorbar(sc, ax=ax, label="z residual (mm)")
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return True

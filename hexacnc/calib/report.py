@@ -118,6 +118,9 @@ def write_diagnosis_report(rd: ReportDir, diag, cfg) -> None:
     plots.workspace_before_after(rd.path("residuals_workspace.png"), panels,
                                  "Residuals over the workspace, before and after")
     pngs.append("residuals_workspace.png")
+    if plots.position_vectors(rd.path("residuals_vectors.png"), panels[:2],
+                              "Position residuals (fit data), rigid model and extended model"):
+        pngs.append("residuals_vectors.png")
     if plots.struts_vs_reading(rd.path("residuals_struts.png"), diag.ctx.q, b_fit, e_fit,
                                "Strut-length residual against the reading (fit data)"):
         pngs.append("residuals_struts.png")
