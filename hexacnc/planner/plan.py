@@ -48,6 +48,8 @@ FILTER_JERK_SHARE = 1.0
 RHO_J = 0.8
 #: share of the jerk limit an acceleration step at a junction may take
 RHO_STEP = 0.5
+#: share of the planned acceleration (ETA a_max) the TOPP pass may use (the rest absorbs smoothing)
+ACC_SHARE = 0.97
 #: extra grid offsets from both ends of every piece (s-units)
 GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
 #: samples whose interval bound stays below this are not measured by exact inverse kinematics
@@ -614,7 +616,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         xj = np.min(np.where(aL3 > 1e-12, (RHO_J * ETA * jmax[None] / np.maximum(aL3, 1e-300)) ** (2.0 / 3.0),
                              np.inf), axis=1)
     xlim = np.minimum(np.minimum(xlim, xv), xj)
-    c, e, dd, xmvc = accel_coefficients(Lp, Lpp, ETA * 0.97 * amax)
+    c, e, dd, xmvc = accel_coefficients(Lp, Lpp, ETA * ACC_SHARE * amax)
     xlim = np.minimum(xlim, xmvc)
     # curvature jumps at tangent-continuous junctions: an acceleration step dL'' x between two
     # cycles reads as a jerk dL'' x / dt, so x <= RHO_STEP J dt / |dL''|
