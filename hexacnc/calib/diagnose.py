@@ -471,9 +471,13 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         prev_chi = co["evidence"]["chi2_red_with"] if known else None
     causes_out.sort(key=lambda d: -d["evidence"]["contribution_mm"])
     result = {
-        "baseline": {"rms_fit": b_fit_rms, "rms_holdout": b_hold if b_hold is not None else dict(nul)},
+        "baseline": {"rms_fit": b_fit_rms, "rms_holdout": b_hold if b_hold is not None else dict(nul),
+                     "chi2_red": baseline.fit.chi2_red if known else None, "dof": baseline.fit.dof,
+                     "parameters": baseline.fit.layout.n},
         "causes": causes_out,
-        "extended": {"rms_fit": e_fit_rms, "rms_holdout": e_hold if e_hold is not None else dict(nul)},
+        "extended": {"rms_fit": e_fit_rms, "rms_holdout": e_hold if e_hold is not None else dict(nul),
+                     "chi2_red": extended.fit.chi2_red if known else None, "dof": extended.fit.dof,
+                     "parameters": extended.fit.layout.n},
         "gain": {"holdout_rms_ratio": _ratio(b_hold, e_hold)},
         "verdict": ", ".join(c["name"] for c in causes_out) if causes_out else "none",
         "noise": {"position_mm": noise_mm, "orientation_deg": noise_deg, "known": known,

@@ -15,9 +15,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..kinematics import Hexapod
-from ..pose import matrices_from_euler
 from .measurements import Measurements, write_measurements
-from .model import CAUSES, T_REF_C, Context, cause_model, measure, strut_geometry
+from .model import CAUSES, Context, cause_model, measure, strut_geometry
 
 MEASURE_SETS = {"xyzabc": "xyzabc", "xyz": "xyz", "z": "z", "ab": "ab", "xyzab": "xyzab"}
 
