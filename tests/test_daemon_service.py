@@ -121,3 +121,56 @@ def test_bus_layout_over_the_limit_is_refused_at_start_with_the_figures():
         Daemon(cfg)
     msg = str(e.value)
     assert "does not fit" in msg and "us per cycle" in msg and "% of the 500 us period" in msg
+
+
+def test_supervisor_killed_hot_loop_stops_disables_and_exits():
+    import signal
+
+    d = tempfile.mkdtemp(prefix="hxk")
+    sock = os.path.join(d, "hexacnc.sock")
+    env = dict(os.environ)
+    env["PYTHONPATH"] = str(REPO) + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.Popen([sys.executable, "-m", "hexacnc", "run", "--socket", sock], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        t_end = time.monotonic() + 60
+        while not os.path.exists(sock) and time.monotonic() < t_end and proc.poll() is None:
+            time.sleep(0.05)
+        assert os.path.exists(sock)
+        kids = [int(p) for p in os.listdir("/proc") if p.isdigit() and _ppid(int(p)) == proc.pid
+                and "hexacnc.daemon" in _cmdline(int(p))]
+        assert len(kids) == 2                        # hot loop + simulated drives
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(5)
+        t_end = time.monotonic() + 10
+        while any(_alive(k) for k in kids) and time.monotonic() < t_end:
+            time.sleep(0.05)
+        assert not any(_alive(k) for k in kids)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+
+
+def _ppid(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return int(f.read().rsplit(")", 1)[1].split()[1])
+    except (OSError, ValueError, IndexError):
+        return -1
+
+
+def _cmdline(pid):
+    try:
+        with open(f"/proc/{pid}/cmdline", "rb") as f:
+            return f.read().replace(b"\0", b" ").decode(errors="replace")
+    except OSError:
+        return ""
+
+
+def _alive(pid):
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False

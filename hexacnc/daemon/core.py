@@ -41,8 +41,8 @@ from .loop import fault_message
 
 log = logging.getLogger("hexacnc.daemon")
 
-#: rows kept queued in the ring while streaming (seconds of motion)
-FEED_AHEAD_S = 0.2
+#: rows kept queued in the ring while streaming (seconds of motion); pause/stop react after them
+FEED_AHEAD_S = 0.3
 #: feeder thread period
 FEED_PERIOD_S = 0.002
 #: how long the hot process may take to boot the bus and enable the drives
@@ -269,6 +269,12 @@ class Daemon:
     # ------------------------------------------------------------------ feeding
     def _feed_loop(self) -> None:
         sh = self.sh
+        if self.realtime:   # this thread only: keep the ring filled on a loaded machine (when permitted)
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
+                self.info["feeder_sched_fifo"] = True
+            except (OSError, AttributeError):
+                self.info["feeder_sched_fifo"] = False
         ahead = max(50, int(FEED_AHEAD_S / self.period_s))
         while not self.closed and sh is not None:
             try:
