@@ -364,7 +364,6 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
                                   "separable_fraction": sig["separable_fraction"].get(c)} for c in opts.causes}
     current = baseline
     chosen: list[str] = []
-    first_round: dict[str, Model] = {}
     while len(chosen) < opts.max_causes:
         if known and current.fit.chi2_red <= chi2_limit:
             break
@@ -387,8 +386,6 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
             if c == "strut_nonlinearity":
                 entry["degree"] = m.nl_degree
             table[c].setdefault("rounds", []).append(entry)
-            if not chosen:
-                first_round[c] = m
             ok = gain >= 1.0 + opts.min_cv_gain and dbic <= -opts.min_delta_bic
             # among the candidates that pass cross-validation, the information criterion decides
             # (a nested, larger model never wins over the smaller one that explains the data)
@@ -440,21 +437,23 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         sd = np.sqrt(np.maximum(np.diag(C)[pos], 0.0))
         contrib = _contribution_mm(cfg, extended.fit, c)
         params = {nm: float(v) for nm, v in zip(cm.names, extended.fit.theta[sl])}
+        definition: dict = {}
         if c == "strut_nonlinearity":
             qh = extended.fit.evaluator.ctx.q_half
-            params["degree"] = extended.nl_degree
             for i in range(6):
                 if f"p1_strut{i + 1}_mm" in params:   # the gain part of the map, as a scale error
                     params[f"gain{i + 1}_ppm"] = params[f"p1_strut{i + 1}_mm"] / qh[i] * 1e6
-            params["stroke_center_mm"] = extended.fit.evaluator.ctx.q_center.tolist()
-            params["stroke_half_mm"] = qh.tolist()
+            definition = {"degree": extended.nl_degree,
+                          "t": "(q - stroke_center_mm) / stroke_half_mm, Legendre polynomials P_k(t)",
+                          "stroke_center_mm": extended.fit.evaluator.ctx.q_center.tolist(),
+                          "stroke_half_mm": qh.tolist()}
         if c == "elastic_sag" and params["compliance_mm_per_kN"] > 0:
             params["equivalent_stiffness_N_per_mm"] = 1000.0 / params["compliance_mm_per_kN"]
         entry = table[c]["rounds"][table[c]["selected_in_round"] - 1]
         causes_out.append({
             "name": c, "parameters": params,
             "parameter_std": {nm: float(v) for nm, v in zip(cm.names, sd)},
-            "units": cm.units, "model": cm.description,
+            "units": cm.units, "model": cm.description, "definition": definition,
             "evidence": {"cv_gain": entry["cv_gain"], "delta_bic": entry["delta_bic"],
                          "chi2_red_before": None,
                          "chi2_red_with": entry["chi2_red"] if known else None,
