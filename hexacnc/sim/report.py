@@ -54,6 +54,16 @@ def _thin_max(a: np.ndarray, n: int = 2000) -> np.ndarray:
     return np.concatenate([head, [a[m:].max()]]) if m < len(a) else head
 
 
+def _thin_maxabs(a: np.ndarray, n: int = 2000) -> np.ndarray:
+    """(N,k): per bucket and column the signed value of largest magnitude."""
+    step = max(1, int(math.ceil(len(a) / n)))
+    out = []
+    for i in range(0, len(a), step):
+        blk = a[i:i + step]
+        out.append(blk[np.argmax(np.abs(blk), axis=0), np.arange(a.shape[1])])
+    return np.array(out)
+
+
 # ---------------------------------------------------------------------------
 def run_thermal(cfg, **scenario) -> dict:
     return sim_thermal.run(cfg, sim_thermal.ThermalScenario(**scenario))
@@ -104,7 +114,7 @@ def run_dynamics(cfg, lines: int = 1000, n_grid: int = 5, seed: int = 1, ringdow
     out["wall_time_s"] = time.perf_counter() - t0
     out["_series"] = {"t_s": _thin(ser["t_s"]).tolist(),
                       "tip_err_um": _thin_max(np.linalg.norm(ser["tip_um"], axis=1)).tolist(),
-                      "ferr_um": _thin(ser["ferr_um"]).tolist(), "grid": grid.tolist()}
+                      "ferr_um": _thin_maxabs(ser["ferr_um"]).tolist(), "grid": grid.tolist()}
     out["_gcode"] = to_gcode_tooltip(cfg, moves)
     return out
 
