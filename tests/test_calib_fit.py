@@ -57,8 +57,10 @@ def test_cli_fit_writes_loadable_config_and_report(cfg, tmp_path):
     write_measurements(data, s.fit)
     out = tmp_path / "cal.toml"
     rep = tmp_path / "rep"
+    hold = tmp_path / "h.csv"
+    write_measurements(hold, s.holdout)
     rc = cli(["calib", "fit", "--config", cfg.path, "--data", str(data), "--out", str(out), "--report", str(rep),
-              "--noise-mm", "0.005", "--noise-deg", "0.0005", "--frame", "base"])
+              "--noise-mm", "0.005", "--noise-deg", "0.0005", "--frame", "base", "--holdout", str(hold)])
     assert rc == 0
     cal = load_config(out)
     err_before = np.abs(np.r_[cfg.base_joints_mm.ravel(), cfg.platform_joints_mm.ravel()] - s.theta_true[:36])
@@ -67,6 +69,7 @@ def test_cli_fit_writes_loadable_config_and_report(cfg, tmp_path):
     assert np.allclose(cal.strut_offset_mm, s.theta_true[36:], atol=0.2)
     j = json.loads((rep / "report.json").read_text())
     assert j["rms_fit"]["strut_mm"] < 0.02 and len(j["parameters"]) == 42
+    assert j["holdout"]["rows_evaluated"] == 5 and j["holdout"]["rms"]["position_mm"] < 0.03
     assert (rep / "report.md").exists() and (rep / "residuals_workspace.png").stat().st_size > 1000
 
 

@@ -147,6 +147,10 @@ def fit_markdown(rep: dict) -> str:
     L.append("")
     L.append(f"- nominal model: {_rms_line(rep['rms_nominal'])}")
     L.append(f"- calibrated: {_rms_line(rep['rms_fit'])}")
+    if rep.get("holdout"):
+        h = rep["holdout"]
+        L.append(f"- held-out `{h['path']}` ({h['rows_evaluated']} of {h['rows']} rows, first "
+                 f"{h['rereference_rows']} re-referencing the strut offsets): {_rms_line(h['rms'])}")
     L.append(f"- chi2/dof {rep['chi2_red']:.4g} with {rep['dof']:.1f} degrees of freedom; "
              f"{rep['iterations']} iterations, converged: {rep['converged']}")
     L.append("")

@@ -37,6 +37,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     ft.add_argument("--data", required=True, help="measurements (CSV, docs/measurements.md)")
     ft.add_argument("--map", help="column mapping (TOML) for a foreign CSV layout")
     ft.add_argument("--out", required=True, help="calibrated machine description (TOML)")
+    ft.add_argument("--holdout", help="held-out measurements (CSV, same mapping): RMS of the calibrated model on them")
+    ft.add_argument("--rereference-rows", type=int, default=0,
+                    help="spend the first K held-out rows re-referencing the strut offsets (another session)")
     ft.add_argument("--report", help="report directory (report.md, report.json, residuals_workspace.png)")
     ft.add_argument("--json", help="write the fit report as JSON")
     ft.add_argument("--noise-mm", type=float, default=None, help="instrument noise of x,y,z (mm)")
@@ -122,6 +125,13 @@ def _fit(args) -> int:
         raise DataError(f"{meas.path}: {meas.n_observations} measured coordinates in {meas.n} rows for {n_par} "
                         f"parameters; measure more poses (at least {n_par} coordinates, ideally several times "
                         f"that; `hexacnc calib plan` picks them)")
+    hold = None
+    if args.holdout:
+        hold = load_measurements(args.holdout, args.map, min_rows=1)
+        check_readings(cfg, hold)
+        if not 0 <= args.rereference_rows < hold.n:
+            raise DataError(f"{hold.path}: --rereference-rows {args.rereference_rows} leaves no held-out row "
+                            f"to evaluate ({hold.n} rows)")
     res = fit_model(cfg, ctx, causes, frame0, opts)
     res.noise_known = known
     rms = res.rms()
@@ -140,6 +150,11 @@ def _fit(args) -> int:
     }
     if frame:
         rep["frame"] = {nm: float(v) for nm, v in zip(res.layout.names[42:54], res.theta[42:54])}
+    if hold is not None:
+        from ..calib.diagnose import evaluate_holdout
+        hrms, _, hrows = evaluate_holdout(cfg, res, hold, ctx, args.rereference_rows, "offsets", meas)
+        rep["holdout"] = {"path": hold.path, "rows": hold.n, "rereference_rows": args.rereference_rows,
+                          "rows_evaluated": int(len(hrows)), "rms": hrms}
     header = (f"calibrated by hexacnc calib fit on {_dt.datetime.now(_dt.timezone.utc):%Y-%m-%d %H:%M} UTC\n"
               f"from {meas.path} ({meas.n} poses) starting from {cfg.path}\n"
               f"fit RMS: position {rms['position_mm']} mm, orientation {rms['orientation_deg']} deg, "
@@ -164,7 +179,9 @@ def _fit(args) -> int:
         raise
     if rd is not None:
         rd.commit()
-    print(json.dumps(to_jsonable({"out": args.out, "rms_nominal": nom, "rms_fit": rms, "chi2_red": res.chi2_red,
+    print(json.dumps(to_jsonable({"out": args.out, "rms_nominal": nom, "rms_fit": rms,
+                                  "rms_holdout": rep["holdout"]["rms"] if hold is not None else None,
+                                  "chi2_red": res.chi2_red,
                                   "unidentifiable_directions": len(rep["unidentifiable"]),
                                   "iterations": res.iterations}), indent=2))
     return 0
