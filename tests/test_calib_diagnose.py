@@ -161,3 +161,14 @@ def test_readings_outside_the_stroke_are_rejected(cfg, tmp_path):
     from hexacnc.errors import DataError
     with pytest.raises(DataError, match="line 2, q1 .* outside its stroke"):
         diagnose(cfg, s.fit, None, Options())
+
+
+def test_a_bad_row_is_reported_not_hidden(cfg):
+    s = synth.generate(cfg, 81, "none", n_fit=80, n_holdout=20)
+    s.fit.y[37, 2] += 0.5          # a 0.5 mm blunder in z on one row (100 x the noise)
+    d = diagnose(cfg, s.fit, s.holdout, Options(noise_mm=s.noise_mm, noise_deg=s.noise_deg, frame="base"))
+    rows = d.result["suspicious_rows"]
+    assert rows and rows[0]["line"] == int(s.fit.lines[37])
+    clean = synth.generate(cfg, 82, "none", n_fit=80, n_holdout=20)
+    d2 = diagnose(cfg, clean.fit, None, Options(noise_mm=clean.noise_mm, noise_deg=clean.noise_deg, frame="base"))
+    assert d2.result["suspicious_rows"] == []

@@ -494,6 +494,7 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
         "cv": {"folds": len(_folds(fit_meas.n, opts.folds)), "baseline_whitened_rms": baseline.cv_rms,
                "extended_whitened_rms": extended.cv_rms},
         "unidentifiable": unidentifiable_directions(extended.fit, max_dirs=8),
+        "suspicious_rows": suspicious_rows(extended.fit, fit_meas),
         "strongest_correlations": strongest_correlations(extended.fit, 5),
     }
     if "gain" in result and b_hold is not None:
@@ -501,6 +502,27 @@ def diagnose(cfg, fit_meas: Measurements, holdout: Measurements | None = None, o
     timings["total_s"] = time.perf_counter() - t0
     result["timing_s"] = timings
     return Diagnosis(result, baseline, extended, ctx, hold_ctx, rows, b_hold, e_hold, timings, hold_info)
+
+
+def suspicious_rows(res: FitResult, meas: Measurements, limit: float = 5.0) -> list[dict]:
+    """Rows whose residual is far outside the rest (robust scale): a lost target, a typo, a bump.
+
+    Reported, never dropped silently: per row the RMS of the whitened residual over its
+    measured coordinates, against ``limit`` times the median-absolute-deviation scale.
+    """
+    r = res.residuals()["coords"] / res.evaluator.ctx.sigma[None]
+    m = np.isfinite(r)
+    per_row = np.sqrt(np.nansum(r ** 2, axis=1) / np.maximum(m.sum(axis=1), 1))
+    scale = 1.4826 * float(np.median(per_row)) + 1e-12
+    out = []
+    for k in np.argsort(-per_row):
+        if per_row[k] <= limit * scale:
+            break
+        out.append({"line": int(meas.lines[k]) if meas.lines is not None else int(k) + 2,
+                    "residual_x_typical": float(per_row[k] / scale)})
+        if len(out) >= 20:
+            break
+    return out
 
 
 def _ratio1(a, b):

@@ -74,6 +74,11 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
             L.append("")
             L.append("Held-out session: " + h["session_shift_note"] + "; per-strut mean residual (mm): "
                      + ", ".join(f"{v:+.3g}" for v in h["strut_mean_residual_mm"]) + ".")
+    if res.get("suspicious_rows"):
+        L.append("")
+        L.append("Suspicious rows (residual far beyond the others; check them, they were kept in the fit): "
+                 + ", ".join(f"line {r['line']} ({r['residual_x_typical']:.0f}x typical)"
+                             for r in res["suspicious_rows"][:10]) + ".")
     L.append("")
     L.append("## Candidates")
     L.append("")
