@@ -337,6 +337,18 @@ class MachineConfig:
         return dataclasses.replace(self, **changes)
 
 
+def _expand_user_vars(path: str) -> str:
+    """Expand ``$USER`` (even where the environment lacks it) and other variables."""
+    if "$USER" in path or "${USER}" in path:
+        import getpass
+        try:
+            user = os.environ.get("USER") or getpass.getuser()
+        except (KeyError, OSError):
+            user = str(os.getuid())
+        path = path.replace("${USER}", user).replace("$USER", user)
+    return os.path.expandvars(path)
+
+
 def _freeze(a: np.ndarray) -> np.ndarray:
     a = np.array(a, dtype=float)
     a.setflags(write=False)
@@ -502,7 +514,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     d = sec("daemon")
     dd = DaemonConfig()
     daemon = DaemonConfig(
-        socket_path=os.path.expandvars(d.getstr("socket_path", dd.socket_path)),
+        socket_path=_expand_user_vars(d.getstr("socket_path", dd.socket_path)),
         tcp_port=d.getint("tcp_port", dd.tcp_port, minval=0, maxval=65535),
         tcp_token=d.getstr("tcp_token", dd.tcp_token),
         status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),

@@ -186,3 +186,19 @@ def test_generated_fast_path_equals_general_path():
             slow.reset_pose(X)
             assert fast.feedback(meas) == slow.feedback(meas) == T.OK
             assert np.allclose(fast.pose_act, slow.pose_act, rtol=0, atol=1e-8)
+
+
+def test_packaged_default_equals_config_default():
+    packaged = REPO / "hexacnc" / "data" / "default.toml"
+    assert packaged.read_text() == (REPO / "config" / "default.toml").read_text(), \
+        "hexacnc/data/default.toml must be a copy of config/default.toml (it serves non-editable installs)"
+
+
+def test_demo_program_plans_on_the_default_machine():
+    from hexacnc.gcode import program_from_config
+    from hexacnc.planner import plan_program
+    cfg = load_config(None)
+    text = (REPO / "hexacnc" / "data" / "demo.ngc").read_text()
+    plan = plan_program(program_from_config(text, "demo.ngc", cfg).blocks, cfg)
+    assert plan.duration_s > 1.0
+    assert max(plan.utilisation.values()) <= 1.0

@@ -19,6 +19,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="drive I/O: bus = [bus] interface (with drivers.simdrive when [bus] simulate); "
                              "pipe = simulated drives over a Unix socket pair; inproc = model inside the loop; "
                              "auto: pipe for interface 'virtual' with simulate, else bus")
+    parser.add_argument("--demo", action="store_true",
+                        help="run the embedded demo program (a small 5-axis part) and show its progress; "
+                             "without --duration, exit when it has finished")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                         help="default: [daemon] log_level")
@@ -49,6 +52,34 @@ class Watchdog(threading.Thread):
                 self.notifier.notify("WATCHDOG=1")
                 self.pets += 1
             last = cycles
+
+
+def _start_demo(daemon, log) -> bool:
+    from importlib import resources
+    text = (resources.files("hexacnc") / "data" / "demo.ngc").read_text(encoding="utf-8")
+    reply = daemon.load_program(text, "demo.ngc")
+    log.info("demo: program demo.ngc checked against every limit and queued: %d blocks, %.1f s",
+             reply.get("blocks", 0), reply.get("duration_s", 0.0))
+    return True
+
+
+def _demo_progress(daemon, log) -> bool:
+    st = daemon.status()
+    prog = st.get("program") or {}
+    pc = st.get("pose_cmd") or [0.0] * 6
+    c = st["cycle"]
+    log.info("demo: %-8s line %-3s %5.1f %%  platform x %7.2f y %7.2f z %8.2f a %6.2f b %6.2f  "
+             "compute p99 %s us, overruns %d", st["state"], prog.get("line", st.get("line")),
+             float(prog.get("percent") or 0.0), pc[0], pc[1], pc[2], pc[3], pc[4],
+             c["compute_us"]["p99"], c["overruns"])
+    if st.get("fault"):
+        log.error("demo: fault %s", st["fault"])
+        return False
+    if st["state"] == "idle" and not (prog.get("queued") or 0) and float(prog.get("percent") or 0.0) >= 100.0:
+        log.info("demo: finished; strut commands %s mm",
+                 ", ".join(f"{v:.4f}" for v in st.get("struts_cmd_mm") or []))
+        return False
+    return True
 
 
 def main(args: argparse.Namespace) -> int:
@@ -94,6 +125,9 @@ def main(args: argparse.Namespace) -> int:
         log.info("running (cycle %.3f ms); Ctrl-C stops", daemon.period_s * 1e3)
         t_end = None if args.duration is None else time.monotonic() + args.duration
         last_log = time.monotonic()
+        demo_running = False
+        if args.demo:
+            demo_running = _start_demo(daemon, log)
         while not stop.is_set():
             if t_end is not None and time.monotonic() >= t_end:
                 break
@@ -101,6 +135,12 @@ def main(args: argparse.Namespace) -> int:
             if not daemon.alive:
                 log.error("hot loop process ended: %s", (daemon.status().get("fault") or {}).get("message"))
                 return 1
+            if demo_running and time.monotonic() - last_log >= 1.0:
+                last_log = time.monotonic()
+                demo_running = _demo_progress(daemon, log)
+                if not demo_running and t_end is None:
+                    break
+                continue
             if time.monotonic() - last_log >= 10.0:
                 last_log = time.monotonic()
                 st = daemon.status()
