@@ -52,8 +52,11 @@ def machine(cfg):
 def client(machine):
     daemon, srv = machine
     c = P.Client.unix(srv.socket_path)
-    if c.call("status")["state"] == "fault":
+    st = c.call("status")
+    if st["state"] == "fault":
         c.call("reset", reply_timeout_s=30.0)
+    elif st["state"] in ("running", "paused"):          # left over by a failed test
+        c.call("stop")
     assert c.call("wait", timeout_s=30.0)["state"] == "idle"
     yield c
     c.close()
@@ -118,12 +121,19 @@ def test_pause_resume_stop_over_the_socket(cfg, machine, client):
     daemon.move_to([0.0, 0.0, -820.0, 0.0, 0.0, 0.0], 40.0, name="slow")
     time.sleep(0.2)
     client.call("pause")
-    time.sleep(0.5)
+    # decelerates along the path to rest (after the rows already queued to the loop)
+    p1, t_rest = client.call("status")["pose_cmd"], time.monotonic() + 3.0
+    while True:
+        time.sleep(0.1)
+        p2 = client.call("status")["pose_cmd"]
+        if p2 == p1:
+            break
+        assert time.monotonic() < t_rest, "still moving 3 s after pause"
+        p1 = p2
+    time.sleep(0.2)
     st = client.call("status")
     assert st["state"] == "paused"
-    p1 = client.call("status")["pose_cmd"]
-    time.sleep(0.1)
-    assert client.call("status")["pose_cmd"] == p1           # held still while paused
+    assert st["pose_cmd"] == p1                               # held still while paused
     client.call("resume")
     assert client.call("status")["state"] in ("running", "idle")
     client.call("stop")

@@ -65,6 +65,8 @@ def client(machine):
     st = c.call("status")
     if st["state"] == "fault":
         c.call("reset", reply_timeout_s=30.0)
+    elif st["state"] in ("running", "paused"):          # left over by a failed test
+        c.call("stop")
     assert c.call("wait", timeout_s=30.0)["state"] == "idle"
     yield c
     c.close()
