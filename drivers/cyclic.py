@@ -15,6 +15,13 @@ Neither call raises for bus trouble or bad frames: ``send`` returns ``SEND_*`` b
 bits. Nothing is allocated per cycle except what python-can forces (received ``can.Message``
 objects, the udp_multicast datagram).
 
+On buses with the batch interface of :mod:`drivers.framerec` (the daemon's pipe bus) the same
+frames travel as prebuilt records: one write per bus per cycle (controlword events, RPDOs, SYNC,
+heartbeat, in that order) and one read per bus per poll, decoded in place with ``struct`` (no
+``can.Message``). SocketCAN, udp_multicast and virtual buses take the python-can path, one
+``bus.send`` per frame as the kernel needs; both paths put the same frames on each bus in the
+same order and decode them into the same state.
+
 Units: drive positions in increments, ``inc = round((strut_length_mm - strut_offset_mm) *
 increments_per_mm)``, int32; strut index 0..5 in ``[bus] node_ids`` order.
 """
@@ -27,7 +34,7 @@ from typing import Sequence
 
 import can
 
-from . import cia402
+from . import cia402, framerec
 from .layout import MASTER_NODE_ID, SYNC_COB_ID, plan_layout
 
 # -- send() result bits ------------------------------------------------------------------------
@@ -87,6 +94,44 @@ def event_text(ev: int) -> str:
     return ", ".join(name for bit, name in EVENT_NAMES.items() if ev & bit) or "none"
 
 
+_HDR = framerec.HEADER
+REC = framerec.RECORD
+DATA_OFFSET = framerec.DATA_OFFSET
+
+
+class _BatchTx:
+    """One bus's transmit buffer on the record path: ``[controlword event slots][RPDO records][SYNC]
+    [heartbeat]``, headers and constant bytes prebuilt; per cycle only data bytes are packed."""
+
+    __slots__ = ("send", "buf", "view", "cw_nodes", "frames_at", "frames", "sync_at", "sync_data",
+                 "sync_end", "hb_end")
+
+    def __init__(self, io: "CyclicIO", b: int):
+        plan = io.plan
+        bus = io.buses[b]
+        self.send = bus.send_records
+        self.cw_nodes = tuple((nd.index, nd.rpdo2_cob_id) for nd in plan.nodes
+                              if nd.bus == b and nd.rpdo2_cob_id is not None)
+        frames = [f for f in plan.frames if f.bus == b]
+        n_rec = len(self.cw_nodes) + len(frames) + 2
+        self.buf = buf = bytearray(REC * n_rec)
+        self.view = memoryview(buf)
+        p = self.frames_at = REC * len(self.cw_nodes)
+        out = []
+        for f in frames:
+            framerec.encode(buf, p, f.cob_id, bytes(f.length), is_fd=f.fd, bitrate_switch=f.fd)
+            out.append((tuple((i, p + DATA_OFFSET + off) for i, off in f.slots), f.has_controlword))
+            p += REC
+        self.frames = tuple(out)
+        self.sync_at = p
+        framerec.encode(buf, p, SYNC_COB_ID, bytes(plan.sync_length))
+        self.sync_data = p + DATA_OFFSET
+        p += REC
+        self.sync_end = p
+        framerec.encode(buf, p, 0x700 + MASTER_NODE_ID, bytes([NMT_OPERATIONAL]))
+        self.hb_end = p + REC
+
+
 class CyclicIO:
     """Per-cycle frames of the configured layout on ``buses`` (one bus object per ``[bus] buses``).
 
@@ -101,7 +146,10 @@ class CyclicIO:
     def __init__(self, buses: can.BusABC | Sequence[can.BusABC], bus_cfg,
                  limits_inc: tuple[Sequence[int], Sequence[int]] | None = None,
                  controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005,
-                 status: Sequence[int] | None = None, positions_inc: Sequence[int] | None = None):
+                 status: Sequence[int] | None = None, positions_inc: Sequence[int] | None = None,
+                 batch: bool | None = None):
+        """``batch``: use the record batch interface (:mod:`drivers.framerec`); None: when every
+        bus offers it, False: never (python-can ``send``/``recv`` on every bus)."""
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.plan = plan = plan_layout(bus_cfg)
@@ -151,8 +199,8 @@ class CyclicIO:
         # master heartbeat (consumed by the drives, 0x1016)
         self._hb_msg = can.Message(arbitration_id=0x700 + MASTER_NODE_ID, data=bytearray([NMT_OPERATIONAL]),
                                    is_extended_id=False)
-        self._hb_every = max(1, round(bus_cfg.heartbeat_ms * 1e-3 / period_s))
-        self._hb_count = self._hb_every - 1      # first heartbeat with the first send()
+        self._hb_period_s = bus_cfg.heartbeat_ms * 1e-3
+        self._hb_next_s = 0.0                    # first heartbeat with the first send()
         # receive dispatch
         self._rx: dict[int, tuple[int, int]] = {}
         for nd in plan.nodes:
@@ -161,6 +209,13 @@ class CyclicIO:
             self._rx[0x700 + nd.node_id] = (_K_HEARTBEAT, nd.index)
             self._rx[0x080 + nd.node_id] = (_K_EMCY, nd.index)
         self._hb_timeout_s = bus_cfg.heartbeat_timeout_ms * 1e-3
+        can_batch = all(framerec.supports_batch(b) for b in self.buses)
+        if batch and not can_batch:
+            raise ValueError("CyclicIO(batch=True): a bus lacks the frame record interface")
+        self.batch = can_batch if batch is None else bool(batch)
+        self._btx: list[_BatchTx] = [_BatchTx(self, b) for b in range(plan.buses)] if self.batch else []
+        # struts whose controlword travels inside RPDO1 (single layout): no event frame
+        self._cw_inline = [i for i in range(n) if self._cw_msgs[i] is None]
 
     # -- transmit -----------------------------------------------------------------------------
     def set_controlword(self, strut: int, controlword: int) -> None:
@@ -190,6 +245,25 @@ class CyclicIO:
         if controlwords is not None:
             for i in range(self.n):
                 cw[i] = controlwords[i]
+        if self._sync_overflow:
+            self._sync_counter = self._sync_counter % self._sync_overflow + 1
+        now = time.monotonic()
+        beat = now >= self._hb_next_s
+        if beat:                                 # every [bus] heartbeat_ms, whatever the call rate
+            self._hb_next_s = now + self._hb_period_s
+        if self.batch:
+            rc, sent = self._send_batch(targets_inc, cw, limit, have_last, beat)
+        else:
+            rc, sent = self._send_frames(targets_inc, cw, limit, have_last, beat)
+        self.frames_sent += sent
+        self.cycles += 1
+        if limit:
+            return rc | SEND_LIMIT
+        self._have_last = True
+        return rc
+
+    def _send_frames(self, targets_inc, cw, limit: bool, have_last: bool, beat: bool) -> tuple[int, int]:
+        """python-can path: one ``bus.send`` per frame. Returns (SEND_* bits, frames sent)."""
         rc = SEND_OK
         sent = 0
         # controlword events first (asynchronous RPDO2: applied on reception)
@@ -206,12 +280,6 @@ class CyclicIO:
                         rc |= SEND_BUS_ERROR
                         continue
                 cw_sent[i] = cw[i]
-        if self._sync_overflow:
-            self._sync_counter = self._sync_counter % self._sync_overflow + 1
-        self._hb_count += 1
-        beat = self._hb_count >= self._hb_every
-        if beat:
-            self._hb_count = self._hb_every - 1      # first heartbeat with the first send()
         pack_i32 = _I32.pack_into
         pack_u16 = _U16.pack_into
         for bus, frames, sync in self._tx:
@@ -240,16 +308,73 @@ class CyclicIO:
                     sent += 1
             except can.CanError:
                 rc |= SEND_BUS_ERROR
-        self.frames_sent += sent
-        self.cycles += 1
-        if limit:
-            return rc | SEND_LIMIT
-        self._have_last = True
-        return rc
+        return rc, sent
+
+    def _send_batch(self, targets_inc, cw, limit: bool, have_last: bool, beat: bool) -> tuple[int, int]:
+        """Record path: per bus one write of controlword events + RPDOs + SYNC (+ heartbeat).
+
+        The same frames in the same order per bus as :meth:`_send_frames`; a failed write fails
+        the whole bus's batch (its controlword events are retried next cycle)."""
+        rc = SEND_OK
+        sent = 0
+        cw_sent = self._cw_sent
+        for i in self._cw_inline:
+            cw_sent[i] = cw[i]
+        pack_i32 = _I32.pack_into
+        pack_u16 = _U16.pack_into
+        counter = self._sync_counter if self._sync_overflow else -1
+        for bt in self._btx:
+            buf = bt.buf
+            # controlword events, packed right-aligned in front of the RPDO records
+            start = bt.frames_at
+            changed = 0
+            for i, cob in bt.cw_nodes:
+                if cw[i] != cw_sent[i]:
+                    changed |= 1 << i
+            if changed:
+                for i, cob in reversed(bt.cw_nodes):
+                    if changed >> i & 1:
+                        start -= REC
+                        _HDR.pack_into(buf, start, cob, 0, 2)
+                        pack_u16(buf, start + DATA_OFFSET, cw[i])
+            if limit:
+                if have_last:
+                    for slots, has_cw in bt.frames:
+                        if has_cw:
+                            for i, off in slots:
+                                pack_u16(buf, off - 2, cw[i])
+            else:
+                for slots, has_cw in bt.frames:
+                    for i, off in slots:
+                        pack_i32(buf, off, targets_inc[i])
+                        if has_cw:
+                            pack_u16(buf, off - 2, cw[i])
+            if counter >= 0:
+                buf[bt.sync_data] = counter
+            end = bt.hb_end if beat else bt.sync_end
+            try:
+                if limit and not have_last:   # no valid target yet: events, SYNC (+ heartbeat) only
+                    if start < bt.frames_at:
+                        bt.send(bt.view[start:bt.frames_at])
+                    bt.send(bt.view[bt.sync_at:end])
+                    sent += (bt.frames_at - start + end - bt.sync_at) // REC
+                else:
+                    bt.send(bt.view[start:end])
+                    sent += (end - start) // REC
+            except can.CanError:
+                rc |= SEND_BUS_ERROR
+                continue
+            if changed:
+                for i, cob in bt.cw_nodes:
+                    if changed >> i & 1:
+                        cw_sent[i] = cw[i]
+        return rc, sent
 
     # -- receive ------------------------------------------------------------------------------
     def poll(self, max_frames: int = 256) -> int:
         """Drain received frames without blocking; returns ``EV_*`` bits (0: nothing new)."""
+        if self.batch:
+            return self._poll_batch(max_frames)
         ev = 0
         now = time.monotonic()
         rx = self._rx
@@ -308,6 +433,83 @@ class CyclicIO:
                     ev |= EV_EMCY
             else:
                 ev |= EV_OVERFLOW
+        self.frames_received += count
+        return ev
+
+    def _poll_batch(self, max_frames: int) -> int:
+        """Record path of :meth:`poll`: one read per bus, frames decoded in place (same state and
+        events as the python-can path)."""
+        ev = 0
+        now = time.monotonic()
+        rx = self._rx
+        count = 0
+        unpack_hdr = _HDR.unpack_from
+        unpack_i32 = _I32.unpack_from
+        unpack_u16 = _U16.unpack_from
+        pos_inc = self.pos_inc
+        pos_time = self.pos_time_s
+        status = self.status
+        for bus in self.buses:
+            left = max_frames
+            while True:
+                try:
+                    buf, p, end = bus.drain_records(left)
+                except (can.CanError, OSError, ValueError):
+                    ev |= EV_BUS_ERROR
+                    break
+                if p == end:
+                    break
+                left -= (end - p) // REC
+                while p < end:
+                    arb, flags, length = unpack_hdr(buf, p)
+                    d = p + DATA_OFFSET
+                    p += REC
+                    hit = rx.get(arb)
+                    if hit is None or flags & framerec.F_RTR:
+                        continue
+                    kind, i = hit
+                    if kind == _K_POS:
+                        if length < 4:
+                            ev |= EV_BAD_FRAME
+                            continue
+                        pos_inc[i] = unpack_i32(buf, d)[0]
+                        pos_time[i] = now
+                        ev |= EV_FEEDBACK
+                    elif kind == _K_STATUS:
+                        if length < 2:
+                            ev |= EV_BAD_FRAME
+                            continue
+                        sw = unpack_u16(buf, d)[0]
+                        if sw != status[i]:
+                            ev |= EV_STATUS
+                        status[i] = sw
+                        self.status_time_s[i] = now
+                    elif kind == _K_HEARTBEAT:
+                        if length < 1:
+                            ev |= EV_BAD_FRAME
+                            continue
+                        st = buf[d] & 0x7F
+                        self.last_heartbeat_s[i] = now
+                        self.nmt_state[i] = st
+                        ev |= EV_HEARTBEAT
+                        if st == 0:
+                            self.bootups += 1
+                            ev |= EV_BOOTUP
+                        elif st != NMT_OPERATIONAL:
+                            ev |= EV_NMT
+                    else:  # EMCY
+                        if length < 8:
+                            ev |= EV_BAD_FRAME
+                            continue
+                        code, reg, extra = _EMCY.unpack_from(buf, d)
+                        self.emcy.append((i, code, reg, extra, now))
+                        ev |= EV_EMCY
+                if left <= 0:
+                    ev |= EV_OVERFLOW
+                    break
+                if end < len(buf):      # the read did not fill the buffer: the socket is empty
+                    break
+            count += max_frames - left
         self.frames_received += count
         return ev
 

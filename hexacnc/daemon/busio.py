@@ -182,22 +182,29 @@ class CyclicAdapter:
         self.info = info
         self._EV_EMCY = cyclic.EV_EMCY
         self._EV_BOOTUP = cyclic.EV_BOOTUP
+        self._EV_FEEDBACK = cyclic.EV_FEEDBACK
+        self._EV_HEARTBEAT = cyclic.EV_HEARTBEAT
+        self._hb_first = True           # hb_ns from the construction time until the first heartbeat
         self._hb = cio.last_heartbeat_s
 
     def poll(self, now_ns: int) -> int:
         cio = self.cio
         ev = cio.poll()
-        pt = cio.pos_time_s
-        lp = self._pt
-        hb = self._hb
-        hb_ns = self.hb_ns
-        pc = self.pos_count
-        for i in range(6):
-            t = pt[i]
-            if t != lp[i]:
-                lp[i] = t
-                pc[i] += 1
-            hb_ns[i] = int(hb[i] * 1e9)
+        if ev & self._EV_FEEDBACK:
+            pt = cio.pos_time_s
+            lp = self._pt
+            pc = self.pos_count
+            for i in range(6):
+                t = pt[i]
+                if t != lp[i]:
+                    lp[i] = t
+                    pc[i] += 1
+        if ev & self._EV_HEARTBEAT or self._hb_first:
+            self._hb_first = False
+            hb = self._hb
+            hb_ns = self.hb_ns
+            for i in range(6):
+                hb_ns[i] = int(hb[i] * 1e9)
         if ev & self._EV_EMCY:
             q = cio.emcy
             while q:

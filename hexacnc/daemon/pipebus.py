@@ -3,11 +3,14 @@
 The transport of the embedded default (simulated drives, no root, no network at all): the
 supervisor makes one socket pair per CAN bus, hands one end to the simulated drives process
 (:mod:`hexacnc.daemon.simhost`) and the other to the hot loop process.  Each datagram is one
-frame is one fixed 72-byte record: ``struct "<IBB" (arbitration id, flags, length)`` + 64 data
-bytes (a stream socket, because datagram queues are capped by ``net.unix.max_dgram_qlen``, often 10).  Nothing is echoed (the peer is
-the only other station), nothing leaves the machine, and a send is one ``send(2)`` call - much
-cheaper than udp_multicast (msgpack, echo of every own frame).  The master, the cyclic codec and
-the simulated drives run unchanged on it: the same code path as SocketCAN and udp_multicast.
+frame is one fixed 72-byte record (:mod:`drivers.framerec`: ``struct "<IBB" (arbitration id, flags,
+length)`` + 64 data bytes; a stream socket, because datagram queues are capped by
+``net.unix.max_dgram_qlen``, often 10).  Nothing is echoed (the peer is the only other station),
+nothing leaves the machine, and a send is one ``send(2)`` call - much cheaper than udp_multicast
+(msgpack, echo of every own frame).  The master and the simulated drives use it as a python-can
+bus; the hot loop's codec (:class:`drivers.cyclic.CyclicIO`) uses the batch interface of
+:mod:`drivers.framerec` instead: all frames of a cycle in one ``send(2)`` per bus and one
+``recv(2)`` per bus for everything that arrived, decoded in place without ``can.Message`` objects.
 """
 from __future__ import annotations
 
@@ -19,12 +22,11 @@ import time
 
 import can
 
-_HDR = struct.Struct("<IBB")
-REC = 72                   #: bytes per frame record
-F_EXT = 1
-F_FD = 2
-F_BRS = 4
-F_RTR = 8
+from drivers import framerec
+from drivers.framerec import F_BRS, F_EXT, F_FD, F_RTR  # noqa: F401  (re-exported)
+
+_HDR = framerec.HEADER
+REC = framerec.RECORD      #: bytes per frame record
 
 
 def socket_pairs(n: int) -> list[tuple[socket.socket, socket.socket]]:
@@ -41,11 +43,19 @@ def socket_pairs(n: int) -> list[tuple[socket.socket, socket.socket]]:
 
 
 class PipeBus(can.BusABC):
-    """python-can bus on one end (a file descriptor) of a :func:`socket_pairs` pair."""
+    """python-can bus on one end (a file descriptor) of a :func:`socket_pairs` pair.
 
-    def __init__(self, channel=None, fd: int | None = None, **kwargs):
+    ``poll_interval_s`` > 0: a blocking receive looks for data every ``poll_interval_s`` instead of
+    sleeping in ``poll(2)`` until the peer writes.  The simulated drives use it: a write that has to
+    wake a process sleeping on the socket costs the *writer* the cross-CPU wake-up (about 20 us in
+    a VM), paid by the hot loop on every cycle; real drives on a CAN controller wake nobody on the
+    hot loop's CPU.  The price is up to ``poll_interval_s`` of extra reaction time at the receiver.
+    """
+
+    def __init__(self, channel=None, fd: int | None = None, poll_interval_s: float = 0.0, **kwargs):
         if fd is None:
             fd = int(channel)
+        self.poll_interval_s = float(poll_interval_s)
         self.sock = socket.socket(fileno=fd)
         self.sock.setblocking(False)
         self._fd = self.sock.fileno()
@@ -62,32 +72,76 @@ class PipeBus(can.BusABC):
         self.dropped = 0           #: frames lost because the peer's receive queue was full
         super().__init__(channel=channel, **kwargs)
 
+    frame_records = True       #: offers send_records / drain_records (drivers.framerec)
+
     def send(self, msg: can.Message, timeout: float | None = None) -> None:
-        flags = ((F_EXT if msg.is_extended_id else 0) | (F_FD if msg.is_fd else 0)
-                 | (F_BRS if msg.bitrate_switch else 0) | (F_RTR if msg.is_remote_frame else 0))
         data = msg.data
-        n = len(data) if data is not None else 0
-        tx = self._tx
-        _HDR.pack_into(tx, 0, msg.arbitration_id, flags, n)
-        if n:
-            tx[6:6 + n] = data
+        framerec.encode(self._tx, 0, msg.arbitration_id, data if data is not None else b"",
+                        is_extended_id=msg.is_extended_id, is_fd=msg.is_fd,
+                        bitrate_switch=msg.bitrate_switch, is_remote_frame=msg.is_remote_frame)
+        self.send_records(self._txv)
+
+    def send_records(self, view) -> int:
+        """Write whole records (``len(view)`` a multiple of :data:`REC`) with one ``send(2)``.
+
+        Never blocks for long: when the peer's receive buffer (1 MiB) is full, the record being
+        written is finished (the stream must stay aligned) and the records after it are lost for the
+        peer, like a receiver overrun; returns how many were lost (also counted in ``dropped``).
+        Raises ``can.CanOperationError`` when the socket failed.
+        """
+        n = len(view)
         try:
-            k = self.sock.send(self._txv)
-            if k != REC:                       # buffer (1 MiB) nearly full: finish the record
-                self.dropped += 1
-                view = self._txv[k:]
-                while len(view):
-                    select.select([], [self._fd], [], 0.01)
-                    try:
-                        view = view[self.sock.send(view):]
-                    except BlockingIOError:
-                        pass
+            k = self.sock.send(view)
         except BlockingIOError:
-            # the peer's buffer is full: like a receiver overrun, the frame is lost for that
-            # station (counted); the sender is never blocked
-            self.dropped += 1
+            k = 0
         except OSError as exc:
             raise can.CanOperationError(f"pipe bus: {exc}") from exc
+        if k == n:
+            return 0
+        part = k % REC
+        if part:                                # finish the record cut in the middle
+            rest = view[k:k - part + REC]
+            while len(rest):
+                select.select([], [self._fd], [], 0.01)
+                try:
+                    rest = rest[self.sock.send(rest):]
+                except BlockingIOError:
+                    pass
+                except OSError as exc:
+                    raise can.CanOperationError(f"pipe bus: {exc}") from exc
+            k += REC - part
+        lost = (n - k) // REC
+        self.dropped += lost
+        return lost
+
+    def drain_records(self, max_records: int = 256):
+        """Non-blocking: read what arrived; returns ``(buf, start, end)`` with the whole records
+        ``buf[start:end]`` (at most ``max_records``), consumed by this call and valid until the
+        next receive call.  ``start == end``: nothing new (also when the peer has gone)."""
+        pos = self._pos
+        have = self._have
+        if pos:
+            rest = have - pos
+            if rest:
+                self._buf[:rest] = self._buf[pos:have]
+            have = rest
+            pos = 0
+        buf = self._buf
+        if have < len(buf):
+            try:
+                have += self.sock.recv_into(self._bufv[have:])
+            except BlockingIOError:
+                pass
+            except OSError as exc:
+                self._have = have
+                self._pos = 0
+                raise can.CanOperationError(f"pipe bus: {exc}") from exc
+        end = (have // REC) * REC
+        if end > max_records * REC:
+            end = max_records * REC
+        self._have = have
+        self._pos = end
+        return buf, 0, end
 
     def _fill(self, timeout: float | None) -> bool:
         """Read more bytes; False if none arrived within ``timeout``."""
@@ -96,6 +150,8 @@ class PipeBus(can.BusABC):
             self._buf[:rest] = self._buf[self._pos:self._have]
             self._have = rest
             self._pos = 0
+        if self.poll_interval_s > 0.0 and timeout != 0.0:
+            return self._fill_polling(timeout)
         if not self._poller.poll(0 if not timeout else (-1 if timeout is None else int(timeout * 1000) or 1)):
             return False
         try:
@@ -110,6 +166,26 @@ class PipeBus(can.BusABC):
             return False
         self._have += n
         return True
+
+    def _fill_polling(self, timeout: float | None) -> bool:
+        """:meth:`_fill` by non-blocking reads every ``poll_interval_s`` (see the class doc)."""
+        t_end = None if timeout is None else time.monotonic() + timeout
+        while True:
+            try:
+                n = self.sock.recv_into(self._bufv[self._have:])
+            except BlockingIOError:
+                n = -1
+            except OSError as exc:
+                raise can.CanOperationError(f"pipe bus: {exc}") from exc
+            if n > 0:
+                self._have += n
+                return True
+            if n == 0:                                   # peer gone: behave like a silent bus
+                time.sleep(min(timeout, 0.01) if timeout else 0.01)
+                return False
+            if t_end is not None and time.monotonic() >= t_end:
+                return False
+            time.sleep(self.poll_interval_s)
 
     def _recv_internal(self, timeout: float | None):
         if self._have - self._pos < REC:

@@ -15,6 +15,9 @@ import signal
 import sys
 import threading
 
+#: the simulated drives look for frames this often (s); a fifth of the default 0.5 ms cycle
+POLL_INTERVAL_S = 0.0001
+
 
 def main() -> int:
     args = pickle.load(sys.stdin.buffer)
@@ -30,7 +33,10 @@ def main() -> int:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
     except (OSError, AttributeError) as exc:
         logging.getLogger("hexacnc.simhost").warning("simulated drives without SCHED_FIFO: %s", exc)
-    buses = [PipeBus(fd=fd) for fd in args["fds"]]
+    # look for frames on a timer instead of being woken by each write: the wake-up would be paid by
+    # the hot loop on its CPU every cycle (see PipeBus); the drives answer within this interval
+    poll_s = float(args.get("poll_interval_s", POLL_INTERVAL_S))
+    buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
