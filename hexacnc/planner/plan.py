@@ -331,16 +331,16 @@ class _Bounds:
         self.j2 = 3.0 * both(aLpp / jmax)
         self.j3 = both(aLppp / jmax)
 
-    def at(self, g, sd, sdd, sddd):
-        if not hasattr(self, "M"):
-            self.M = np.stack([self.v, self.a1, self.a2, self.j1, self.j2, self.j3], axis=1)
-        B = self.M[g]
+    def at(self, g, sd, sdd, sddd, extras: bool = True):
+        """Bounds per sample; ``extras=False`` skips the governor ratios (va, ajr, vjr: returned as None)."""
         asd, asdd, asddd = np.abs(sd), np.abs(sdd), np.abs(sddd)
         sd2 = asd * asd
-        bv, ba1, ba2, bj1, bj2, bj3 = B[:, 0], B[:, 1], B[:, 2], B[:, 3], B[:, 4], B[:, 5]
+        bv, ba1, ba2, bj1, bj2, bj3 = (a[g] for a in (self.v, self.a1, self.a2, self.j1, self.j2, self.j3))
         uv = bv * asd
         ua = ba2 * sd2 + ba1 * asdd
         uj = bj3 * sd2 * asd + bj2 * asd * asdd + bj1 * asddd
+        if not extras:
+            return uv, ua, uj, None, None, None
         va = ba1 * asd
         ajr = (bj2 / 3.0) * sd2 + bj1 * asdd
         vjr = bj1 * asd
@@ -358,7 +358,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     N = s_f.shape[0]
     sd, sdd, sddd = _path_rates(s_f, dt)
     g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
-    res = list(bounds.at(g, sd, sdd, sddd))
+    res = list(bounds.at(g, sd, sdd, sddd, extras=exact))     # governor ratios only for the final table
     need = (res[0] > screen) | (res[1] > screen) | (res[2] > screen)
     # samples next to a piece junction (curvature steps are not in the bounds)
     jn = np.nonzero(np.diff(sg) == 0)[0]
@@ -391,9 +391,6 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
             res[0][mv] = (V / vmax).max(axis=1)
             res[1][mv] = (A / amax).max(axis=1)
             res[2][mv] = (Jk / jmax).max(axis=1)
-            res[3][mv] = (V / amax).max(axis=1)
-            res[4][mv] = (A / jmax).max(axis=1)
-            res[5][mv] = (V / jmax).max(axis=1)
         return (*res, idx.size)
     # exact: inverse kinematics on the needed samples with 3 neighbours either side
     ext = np.unique(np.clip((idx[:, None] + np.arange(-3, 4)[None, :]).ravel(), 0, N - 1))
