@@ -158,6 +158,10 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         "sections": sections,
         "note": "TOPP-RA: strut velocity+acceleration only (no jerk limit, no standstill at stops); "
                 "hexacnc: also jerk-limited, stops held for the smoothing window",
+        "jerk_filter_s": round(float(plan.filter_s), 6),
+        "gap_reason": "jerk limiting by a moving average of width jerk_filter_s = 2 max(a_max/j_max): every "
+                      "stop, slowdown and curvature-bound stretch costs time a jerk-free profile does not pay; "
+                      "a jerk-aware (third-order) pass that only pays where the jerk limit binds is not implemented",
     }
 
 
