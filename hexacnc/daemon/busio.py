@@ -280,5 +280,6 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
                 pass
         raise
     info = {"mode": mode, "interface": "pipe (Unix socket pair)" if sim_args.get("pipe_fds") else cfg.bus.interface, "layout": cfg.bus.layout, "buses": cfg.bus.buses,
-            "bus_load": load, "bus_summary": busload.describe(rep)}
+            "bus_load": load, "bus_summary": busload.describe(rep),
+            "frame_batch": cio.batch}     # one write/read per bus per cycle (drivers.framerec)
     return CyclicAdapter(cio, load, info)
