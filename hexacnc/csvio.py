@@ -74,21 +74,19 @@ def format_csv(header: list[str], rows) -> str:
     return buf.getvalue()
 
 
-def write_text_atomic(path: str | os.PathLike | None, text: str) -> None:
-    """Write ``text`` to ``path`` atomically (temp file + rename); ``None`` or ``-``: stdout."""
-    if path is None or str(path) == "-":
-        sys.stdout.write(text)
-        sys.stdout.flush()
-        return
+def atomic_write_bytes(path: str | os.PathLike, data: bytes, make_parents: bool = False) -> None:
+    """Write ``data`` to ``path`` through a temp file in the same directory and ``os.replace``."""
     p = Path(path)
     d = p.parent if str(p.parent) else Path(".")
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", dir=d)
+        if make_parents:
+            d.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=d)
     except OSError as exc:
         raise DataError(f"{p}: cannot write: {exc.strerror or exc}") from exc
     try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
         os.replace(tmp, p)
     except BaseException:
         try:
@@ -96,3 +94,12 @@ def write_text_atomic(path: str | os.PathLike | None, text: str) -> None:
         except OSError:
             pass
         raise
+
+
+def write_text_atomic(path: str | os.PathLike | None, text: str) -> None:
+    """Write ``text`` to ``path`` atomically (temp file + rename); ``None`` or ``-``: stdout."""
+    if path is None or str(path) == "-":
+        sys.stdout.write(text)
+        sys.stdout.flush()
+        return
+    atomic_write_bytes(path, text.encode("utf-8"))

@@ -19,13 +19,13 @@ import csv
 import io
 import math
 import os
-import tempfile
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from ..csvio import atomic_write_bytes as _atomic_write_bytes
 from ..errors import DataError
 from ..pose import euler_from_matrix, matrix_from_quaternion
 
@@ -410,20 +410,5 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> None:
-    p = Path(path)
-    d = p.parent if str(p.parent) else Path(".")
-    try:
-        d.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=d)
-    except OSError as exc:
-        raise DataError(f"{p}: cannot write: {exc.strerror or exc}") from exc
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    """Atomic write that also creates missing parent folders (report directories)."""
+    _atomic_write_bytes(path, data, make_parents=True)
