@@ -9,20 +9,14 @@
 """
 from __future__ import annotations
 
-import dataclasses
-import math
 import os
 import random
-import shutil
-import tempfile
 import time
 
 import numpy as np
 import pytest
 
-from hexacnc.config import load_config
 from hexacnc.daemon import protocol as P
-from hexacnc.daemon.server import SocketServer
 from hexacnc.kinematics import Hexapod
 from hexacnc.pose import matrix_from_euler
 
@@ -36,41 +30,7 @@ from hexacnc.gcode import program_from_config  # noqa: E402
 from hexacnc import sag as sagmod              # noqa: E402
 
 
-@pytest.fixture(scope="module")
-def cfg():
-    base = load_config(None)
-    # Test machine: shared 2 cores, no SCHED_FIFO, other suites running. Measured there: bursts
-    # of 300 overrun cycles (150 ms stalls of the hot process), after which the simulated drives
-    # (another process) trail the catching-up command by > 1 mm. Tolerate those stalls (burst
-    # count, following error); strut length/joint/velocity limits stay exactly as configured.
-    cycle = dataclasses.replace(base.cycle, max_overruns_in_row=1000, following_error_mm=25.0)
-    return base.replace(cycle=cycle)
-
-
-@pytest.fixture(scope="module")
-def machine(cfg):
-    d = tempfile.mkdtemp(prefix="hxe", dir="/tmp")
-    daemon = core.Daemon(cfg, realtime=False)
-    srv = SocketServer(daemon, cfg, os.path.join(d, "e2e.sock")).start()
-    yield daemon, srv
-    srv.close()
-    daemon.close()
-    shutil.rmtree(d, ignore_errors=True)
-
-
-@pytest.fixture
-def client(machine):
-    daemon, srv = machine
-    c = P.Client.unix(srv.socket_path)
-    st = c.call("status")
-    if st["state"] == "fault":
-        c.call("reset", reply_timeout_s=30.0)
-    elif st["state"] in ("running", "paused"):          # left over by a failed test
-        c.call("stop")
-    assert c.call("wait", timeout_s=30.0)["state"] == "idle"
-    yield c
-    c.close()
-    time.sleep(0.05)        # let the server notice, so the next test's client can take control
+from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtures)
 
 
 def programmed_end_platform_pose(cfg, text: str) -> np.ndarray:
