@@ -249,3 +249,43 @@ def test_pause_and_resume_a_program_over_the_socket_still_ends_on_its_end_pose(c
     assert st["state"] == "idle" and st["fault"] is None and st["program"]["percent"] == pytest.approx(100.0)
     want = expected_struts_cmd_mm(cfg, hx, programmed_end_platform_pose(cfg, text))
     assert np.max(np.abs(np.asarray(st["struts_cmd_mm"]) - want)) <= 1.0 / cfg.bus.increments_per_mm
+
+
+def test_feed_hold_acts_on_the_rows_the_drives_get_next_not_after_the_queue(cfg, client):
+    """Pause at 200 mm/s: the daemon takes back the rows queued beyond its short lead
+    (core.REWIND_LEAD_S) and re-plans them as the deceleration, so the tool comes to rest within
+    lead + one feeder chunk + the deceleration - not after the whole queue (FEED_AHEAD_S).
+    Resume continues on the path and the program ends where it was programmed."""
+    hx = Hexapod(cfg)
+    v_mm_s = 200.0
+    text = ("G21 G90 G64 P0.1\n"
+            f"G0 {work(cfg, -120, 0, -1140)}\n"
+            f"G1 {work(cfg, 120, 0, -1140)} F{60 * v_mm_s:.0f}\n"
+            f"G1 {work(cfg, -120, 0, -1140)}\n"
+            "M2\n")
+    client.call("program", text=text, name="feed-hold", reply_timeout_s=120.0)
+    t0 = time.monotonic()
+    for side in (-1.0, 1.0):        # the G0 to the start (x < -100), then the middle of the first G1
+        while side * client.call("status")["pose_cmd"][0] < 100.0 * (side < 0):
+            assert time.monotonic() - t0 < 20.0
+            time.sleep(0.005)
+    at_pause = np.asarray(client.call("pause")["pose_cmd"])
+    last, still = None, 0
+    while still < 5:                        # standstill: the same commanded pose 5 polls in a row
+        assert time.monotonic() - t0 < 30.0
+        time.sleep(0.01)
+        st = client.call("status")
+        still = still + 1 if st["pose_cmd"] == last else 0
+        last = st["pose_cmd"]
+    assert st["state"] == "paused"
+    travel_mm = abs(st["pose_cmd"][0] - at_pause[0])
+    lead_s = core.REWIND_LEAD_S + core.FEED_CHUNK_ROWS * cfg.cycle.period_s
+    # lead at full speed, plus a deceleration of at most 0.1 s at full speed (measured ~0.06 s)
+    assert travel_mm <= v_mm_s * (lead_s + 0.1), travel_mm
+    assert travel_mm < v_mm_s * core.FEED_AHEAD_S * 0.75       # well short of the old behaviour
+    assert np.all(np.abs(np.asarray(st["pose_cmd"][1:3]) - at_pause[1:3]) < 1e-6)   # on the line
+    client.call("resume")
+    st = client.call("wait", timeout_s=30.0)
+    assert st["state"] == "idle" and st["fault"] is None
+    want = expected_struts_cmd_mm(cfg, hx, programmed_end_platform_pose(cfg, text))
+    assert np.max(np.abs(np.asarray(st["struts_cmd_mm"]) - want)) <= 1.0 / cfg.bus.increments_per_mm

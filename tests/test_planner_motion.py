@@ -309,3 +309,32 @@ def test_pause_on_a_plan_at_the_strut_limits(cfg, seed):
     assert (ev["at"] - ev["p"]) * plan.dt < 0.5
     assert max(utilisation(cfg, rows, plan.dt)) <= 1.0
     assert on_path_distance(cfg, plan, rows).max() < 0.01
+
+
+def test_snapshot_restore_replays_exactly_and_a_rewound_pause_stays_within_limits(cfg):
+    """The daemon takes back queued rows by restoring a sampler snapshot: what follows a restore is
+    bit-identical to the first run, and a pause applied after the rewind (rows already run
+    followed by the new deceleration) keeps strut velocity/acceleration/jerk within limits."""
+    plan = plan_program(long_program(cfg), cfg)
+    s = plan.sampler()
+    out = np.empty((37, 8))
+    head = []
+    for _ in range(40):                                  # well into the program
+        n = s.next_rows(out)
+        head.append(out[:n].copy())
+    snap = s.snapshot()
+    first = run(s, chunk=53, limit=3000)
+    s.restore(snap)
+    again = run(s, chunk=11, limit=3000)
+    m = min(len(first), len(again))
+    assert m >= 3000 and np.array_equal(first[:m], again[:m])
+    # rewind to the snapshot and pause there: the ring would hold head + the pause rows
+    s.restore(snap)
+    s.pause()
+    tail = run(s, chunk=64, limit=2000)
+    rows = np.vstack(head + [tail])
+    assert s.state == "paused"
+    uv, ua, uj = utilisation(cfg, rows, plan.dt)
+    assert uv <= 1.0 and ua <= 1.0 and uj <= 1.0, (uv, ua, uj)
+    assert np.abs(rows[-100:, :6] - rows[-1, :6]).max() < 1e-12        # at rest, paused
+    assert on_path_distance(cfg, plan, rows).max() < 0.01

@@ -41,8 +41,13 @@ from .loop import fault_message
 
 log = logging.getLogger("hexacnc.daemon")
 
-#: rows kept queued in the ring while streaming (seconds of motion); pause/stop react after them
+#: rows kept queued in the ring while streaming (seconds of motion)
 FEED_AHEAD_S = 0.3
+#: a pause, resume, stop or override takes back the queued rows beyond this lead (seconds) and
+#: re-plans them from the source's state there: commands act within it, not after FEED_AHEAD_S
+REWIND_LEAD_S = 0.04
+#: rows per feeder chunk: a source snapshot is kept at every chunk start (the rewind points)
+FEED_CHUNK_ROWS = 32
 #: feeder thread period
 FEED_PERIOD_S = 0.002
 #: how long the hot process may take to boot the bus and enable the drives
@@ -120,6 +125,7 @@ class Job:
     duration_s: float = 0.0
     end_index: int = -1               #: ring index after the END row, once pushed
     started: bool = False
+    marks: deque = field(default_factory=deque)   #: (ring index, source snapshot before that row)
     extra: dict = field(default_factory=dict)
 
 
@@ -131,6 +137,7 @@ class Daemon:
                  sim_faults=(), channel: str | None = None):
         self.cfg = cfg
         self.period_s = float(period_s or cfg.cycle.period_s)
+        self._rewind_rows = max(8, int(math.ceil(REWIND_LEAD_S / self.period_s)))
         self.io_mode = io_mode
         self.sim_faults = list(sim_faults)
         self.channel = channel
@@ -313,13 +320,7 @@ class Daemon:
             if self.feed_hold:
                 return
             if job.end_index < 0:
-                need = ahead - sh.ring_fill()
-                if need > 0:
-                    rows = src.next_rows(need)
-                    if len(rows):
-                        sh.push_rows(rows)
-                    if src.finished:
-                        job.end_index = sh.h[S.H_RING_W]
+                self._push(job, sh, ahead - sh.ring_fill())
             elif sh.h[S.H_END_SEEN] >= job.end_index and hstate == S.ST_IDLE:
                 line, pct, left = src.progress()
                 self.last_program = {"name": job.name, "line": line, "percent": 100.0 if not src.stopping
@@ -330,6 +331,57 @@ class Daemon:
                     self.stop_requested = False
                 log.info("%s %s", "stopped" if src.stopping else "finished", job.name)
                 self.cv.notify_all()
+
+    def _push(self, job: Job, sh: S.Shared, need: int) -> None:
+        """Queue up to ``need`` rows of ``job`` in chunks, keeping a rewind mark at each chunk."""
+        src = job.source
+        marks = job.marks
+        can_mark = hasattr(src, "snapshot")
+        r = sh.h[S.H_RING_R]
+        while marks and marks[0][0] < r:
+            marks.popleft()
+        while need > 0 and not src.finished:
+            if can_mark:
+                marks.append((sh.h[S.H_RING_W], src.snapshot()))
+            rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
+            if len(rows):
+                sh.push_rows(rows)
+            need -= max(1, len(rows))
+        if src.finished and job.end_index < 0:
+            job.end_index = sh.h[S.H_RING_W]
+
+    def _rewind(self) -> bool:
+        """Take back the current job's queued rows beyond ``REWIND_LEAD_S`` (caller holds the lock).
+
+        The source goes back to its snapshot at the first mark past the lead, the ring's write
+        index to that mark; the command that follows (pause, resume, stop, override) then acts
+        on the rows the drives get ``REWIND_LEAD_S`` from now instead of after the whole queue.
+        Continuity holds because the source continues from exactly the state it was in when it
+        produced that row the first time.  Returns whether rows were taken back.
+        """
+        job, sh = self.current, self.sh
+        if job is None or sh is None or not job.marks:
+            return False
+        k_min = sh.h[S.H_RING_R] + self._rewind_rows
+        for i, (k, snap) in enumerate(job.marks):
+            if k >= k_min:
+                break
+        else:
+            return False
+        if not sh.retract(k):
+            return False
+        job.source.restore(snap)
+        while len(job.marks) > i:
+            job.marks.pop()
+        if job.end_index > k:
+            job.end_index = -1
+        return True
+
+    def _after_command(self) -> None:
+        """Refill right after a rewind so the hot loop never waits for the feeder thread."""
+        job, sh = self.current, self.sh
+        if job is not None and sh is not None and job.end_index < 0 and not self.feed_hold:
+            self._push(job, sh, 2 * self._rewind_rows - sh.ring_fill())
 
     # ------------------------------------------------------------------ thermal
     THERMAL_DT_S = 0.1
@@ -495,7 +547,9 @@ class Daemon:
         with self.lock:
             if self.current is None:
                 raise HexacncError("nothing to pause: no program is running")
+            self._rewind()
             self.current.source.pause()
+            self._after_command()
         return self.status()
 
     def resume(self) -> dict:
@@ -503,13 +557,17 @@ class Daemon:
             if self.current is None or not getattr(self.current.source, "paused", False):
                 raise HexacncError("nothing to resume: not paused")
             self._require_motion_ok()
+            self._rewind()
             self.current.source.resume()
+            self._after_command()
         return self.status()
 
     def set_feed_override(self, factor: float) -> None:
         with self.lock:
             if self.current is not None:
+                self._rewind()
                 self.current.source.set_feed_override(factor)
+                self._after_command()
 
     def stop(self) -> dict:
         """Controlled stop: decelerate along the path (jerk-limited), drop the queue, stay enabled."""
@@ -519,7 +577,9 @@ class Daemon:
             self.queue.clear()
             if self.current is not None:
                 self.stop_requested = True
+                self._rewind()
                 self.current.source.stop()
+                self._after_command()
             elif self.sh.h[S.H_STATE] == S.ST_RUNNING:
                 self.sh.command(S.CMD_STOP)
             self.cv.notify_all()

@@ -180,6 +180,13 @@ class ArraySource:
     def stop(self) -> None:
         self.stopping = True
 
+    def snapshot(self) -> tuple:
+        """State before the next row (see :meth:`Daemon._rewind`)."""
+        return (self.tau, self.rate, self.rate_d, self.override, self.paused, self.stopping, self.finished)
+
+    def restore(self, snap: tuple) -> None:
+        (self.tau, self.rate, self.rate_d, self.override, self.paused, self.stopping, self.finished) = snap
+
     @property
     def target_rate(self) -> float:
         return 0.0 if (self.paused or self.stopping) else self.override

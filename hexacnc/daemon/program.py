@@ -72,6 +72,15 @@ class ProgramSource:
         f = max(1e-3, self.sampler.override) if not self.paused else 1.0
         return int(self.sampler.line), float(pct), float(left) / f
 
+    # -- rewind ----------------------------------------------------------------------------
+    def snapshot(self) -> tuple:
+        """State before the next row (see :meth:`Daemon._rewind`)."""
+        return (self.sampler.snapshot(), self.finished, self.stopping, self._last)
+
+    def restore(self, snap: tuple) -> None:
+        s, self.finished, self.stopping, self._last = snap
+        self.sampler.restore(s)
+
     # -- rows ------------------------------------------------------------------------------
     def next_rows(self, count: int) -> np.ndarray:
         if self.finished:

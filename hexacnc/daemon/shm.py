@@ -165,6 +165,24 @@ class Shared:
         self.h[H_RING_W] = w + n
         return n
 
+    def retract(self, k: int) -> bool:
+        """Withdraw the queued rows from ring index ``k`` on, before the hot loop reads them.
+
+        Lowers the write index to ``k`` (single producer: only the supervisor writes it), then checks
+        that the hot loop is still short of ``k``; if it is not (it raced past: only possible when
+        the caller left no margin), the index is put back and False returned.  On True the rows
+        from ``k`` on are unread and the next :meth:`push_rows` overwrites them.
+        """
+        h = self.h
+        w = h[H_RING_W]
+        if not (h[H_RING_R] < k < w):
+            return False
+        h[H_RING_W] = k
+        if h[H_RING_R] < k:
+            return True
+        h[H_RING_W] = w
+        return False
+
     def command(self, code: int, arg: int = 0) -> int:
         """Post a command to the hot loop; returns its sequence number."""
         self.h[H_CMD] = code

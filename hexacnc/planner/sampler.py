@@ -144,6 +144,17 @@ class PlanSampler:
         elif self.state != DONE:
             self.state = STOPPING
 
+    # -- rewind (the daemon takes back rows it queued but the drives have not run) ---------
+    def snapshot(self) -> tuple:
+        """The sampler's whole state before the next row (immutable; for :meth:`restore`)."""
+        return (self.k, self.f, self.fd, self.user, self.state, self.done, self._lim, self._lim_tgt,
+                self._lim_age, self._next_pause, self.rows_written)
+
+    def restore(self, snap: tuple) -> None:
+        """Go back to a :meth:`snapshot`: the next rows continue from there, as if nothing followed."""
+        (self.k, self.f, self.fd, self.user, self.state, self.done, self._lim, self._lim_tgt,
+         self._lim_age, self._next_pause, self.rows_written) = snap
+
     # -- status ------------------------------------------------------------------------
     @property
     def line(self) -> int:
