@@ -283,6 +283,9 @@ class PlannerConfig:
     path_tolerance_mm: float = 0.01
     sample_bound_mm: float = 0.001
     work_offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: user/remap M-codes (100..9999) the interpreter accepts as no-ops (noted in the program's
+    #: messages), e.g. LinuxCNC's M428/M429 kinematics switches, which a hexapod does not need
+    noop_m_codes: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -536,6 +539,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         path_tolerance_mm=p.getfloat("path_tolerance_mm", pd.path_tolerance_mm, above=0.0),
         sample_bound_mm=p.getfloat("sample_bound_mm", pd.sample_bound_mm, above=0.0),
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
+        noop_m_codes=_noop_m_codes(p),
     )
 
     tl = sec("tools")
@@ -582,6 +586,22 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     )
     _check_geometry(cfg)
     return cfg
+
+
+def _noop_m_codes(p: Section) -> tuple:
+    """``[planner] noop_m_codes``: a list of distinct integers 100..9999 (user and remap M-codes only)."""
+    v = p._get("noop_m_codes", [])
+    if not isinstance(v, list):
+        raise p.error("noop_m_codes", f"expected a list of M-code numbers, got {v!r}")
+    out = []
+    for m in v:
+        if isinstance(m, bool) or not isinstance(m, int) or not 100 <= m <= 9999:
+            raise p.error("noop_m_codes", f"{m!r} is not a user or remap M-code (an integer 100..9999); "
+                                          "built-in M-codes cannot be made no-ops")
+        if m in out:
+            raise p.error("noop_m_codes", f"M{m} is listed twice")
+        out.append(m)
+    return tuple(out)
 
 
 def _check_geometry(cfg: MachineConfig) -> None:

@@ -97,6 +97,30 @@ def test_impeller_is_refused_for_its_user_m_code():
     assert "M428" in str(e)
 
 
+def test_impeller_with_its_kinematics_m_codes_as_no_ops_is_refused_for_a_joint_limit():
+    """LinuxCNC's M428/M429 switch its TCP kinematics, which a hexapod always has: declared as
+    no-ops (``[planner] noop_m_codes``) the program interprets, each one noted in the messages,
+    and the planner refuses it for the physical reason - its A down to -72 deg tilts a platform
+    joint past its limit - naming the line and the limit, before any motion."""
+    import dataclasses
+    from hexacnc.config import load_config
+    from hexacnc.errors import PlanError
+    from hexacnc.planner import plan_program
+    text = corpus("impeller-7bl-xyzac.ngc")
+    base = load_config(None)
+    cfg = base.replace(planner=dataclasses.replace(base.planner, noop_m_codes=(428, 429)))
+    prog = program_from_config(text, "impeller", cfg)
+    assert [ln for ln, msg in prog.messages if "M428" in msg or "M429" in msg] == [4, 4509]
+    with pytest.raises(PlanError) as ei:
+        plan_program(prog.blocks, cfg)
+    e = ei.value
+    assert e.line == 8 and "joint" in e.limit and "max_angle_deg" in e.limit, (e.line, e.limit)
+    # without the declaration it stays refused for the undefined M-code
+    with pytest.raises(GcodeError) as eg:
+        program_from_config(text, "impeller", base)
+    assert (eg.value.line, eg.value.code) == (4, "unsupported")
+
+
 def test_impeller_without_its_user_m_codes_is_inverse_time_five_axis():
     text = corpus("impeller-7bl-xyzac.ngc")
     stripped = re.sub(r"(?im)^\s*M42[89].*$", "", text)

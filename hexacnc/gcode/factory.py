@@ -18,6 +18,7 @@ def machine_defaults(cfg) -> dict:
       length 0) at the home pose, with the home orientation.
     * tool axis: ``[tool] axis_platform``; tool lengths: ``[tools] length_mm`` if present.
     * G28 and G30 positions: the start pose (the tool reference point at home).
+    * no-op M-codes: ``[planner] noop_m_codes``.
     """
     home = np.asarray(cfg.home_pose, dtype=float)
     R = matrix_from_euler(*(math.radians(float(v)) for v in home[3:6]))
@@ -30,7 +31,8 @@ def machine_defaults(cfg) -> dict:
         table = dict(tools.length_mm)   # an empty [tools] table means "no table": any T is accepted
     return {"start_pose": start, "work_offsets": {1: wo}, "tool_table": table,
             "tool_axis_platform": [float(v) for v in cfg.tool.axis_platform],
-            "g28_pose": list(start), "g30_pose": list(start)}
+            "g28_pose": list(start), "g30_pose": list(start),
+            "noop_m_codes": tuple(getattr(cfg.planner, "noop_m_codes", ()))}
 
 
 def program_from_config(text: str, name: str, cfg, **overrides) -> Program:

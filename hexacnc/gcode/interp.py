@@ -143,6 +143,7 @@ class Interpreter(FlowMixin, MotionMixin):
                     raise GcodeError(f"tool table entry {k!r}: {v!r} is invalid", None, None, "tool")
                 self.tools[t] = length
         self.block_delete = bool(block_delete)
+        self.noop_m: frozenset = frozenset()     #: user/remap M-codes accepted as no-ops
         self.max_lines = int(max_lines)
         self.max_blocks = int(max_blocks)
         self.max_depth = int(max_call_depth)
@@ -479,6 +480,9 @@ class Interpreter(FlowMixin, MotionMixin):
         mgroups: dict[int, int] = {}
         for m in ms:
             grp = _M_GROUP.get(m)
+            if grp is None and m in self.noop_m:
+                self.messages.append((ln.num, f"M{m} ignored: a no-op here ([planner] noop_m_codes)"))
+                continue
             if grp is None:
                 what = _M_UNSUPPORTED.get(m, f"M{m}")
                 if 100 <= m <= 199:
@@ -688,7 +692,7 @@ class Interpreter(FlowMixin, MotionMixin):
 def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                   block_delete: bool = True, max_lines: int = 20_000_000, g28_pose=None,
-                  g30_pose=None) -> Program:
+                  g30_pose=None, noop_m_codes=()) -> Program:
     """Interpret a whole RS274NGC program.
 
     ``start_pose``: (6,) tool-tip pose in the machine frame at the start (mm, deg;
@@ -699,12 +703,14 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     the platform frame (G43 shifts the controlled point along it).
     ``block_delete``: skip lines starting with '/'.  ``g28_pose``/``g30_pose``:
     the stored G28/G30 positions (#5161.., #5181..; machine tool-tip poses, mm
-    and deg; default zeros as in LinuxCNC).  Raises GcodeError.
+    and deg; default zeros as in LinuxCNC).  ``noop_m_codes``: user/remap M-codes (>= 100) accepted
+    as no-ops, each occurrence noted in ``Program.messages``.  Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
                      max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose)
+    it.noop_m = frozenset(int(m) for m in noop_m_codes if int(m) >= 100)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()
