@@ -283,9 +283,26 @@ class PlannerConfig:
     path_tolerance_mm: float = 0.01
     sample_bound_mm: float = 0.001
     work_offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    #: user/remap M-codes (100..9999) the interpreter accepts as no-ops (noted in the program's
-    #: messages), e.g. LinuxCNC's M428/M429 kinematics switches, which a hexapod does not need
-    noop_m_codes: tuple = ()
+
+
+@dataclass(frozen=True)
+class CalibrationConfig:
+    """``[calibration]``: strut-space causes fitted by ``hexacnc diagnose``/``calib fit`` (see
+    :mod:`hexacnc.strutmap`).  Physical strut length from drive reading q (mm)::
+
+        L = strut_offset + strut_scale * q + sum_k strut_nonlinearity_mm[k-1] * P_k((q - center) / half_range)
+
+    Absent section: identity (scale 1, no polynomial)."""
+    strut_scale: np.ndarray = field(default_factory=lambda: np.ones(6))                 #: (6,) dimensionless
+    strut_nonlinearity_mm: np.ndarray = field(default_factory=lambda: np.zeros((6, 0)))  #: (6, d) Legendre P1..Pd
+    strut_nonlinearity_center_mm: np.ndarray = field(default_factory=lambda: np.zeros(6))   #: reading at t = 0
+    strut_nonlinearity_half_range_mm: np.ndarray = field(default_factory=lambda: np.ones(6))  #: reading per unit t
+    source: str = ""                           #: provenance, free text (data, command, causes)
+    date: str = ""                             #: when it was fitted (ISO 8601 text)
+
+    @property
+    def identity(self) -> bool:
+        return bool(np.all(self.strut_scale == 1.0) and not np.any(self.strut_nonlinearity_mm != 0.0))
 
 
 @dataclass(frozen=True)
@@ -328,6 +345,7 @@ class MachineConfig:
     planner: PlannerConfig
     tools: ToolTableConfig = field(default_factory=ToolTableConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
+    calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -369,7 +387,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
-                   "dynamics")
+                   "dynamics", "calibration")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -539,7 +557,6 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         path_tolerance_mm=p.getfloat("path_tolerance_mm", pd.path_tolerance_mm, above=0.0),
         sample_bound_mm=p.getfloat("sample_bound_mm", pd.sample_bound_mm, above=0.0),
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
-        noop_m_codes=_noop_m_codes(p),
     )
 
     tl = sec("tools")
@@ -569,6 +586,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         velocity_feedforward=dy.getbool("velocity_feedforward", dyd.velocity_feedforward),
     )
 
+    calibration = _parse_calibration(sec("calibration"))
+
     for sct in sections:
         sct.finish()
 
@@ -582,10 +601,65 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         inertia_kg_mm2=_freeze(inertia),
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
-        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, raw=doc,
+        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, raw=doc,
     )
     _check_geometry(cfg)
+    _check_calibration(cfg)
     return cfg
+
+
+def _parse_calibration(cs: Section) -> CalibrationConfig:
+    """``[calibration]``: per-strut scale and nonlinearity (Legendre coefficients), provenance."""
+    cd = CalibrationConfig()
+    scale = cs.getvec("strut_scale", 6, [1.0] * 6, minval=0.5, maxval=2.0, allow_scalar=True)
+    if cs.has("strut_nonlinearity_mm"):
+        v = cs.table["strut_nonlinearity_mm"]
+        d = len(v[0]) if isinstance(v, (list, tuple)) and v and isinstance(v[0], (list, tuple)) else 0
+        if not 1 <= d <= 7:
+            raise cs.error("strut_nonlinearity_mm", f"expected 6 rows of 1 to 7 Legendre coefficients (P1..P7, mm), "
+                                                    f"got {v!r}")
+        coef = cs.getmatrix("strut_nonlinearity_mm", 6, d)
+        for i in range(6):
+            for k in range(d):
+                if abs(coef[i, k]) > 1000.0:
+                    raise cs.error("strut_nonlinearity_mm", f"row {i + 1}, P{k + 1} coefficient {coef[i, k]!r} mm "
+                                                            f"is beyond +-1000 mm")
+        for key in ("strut_nonlinearity_center_mm", "strut_nonlinearity_half_range_mm"):
+            if not cs.has(key):
+                raise cs.error(key, "missing: required with strut_nonlinearity_mm (the reading that maps to t = 0 "
+                                    "and the reading per unit t of the polynomial, as fitted)")
+        center = cs.getvec("strut_nonlinearity_center_mm", 6, minval=-1e5, maxval=1e5)
+        half = cs.getvec("strut_nonlinearity_half_range_mm", 6, above=0.0, maxval=1e5)
+    else:
+        coef = cd.strut_nonlinearity_mm
+        for key in ("strut_nonlinearity_center_mm", "strut_nonlinearity_half_range_mm"):
+            if cs.has(key):
+                raise cs.error(key, "given without strut_nonlinearity_mm")
+        center = cd.strut_nonlinearity_center_mm
+        half = cd.strut_nonlinearity_half_range_mm
+    date = cs._get("date", "")
+    if hasattr(date, "isoformat"):        # a TOML date or date-time
+        date = date.isoformat()
+    if not isinstance(date, str):
+        raise cs.error("date", f"expected a date (TOML date or ISO 8601 text), got {date!r}")
+    return CalibrationConfig(strut_scale=_freeze(scale), strut_nonlinearity_mm=_freeze(coef),
+                             strut_nonlinearity_center_mm=_freeze(center),
+                             strut_nonlinearity_half_range_mm=_freeze(half),
+                             source=cs.getstr("source", ""), date=date)
+
+
+def _check_calibration(cfg: MachineConfig) -> None:
+    """The calibrated reading-to-length map must be monotone with a sane slope over the stroke."""
+    if cfg.calibration.identity:
+        return
+    from .strutmap import SLOPE_MAX, SLOPE_MIN, STROKE_MARGIN, strut_map_from_config
+    bad = strut_map_from_config(cfg).slope_violation()
+    if bad is not None:
+        i, q, slope = bad
+        key = "strut_nonlinearity_mm" if cfg.calibration.strut_nonlinearity_mm.size else "strut_scale"
+        raise ConfigError(f"{cfg.path}: [calibration] {key}: strut {i + 1}: the reading-to-length map has slope "
+                          f"{slope:.4g} at reading {q:.4g} mm; it must stay within [{SLOPE_MIN}, {SLOPE_MAX}] over "
+                          f"the stroke (+{STROKE_MARGIN:.0%}) of [struts] min/max_length_mm")
 
 
 def _noop_m_codes(p: Section) -> tuple:

@@ -147,6 +147,8 @@ def generate_source(ct) -> str:
     w("    th = self.thermal_mm; cmd = self.cmd_mm; p1 = self._prev; p2 = self._prev2")
     for i in range(6):
         w(f"    v{i} = Lm[{i}] - sag[{i}] - th[{i}]")
+    if ct.calibrated:
+        _emit_calibrated_command(ct, w)
     w("    if self._have_prev >= 2:")
     for i in range(6):
         w(f"        d1 = v{i} - p1[{i}]")
@@ -167,7 +169,10 @@ def generate_source(ct) -> str:
     w("        return self._feedback_generic(lengths)")
     w("    sag = self.sag_mm; th = self.thermal_mm")
     for i in range(6):
-        w(f"    t{i} = lengths[{i}] + sag[{i}] + th[{i}]")
+        if ct.calibrated:
+            _emit_calibrated_feedback(ct, w, i)
+        else:
+            w(f"    t{i} = lengths[{i}] + sag[{i}] + th[{i}]")
     w("    X = self.pose_act; last = self._last; h1 = self._h1; h2 = self._h2")
     w("    n = self._nhist")
     w("    if n >= 3:")
@@ -219,6 +224,66 @@ def generate_source(ct) -> str:
     w("        self._nhist = n + 1")
     w("    return 0")
     return "\n".join(L) + "\n"
+
+
+def _horner(coeffs, var: str) -> str:
+    """``((c_n*v + c_n-1)*v + ...) + c_0`` with the constants folded in as literals."""
+    cs = [float(c) for c in coeffs]
+    expr = repr(cs[-1])
+    for c in reversed(cs[:-1]):
+        expr = f"({expr}) * {var}" + (f" + {c!r}" if c != 0.0 else "")
+    return expr
+
+
+def _emit_calibrated_command(ct, w) -> None:
+    """Physical lengths v0..v5 -> drive-scale commands (calibrated map, :mod:`hexacnc.strutmap`).
+
+    Linear maps fold to ``v * m + c``; polynomial maps take warm-started Newton steps in
+    t until a step is below the map's tolerance (one step per cycle when tracking).
+    The commands are then checked against the stroke.
+    """
+    from .strutmap import MAX_ITER
+    sm = ct.strut_map
+    w("    ph = self.phys_mm; cs = self._cal_state")
+    for i in range(6):
+        A = [float(v) for v in sm.A[i]]
+        o = float(sm.offset[i]); c = float(sm.center[i]); h = float(sm.half[i])
+        w(f"    ph[{i}] = v{i}")
+        if len(A) == 2:
+            # o + c + h * (v - o - A0) / A1
+            m = h / A[1]
+            k = o + c - m * (o + A[0])
+            w(f"    v{i} = v{i} * {m!r} + {k!r}")
+        else:
+            B = [float(v) for v in sm.B[i]]
+            tol = float(sm.step_tol_t[i])
+            j = 3 * i
+            w(f"    e = v{i} - {o!r}")
+            w(f"    t = cs[{j}] + (e - cs[{j + 1}]) * cs[{j + 2}]")
+            w("    n = 0")
+            w("    while True:")
+            w(f"        gp = {_horner(B, 't')}")
+            w(f"        dt = (e - ({_horner(A, 't')})) / gp")
+            w("        t += dt")
+            w(f"        if -{tol!r} < dt < {tol!r}:")
+            w("            break")
+            w("        n += 1")
+            w(f"        if n >= {MAX_ITER} or dt != dt:")
+            w(f"            cs[{j}] = 0.0; cs[{j + 1}] = {A[0]!r}; cs[{j + 2}] = {1.0 / A[1]!r}")
+            w(f"            self.fail_index = {i}; self.fail_value = v{i}; return 8")
+            w(f"    cs[{j}] = t; cs[{j + 1}] = e; cs[{j + 2}] = 1.0 / gp")
+            w(f"    v{i} = t * {h!r} + {o + c!r}")
+        w(f"    if v{i} < {ct._lmin[i]!r} or v{i} > {ct._lmax[i]!r}:")
+        w(f"        self.fail_index = {i + 6}; self.fail_value = v{i}; return 1")
+
+
+def _emit_calibrated_feedback(ct, w, i: int) -> None:
+    """t_i = calibrated physical length of drive-scale length ``lengths[i]`` + sag + thermal."""
+    sm = ct.strut_map
+    A = [float(v) for v in sm.A[i]]
+    o = float(sm.offset[i]); c = float(sm.center[i]); ih = 1.0 / float(sm.half[i])
+    w(f"    u = lengths[{i}] * {ih!r} - {(o + c) * ih!r}")
+    w(f"    t{i} = ({_horner([A[0] + o] + A[1:], 'u')}) + sag[{i}] + th[{i}]")
 
 
 def bind_fast_path(ct) -> str:

@@ -9,12 +9,16 @@ preallocated lists (no numpy, no per-call containers):
    neutral axis), Jacobian pivot check (near-singular);
 4. LU factorisation of the twist Jacobian, strut forces of the carrier weight
    ``J^T f = w`` and the sag elongation ``e = f / k``;
-5. command = geometric length - sag elongation - thermal growth;
+5. physical length = geometric length - sag elongation - thermal growth;
+   with a ``[calibration]`` (:mod:`hexacnc.strutmap`) the drive command is the
+   drive-scale length whose calibrated reading gives that physical length
+   (identity: command = physical length); the command is checked against the
+   stroke too (the geometric length always is);
 6. last-line guard on the command's velocity and acceleration.
 
 :meth:`CycleTransform.feedback` maps measured lengths to the actual pose:
-the measured length plus the modelled elongation and growth gives the
-geometric length; forward kinematics starts from a quadratic prediction of the
+the measured (drive-scale) length mapped through the calibration, plus the
+modelled elongation and growth, gives the geometric length; forward kinematics starts from a quadratic prediction of the
 last three solutions and takes Newton steps with the cycle's Jacobian factors,
 mapping the angular-velocity part to Euler-angle rates (``E^-1``).
 
@@ -37,6 +41,7 @@ LIMIT_ACCELERATION = 4
 LIMIT_SINGULAR = 5
 LIMIT_INPUT = 6
 FK_NOT_CONVERGED = 7
+LIMIT_CALIBRATION = 8
 
 STATUS_TEXT = {
     OK: "ok",
@@ -47,6 +52,7 @@ STATUS_TEXT = {
     LIMIT_SINGULAR: "near-singular pose",
     LIMIT_INPUT: "setpoint not finite",
     FK_NOT_CONVERGED: "forward kinematics did not converge",
+    LIMIT_CALIBRATION: "calibrated strut map did not invert",
 }
 
 
@@ -54,9 +60,12 @@ class CycleTransform:
     """Per-cycle inverse/forward transform with sag and thermal compensation.
 
     ``command(x, y, z, a, b, c)`` takes the platform pose in mm and radians.
-    Results: ``cmd_mm`` (6 strut length commands), ``length_mm`` (geometric
-    lengths), ``sag_mm`` (modelled elongation), ``thermal_mm`` (growth),
-    ``pose_act`` (mm, rad) after ``feedback``.
+    Results: ``cmd_mm`` (6 strut commands: drive-scale lengths, strut_offset +
+    reading), ``phys_mm`` (physical strut lengths they give: the same list as
+    ``cmd_mm`` without calibration), ``length_mm`` (geometric lengths),
+    ``sag_mm`` (modelled elongation), ``thermal_mm`` (growth), ``pose_act``
+    (mm, rad) after ``feedback``.  Limits: the geometric length, and with a
+    calibration also the drive command, against [min_length_mm, max_length_mm].
     """
 
     def __init__(self, cfg, hexapod: Hexapod | None = None, period_s: float | None = None,
@@ -95,6 +104,12 @@ class CycleTransform:
         self.thermal_mm = [0.0] * 6
         self.force_N = [0.0] * 6
         self.spindle_growth_mm = 0.0
+        from .strutmap import strut_map_from_config
+        self.strut_map = strut_map_from_config(cfg)
+        self.calibrated = not self.strut_map.identity
+        self.phys_mm = [0.0] * 6 if self.calibrated else self.cmd_mm
+        self._cal_state = self.strut_map.new_state()
+        self._fin = [0.0] * 6
         self._u = [0.0] * 18
         self._J = [0.0] * 36          # twist Jacobian rows, rotation columns scaled by 1/char_length
         self._piv = [0] * 6
@@ -246,10 +261,25 @@ class CycleTransform:
         th = self.thermal_mm
         cmd = self.cmd_mm
         prev = self._prev; prev2 = self._prev2
+        fin = self._fin
+        for i in range(6):
+            fin[i] = L[i] - sag[i] - th[i]
+        if self.calibrated:
+            ph = self.phys_mm
+            for i in range(6):
+                ph[i] = fin[i]
+            k = self.strut_map.command_inplace(fin, self._cal_state)
+            if k >= 0:
+                self.fail_index = k; self.fail_value = ph[k]
+                return LIMIT_CALIBRATION
+            for i in range(6):
+                if fin[i] < lmin[i] or fin[i] > lmax[i]:
+                    self.fail_index = i + 6; self.fail_value = fin[i]
+                    return LIMIT_LENGTH
         if self._have_prev >= 2:
             dlm = self._dl_max; ddlm = self._ddl_max
             for i in range(6):
-                v = L[i] - sag[i] - th[i]
+                v = fin[i]
                 d1 = v - prev[i]
                 if d1 > dlm[i] or -d1 > dlm[i]:
                     self.fail_index = i; self.fail_value = d1 / self.dt
@@ -259,7 +289,7 @@ class CycleTransform:
                     self.fail_index = i; self.fail_value = d2 / (self.dt * self.dt)
                     return LIMIT_ACCELERATION
         for i in range(6):
-            v = L[i] - sag[i] - th[i]
+            v = fin[i]
             prev2[i] = prev[i]
             prev[i] = v
             cmd[i] = v
@@ -357,8 +387,13 @@ class CycleTransform:
             return FK_NOT_CONVERGED
         Lg = self._Lgeo
         sag = self.sag_mm; th = self.thermal_mm
-        for i in range(6):
-            Lg[i] = lengths_mm[i] + sag[i] + th[i]
+        if self.calibrated:
+            self.strut_map.strut_from_drive_inplace(lengths_mm, Lg)
+            for i in range(6):
+                Lg[i] += sag[i] + th[i]
+        else:
+            for i in range(6):
+                Lg[i] = lengths_mm[i] + sag[i] + th[i]
         X = self.pose_act
         last = self._last; h1 = self._h1; h2 = self._h2
         n = self._nhist
@@ -419,6 +454,11 @@ class CycleTransform:
         """Text for a status code, naming the strut or joint (slow path)."""
         text = STATUS_TEXT.get(code, f"status {code}")
         i = self.fail_index
+        if code == LIMIT_LENGTH and i >= 6:
+            return (f"{text}: strut {i - 5} drive command {self.fail_value:.4f} mm (calibrated) outside "
+                    f"[{self._lmin[i - 6]:g}, {self._lmax[i - 6]:g}] mm")
+        if code == LIMIT_CALIBRATION and i >= 0:
+            return f"{text}: strut {i + 1} at physical length {self.fail_value:.4f} mm"
         if code == LIMIT_LENGTH and i >= 0:
             return (f"{text}: strut {i + 1} length {self.fail_value:.4f} mm outside "
                     f"[{self._lmin[i]:g}, {self._lmax[i]:g}] mm")
