@@ -200,6 +200,17 @@ class ThermalConfig:
     process_noise_K: float = 0.01
     enabled: bool = True
     reference_temperature_C: float = 20.0      #: strut temperature at which offsets are zero (calibration)
+    # -- in the daemon (hexacnc.daemon.thermalsup) --
+    source: str = "auto"                       #: auto | sim | socket | none (auto: sim with [bus] simulate)
+    probe_rate_hz: float = 1.0                 #: probe readings per wall-clock second (sim plant; socket nominal)
+    sim_time_scale: float = 1.0                #: simulated plant seconds per wall-clock second
+    sim_spindle_noise_K: float = 0.05          #: sim plant: spindle-housing probe noise (1 sigma)
+    sim_seed: int = 1                          #: sim plant: noise seed
+    max_offset_mm: float = 0.2                 #: |strut offset| and |spindle growth| never beyond this
+    max_offset_rate_mm_s: float = 0.002        #: offsets change at most this fast (wall-clock)
+    stale_after_s: float = 10.0                #: no reading for this long (wall-clock): warn, freeze offsets
+    probe_min_C: float = -20.0                 #: a reading outside [probe_min_C, probe_max_C] is refused
+    probe_max_C: float = 100.0
 
 
 @dataclass(frozen=True)
@@ -219,6 +230,7 @@ class DynamicsConfig:
     position_gain_1_s: float = 0.0             #: drive position loop Kv factor; 0: bandwidth / 4
     integral_time_s: float = 0.0               #: velocity PI integral time; 0: 4 / bandwidth
     velocity_feedforward: bool = True          #: drives use the setpoint's rate as velocity feed-forward
+    simulated_drives: str = "second_order"     #: strut model of the daemon's simulated drives: second_order | coupled
 
 
 @dataclass(frozen=True)
@@ -489,7 +501,20 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         enabled=th.getbool("enabled", dflt.enabled),
         reference_temperature_C=th.getfloat("reference_temperature_C", dflt.reference_temperature_C,
                                             minval=-50.0, maxval=200.0),
+        source=th.getchoice("source", ("auto", "sim", "socket", "none"), dflt.source),
+        probe_rate_hz=th.getfloat("probe_rate_hz", dflt.probe_rate_hz, minval=0.01, maxval=100.0),
+        sim_time_scale=th.getfloat("sim_time_scale", dflt.sim_time_scale, minval=1.0, maxval=1e5),
+        sim_spindle_noise_K=th.getfloat("sim_spindle_noise_K", dflt.sim_spindle_noise_K, minval=0.0, maxval=10.0),
+        sim_seed=th.getint("sim_seed", dflt.sim_seed, minval=0, maxval=2 ** 31 - 1),
+        max_offset_mm=th.getfloat("max_offset_mm", dflt.max_offset_mm, above=0.0, maxval=5.0),
+        max_offset_rate_mm_s=th.getfloat("max_offset_rate_mm_s", dflt.max_offset_rate_mm_s, above=0.0,
+                                         maxval=1.0),
+        stale_after_s=th.getfloat("stale_after_s", dflt.stale_after_s, above=0.0, maxval=86400.0),
+        probe_min_C=th.getfloat("probe_min_C", dflt.probe_min_C, minval=-100.0, maxval=300.0),
+        probe_max_C=th.getfloat("probe_max_C", dflt.probe_max_C, minval=-100.0, maxval=300.0),
     )
+    if thermal.probe_min_C >= thermal.probe_max_C:
+        raise th.error("probe_max_C", f"must be above probe_min_C ({thermal.probe_min_C}), got {thermal.probe_max_C}")
 
     k = sec("kinematics")
     kin = KinematicsConfig(
@@ -584,6 +609,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         position_gain_1_s=dy.getfloat("position_gain_1_s", dyd.position_gain_1_s, minval=0.0, maxval=10000.0),
         integral_time_s=dy.getfloat("integral_time_s", dyd.integral_time_s, minval=0.0, maxval=10.0),
         velocity_feedforward=dy.getbool("velocity_feedforward", dyd.velocity_feedforward),
+        simulated_drives=dy.getchoice("simulated_drives", ("second_order", "coupled"), dyd.simulated_drives),
     )
 
     calibration = _parse_calibration(sec("calibration"))

@@ -158,10 +158,7 @@ class Daemon:
         self.closed = False
         self._feeder: threading.Thread | None = None
         self.feed_hold = False          #: tests: the setpoint source stops delivering (dead source)
-        self._temps: dict | None = None   #: latest temperatures from set_temperatures
-        self._observer = None
-        self._thermal_t = 0.0
-        self._travel_last = None
+        self.thermal = None               #: ThermalSupervisor (observer, limits, simulated plant)
         self._stats_cache: tuple[float, dict] = (0.0, {})
         self._last_fault_logged = 0
         self._notifier = None
@@ -211,6 +208,8 @@ class Daemon:
             self._teardown()
             raise
         self.sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
+        from .thermalsup import thermal_supervisor
+        self.thermal = thermal_supervisor(self.cfg, self.sh, lambda: self.status_state()).start()
         self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
         self._feeder.start()
         log.info("daemon ready: %s drives enabled, cycle %.3f ms, io %s", self.cfg.name,
@@ -242,6 +241,8 @@ class Daemon:
         if self.closed:
             return
         self.closed = True
+        if self.thermal is not None:
+            self.thermal.close()
         if self.sh is not None and self.hot is not None and self.hot.is_alive():
             self.sh.command(S.CMD_SHUTDOWN)
             self.hot.join(timeout_s)
@@ -287,7 +288,9 @@ class Daemon:
             try:
                 sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
                 self._feed_once(sh, ahead)
-                self._thermal_once(sh)
+                th = self.thermal
+                if th is not None:
+                    th.sample_travel()
             except Exception:       # never let the feeder die silently: the loop would fault
                 log.exception("feeder error")
             time.sleep(FEED_PERIOD_S)
@@ -384,56 +387,23 @@ class Daemon:
             self._push(job, sh, 2 * self._rewind_rows - sh.ring_fill())
 
     # ------------------------------------------------------------------ thermal
-    THERMAL_DT_S = 0.1
+    def push_temperatures(self, fields: dict) -> dict:
+        """One reading for the thermal observer (the socket op ``temperatures``).
+
+        ``fields``: ``probes_C`` (map or flat list, see :mod:`.thermalsup`), optional ``spindle_C``
+        and ``time_s``.  Raises :class:`~.thermalsup.ThermalInputError` (``code``, ``field``) on a
+        bad reading, which then changes nothing.
+        """
+        if self.thermal is None:
+            raise HexacncError("the daemon is not running")
+        return self.thermal.push(fields, origin="socket")
 
     def set_temperatures(self, ambient_C: float, frame_C: float, probes_C=None,
-                         spindle_C: float | None = None) -> None:
-        """Temperature readings from the machine's sensors (any rate; the observer runs at 10 Hz).
-
-        ``probes_C``: (6, n_probes) readings of the ``[thermal] probes`` segments, or None (the
-        model then predicts from the strut travel alone).  Until the first call no thermal
-        offset is applied: without temperatures there is nothing honest to compensate.
-        """
-        vals = [ambient_C, frame_C] + ([] if spindle_C is None else [spindle_C])
-        if not all(isinstance(v, (int, float)) and math.isfinite(v) and -50.0 <= v <= 200.0 for v in vals):
-            raise HexacncError(f"temperatures must be finite degC in [-50, 200], got {vals}")
-        probes = None
-        if probes_C is not None:
-            probes = np.asarray(probes_C, dtype=float)
-            n = len(self.cfg.thermal.probes)
-            if probes.shape != (6, n):
-                raise HexacncError(f"probes_C must be 6 x {n} readings ([thermal] probes), got {probes.shape}")
-        with self.lock:
-            self._temps = {"ambient": float(ambient_C), "frame": float(frame_C), "probes": probes,
-                           "spindle": None if spindle_C is None else float(spindle_C)}
-
-    def _thermal_once(self, sh: S.Shared) -> None:
-        now = time.monotonic()
-        if self._temps is None or now - self._thermal_t < self.THERMAL_DT_S:
-            return
-        dt = now - self._thermal_t if self._thermal_t else self.THERMAL_DT_S
-        self._thermal_t = now
-        from ..thermal import spindle_growth_mm, thermal_observer
-        with self.lock:
-            t = dict(self._temps)
-        travel = np.array(sh.s[S.S_TRAVEL:S.S_TRAVEL + 6])
-        speed = np.zeros(6) if self._travel_last is None else (travel - self._travel_last) / max(dt, 1e-3)
-        self._travel_last = travel
-        if self.cfg.thermal.enabled:
-            if self._observer is None:
-                self._observer = thermal_observer(self.cfg, self.THERMAL_DT_S)
-                self._observer.reset(t["frame"])
-            if t["probes"] is not None:
-                off = self._observer.update(speed, t["ambient"], t["frame"], t["probes"])
-            else:
-                off = self._observer.predict_only(speed, t["ambient"], t["frame"])
-            if np.all(np.isfinite(off)) and np.all(np.abs(off) < 5.0):
-                for i in range(6):
-                    sh.s[S.S_THERMAL_TGT + i] = float(off[i])
-        if t["spindle"] is not None:
-            g = spindle_growth_mm(t["spindle"], self.cfg)
-            if math.isfinite(g) and abs(g) < 5.0:
-                sh.s[S.S_SPINDLE_TGT] = float(g)
+                         spindle_C: float | None = None, time_s: float | None = None) -> dict:
+        """Python form of :meth:`push_temperatures`: ``probes_C`` (6, n_probes) degC."""
+        return self.push_temperatures({"probes_C": {"struts": np.asarray(probes_C, dtype=float).tolist(),
+                                                    "ambient": ambient_C, "frame": frame_C},
+                                       "spindle_C": spindle_C, "time_s": time_s})
 
     def _abort_jobs(self, why: str) -> None:
         if self.current is not None:
@@ -670,6 +640,9 @@ class Daemon:
             "overruns": h[S.H_OVERRUNS],
             "overrun_pct": 100.0 * h[S.H_OVERRUNS] / cycles if cycles else 0.0,
             "max_overruns_in_row": h[S.H_MAX_IN_ROW],
+            "compute_phases_us": {name: {"mean": round(h[S.H_PHASE_SUM_NS + j] / cycles / 1e3, 2) if cycles else None,
+                                         "max": h[S.H_PHASE_MAX_NS + j] / 1e3}
+                                  for j, name in enumerate(S.PHASE_NAMES)},
             "underruns": h[S.H_UNDERRUNS],
             "bus_load": sh.s[S.S_BUS_LOAD],
             "ring_fill": sh.ring_fill(),
@@ -677,6 +650,13 @@ class Daemon:
         }
         self._stats_cache = (now, out)
         return out
+
+    def status_state(self) -> str:
+        """Cheap: "running" while the loop consumes setpoints, else the loop state's name."""
+        sh = self.sh
+        if sh is None:
+            return "fault"
+        return S.STATE_NAMES.get(sh.h[S.H_STATE], "unknown")
 
     def status(self) -> dict:
         if self.sh is None:
@@ -726,6 +706,7 @@ class Daemon:
             "fault": fault,
             "cycle": self.cycle_stats(),
             "program": prog,
+            "thermal": self.thermal.status(s) if self.thermal is not None else {"source": "none", "state": "off"},
         }
 
     def wait(self, timeout_s: float) -> dict:

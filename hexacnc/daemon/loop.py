@@ -323,7 +323,7 @@ class HotLoop:
         pos_seen = [0] * 6
         travel = self.travel
         shs = sh.s
-        th_step = THERMAL_SLEW_MM_S * self.dt * THERMAL_EVERY
+        th_step = float(getattr(self.cfg.thermal, "max_offset_rate_mm_s", THERMAL_SLEW_MM_S)) * self.dt * THERMAL_EVERY
         th_app = ct.thermal_mm
         # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check: a
         # fresh sample is compared with the commands sent within its transport allowance, which is

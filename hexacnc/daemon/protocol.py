@@ -76,6 +76,7 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "subscribe": {"rate_hz": (_NUM, False)},
     "unsubscribe": {"sub": ((int,), False)},
     "release": {},
+    "temperatures": {"probes_C": ((list, tuple, dict), True), "spindle_C": (_NUM, False), "time_s": (_NUM, False)},
 }
 
 #: states reported in status["state"]
@@ -164,12 +165,13 @@ def validate_request(msg: Any) -> Request:
     for name, (types, required) in spec.items():
         if name not in msg or (msg[name] is None and not required):
             if required:
-                raise RequestError(MISSING_FIELD, f"op {op!r} needs field {name!r}", rid)
+                raise RequestError(MISSING_FIELD, f"op {op!r} needs field {name!r}", rid, field=name)
             continue
         v = msg[name]
         if not _is_type(v, types):
             want = " or ".join(_TYPE_WORDS.get(t, t.__name__) for t in types)
-            raise RequestError(BAD_TYPE, f"op {op!r}: field {name!r} must be {want}, got {_type_name(v)}", rid)
+            raise RequestError(BAD_TYPE, f"op {op!r}: field {name!r} must be {want}, got {_type_name(v)}", rid,
+                               field=name)
         fields[name] = v
     # value checks
     if op == "wait":

@@ -540,6 +540,23 @@ class SocketServer:
 
     _op_pause = _op_resume = _op_stop = _op_reset = _simple_motion
 
+    def _op_temperatures(self, conn: _Conn, req: P.Request) -> None:
+        """A probe reading for the thermal observer (any client; validated as a whole, applied or not at all)."""
+        push = getattr(self.daemon, "push_temperatures", None)
+        if push is None:
+            self._send(conn, P.error_reply(req.id, P.REFUSED, "this daemon takes no temperatures"))
+            return
+        try:
+            info = push(dict(req.fields))
+        except HexacncError as exc:
+            code = getattr(exc, "code", None)
+            field = getattr(exc, "field", None)
+            self.stats["errors"] += 1
+            self._send(conn, P.error_reply(req.id, code if code in P.ERROR_CODES else P.REFUSED, str(exc),
+                                           **({"field": field} if field else {})))
+            return
+        self._send(conn, P.ok_reply(req.id, **P.plain(info or {})))
+
     def _op_release(self, conn: _Conn, req: P.Request) -> None:
         was = self._controller is conn
         if was:

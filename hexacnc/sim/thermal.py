@@ -108,6 +108,13 @@ def strut_speed_profile(cfg, sc: ThermalScenario, n: int):
     return speed, ov, spindle_on, tr, desc
 
 
+def truth_probe_segments(cfg, length_mm: float, nseg: int) -> list[int]:
+    """Segments of an ``nseg`` truth grid holding the ``[thermal] probes`` (observer segment centres)."""
+    m_obs = strut_heat_model(cfg.thermal, length_mm)
+    centres = m_obs.segment_centres_mm() / m_obs.length_mm
+    return [min(nseg - 1, int(c * nseg)) for c in centres[list(cfg.thermal.probes)]]
+
+
 def _simulate_linear(models, dt, inputs, T0, pidx, T_ref):
     """Run 6 strut models on inputs (n,6,3).
 
@@ -181,8 +188,7 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
     # probes: the observer's probed segment centres located on the truth grid
     m_obs = strut_heat_model(cfg.thermal, float(lengths[0]))
     centres = m_obs.segment_centres_mm() / m_obs.length_mm
-    probe_segs = list(cfg.thermal.probes)
-    pidx = [min(nseg - 1, int(c * nseg)) for c in centres[probe_segs]]
+    pidx = truth_probe_segments(cfg, float(lengths[0]), nseg)
     Tref = cfg.thermal.reference_temperature_C
     g_heat, mean_heat, probe_heat = _simulate_linear(truth, sc.dt_s, u_heat, 0.0, pidx, 0.0)
     g_env, mean_env, probe_env = _simulate_linear(truth, sc.dt_s, u_env, sc.T0_C, pidx, Tref)
