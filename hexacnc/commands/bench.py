@@ -14,6 +14,7 @@ BENCHES: dict[str, str] = {
     "plan": "hexacnc.bench.plan",
     "calib": "hexacnc.bench.calib",
     "simulate": "hexacnc.bench.simulate",
+    "hold": "hexacnc.bench.hold",
 }
 
 
