@@ -148,6 +148,50 @@ def bench_jugglebot(data_dir: Path, k: int) -> dict:
                        f"holdout_k{k}": d.result["extended"]["rms_holdout"],
                        "holdout_k0": d0.result["extended"]["rms_holdout"],
                        "time_s": (time.perf_counter() - t0) / 2}
+    out["cycle"] = bench_jugglebot_cycle(cfg, m, h, d, k)
+    return out
+
+
+def bench_jugglebot_cycle(cfg, m, h, d, k: int) -> dict:
+    """The diagnosis' baseline and extended fits written as configs, re-loaded, and the held-out
+    data evaluated through the cycle's transform (:mod:`hexacnc.calib.cyclecheck`)."""
+    import tempfile
+
+    from ..calib.cyclecheck import holdout_through_cycle, rereferenced_config
+    from ..calib.diagnose import rereferenced_thetas
+    from ..calib.output import fit_config_texts
+    from ..config import load_config
+    from ..csvio import write_text_atomic
+    out: dict = {"note": "each model written as a machine description (hexacnc diagnose --out-config), loaded by "
+                         "the config loader, and the held-out poses put through CycleTransform: strut_mm = physical "
+                         "length the cycle commands for the measured pose - physical length of the reading (the "
+                         "diagnosis' definition); drive_mm = drive command - drive reading; position/orientation: "
+                         "the cycle's FK of the readings vs the measured pose. Sag compensation off (rigid fit). "
+                         f"k{k}: strut offsets re-referenced on the first {k} held-out rows (re-homing), written "
+                         "into the config, RMS over the rest"}
+    models = (("refit_42", d.baseline.fit, []),
+              ("diagnose_extended", d.extended.fit, [c["name"] for c in d.result["causes"]]))
+    with tempfile.TemporaryDirectory(prefix="hexacnc-bench-") as tmp:
+        for name, fit, causes in models:
+            t0 = time.perf_counter()
+            w = fit_config_texts(cfg, fit, causes, f"hexacnc bench calib ({name})", [])
+            path = Path(tmp) / f"{name}.toml"
+            write_text_atomic(path, w["config"])
+            c2 = load_config(path)
+            frame = fit.theta[fit.layout.frame] if fit.layout.frame is not None else None
+            entry = {"causes_applied": sorted(w["applied"]), "calibration_identity": c2.calibration.identity,
+                     "holdout_k0": holdout_through_cycle(c2, h, frame)}
+            for theta, rows in rereferenced_thetas(cfg, fit, h, d.ctx, k, "offsets", m):
+                c3 = rereferenced_config(c2, theta[36:42])
+                fr = theta[fit.layout.frame] if fit.layout.frame is not None else None
+                entry[f"holdout_k{k}"] = holdout_through_cycle(c3, h, fr, rows)
+            entry["diagnose_holdout_k%d_strut_mm" % k] = (d.result["baseline" if name == "refit_42" else "extended"]
+                                                         ["rms_holdout"]["strut_mm"])
+            entry["time_s"] = time.perf_counter() - t0
+            out[name] = entry
+    b = out["refit_42"].get(f"holdout_k{k}", {}).get("strut_mm")
+    e = out["diagnose_extended"].get(f"holdout_k{k}", {}).get("strut_mm")
+    out[f"holdout_k{k}_strut_ratio"] = (b / e) if b and e else None
     return out
 
 

@@ -284,13 +284,12 @@ def reference_groups(fit_meas: Measurements | None, hold: Measurements, k: int) 
     return [(allrows[:k], allrows[k:])]
 
 
-def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, k: int, how: str,
-                     fit_meas: Measurements | None = None) -> tuple[dict, dict, np.ndarray]:
-    """RMS on the held-out rows after re-referencing the strut offsets (and optionally the frame)
-    on the first k rows of each new session (see :func:`reference_groups`); k=0: nothing."""
+def rereferenced_thetas(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, k: int, how: str = "offsets",
+                        fit_meas: Measurements | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(parameters, rows evaluated) per group of :func:`reference_groups`: the fitted parameters with
+    the strut offsets (and with ``offsets+frame`` the frame) re-fitted on the group's first k rows."""
     lay = res.layout
-    parts = []
-    rows_all = []
+    out = []
     for ref_rows, ev_rows in reference_groups(fit_meas, hold, k):
         theta = res.theta.copy()
         if len(ref_rows):
@@ -301,6 +300,18 @@ def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, 
             if how == "offsets+frame" and lay.frame is not None:
                 free[lay.frame] = True
             theta = fit(cfg, cref, lay, theta_init=theta, free=free, max_iter=40).theta
+        out.append((theta, ev_rows))
+    return out
+
+
+def evaluate_holdout(cfg, res: FitResult, hold: Measurements, ctx_fit: Context, k: int, how: str,
+                     fit_meas: Measurements | None = None) -> tuple[dict, dict, np.ndarray]:
+    """RMS on the held-out rows after re-referencing the strut offsets (and optionally the frame)
+    on the first k rows of each new session (see :func:`reference_groups`); k=0: nothing."""
+    lay = res.layout
+    parts = []
+    rows_all = []
+    for theta, ev_rows in rereferenced_thetas(cfg, res, hold, ctx_fit, k, how, fit_meas):
         if not len(ev_rows):
             continue
         cte = Context(cfg, hold.subset(ev_rows), ctx_fit.sigma[0], ctx_fit.sigma[3], fit_sessions=ctx_fit.sessions)

@@ -45,8 +45,13 @@ def configure(p: argparse.ArgumentParser) -> None:
     ft.add_argument("--noise-mm", type=float, default=None, help="instrument noise of x,y,z (mm)")
     ft.add_argument("--noise-deg", type=float, default=None, help="instrument noise of a,b,c (deg)")
     ft.add_argument("--frame", choices=("auto", "base", "register"), default="auto")
-    ft.add_argument("--causes", default="", help="fit these cause models jointly (comma list); their "
-                                                   "parameters are reported, the TOML holds the geometry")
+    ft.add_argument("--causes", default="", help="fit these cause models jointly (comma list); the TOML holds "
+                                                   "the geometry and the causes the cycle applies ([calibration] "
+                                                   "strut_scale, strut_nonlinearity_mm; elastic_sag as stiffness; "
+                                                   "thermal_expansion as [thermal] expansion_per_K); others are "
+                                                   "reported only")
+    ft.add_argument("--out-calibration", help="also write the [calibration] (and other changed) sections as a "
+                                              "TOML fragment (atomic)")
     ft.add_argument("--prior-mm", type=float, default=5.0, help="prior sigma of joint positions (mm)")
     ft.add_argument("--prior-offset-mm", type=float, default=50.0, help="prior sigma of strut offsets (mm)")
     ft.set_defaults(_calib=_fit)
@@ -160,9 +165,15 @@ def _fit(args) -> int:
               f"fit RMS: position {rms['position_mm']} mm, orientation {rms['orientation_deg']} deg, "
               f"strut {rms['strut_mm']} mm")
     if causes:
-        header += ("\nNOTE: fitted jointly with " + ", ".join(causes)
-                   + "; their parameters are in the report, not in this file")
-    text = calibrated_config_text(cfg, res.theta[:42], header)
+        header += "\nfitted jointly with " + ", ".join(causes)
+    from ..calib.output import fit_config_texts
+    src = f"hexacnc calib fit --config {args.config} --data {args.data}" + (f" --map {args.map}" if args.map else "") \
+        + (f" --causes {','.join(causes)}" if causes else "") + f" ({meas.n} rows)"
+    written = fit_config_texts(cfg, res, causes, src, header.splitlines())
+    text = written["config"]
+    rep["config_out"] = {"config": args.out, "calibration": args.out_calibration, "applied": written["applied"],
+                         "not_applied": written["not_applied"], "source": written["source"],
+                         "date": written["date"]}
     rd = ReportDir(args.report) if args.report else None
     try:
         if rd is not None:
@@ -172,6 +183,8 @@ def _fit(args) -> int:
                                          "Residuals of the calibrated model over the workspace")
         if args.json:
             write_json(args.json, rep)
+        if args.out_calibration:
+            atomic_write_text(args.out_calibration, written["fragment"])
         atomic_write_text(args.out, text)
     except BaseException:
         if rd is not None:

@@ -33,6 +33,11 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (default 5)")
     p.add_argument("--max-causes", type=int, default=3, help="at most this many causes (default 3)")
     p.add_argument("--prior-mm", type=float, default=5.0, help="prior sigma of joint positions (mm)")
+    p.add_argument("--out-config", help="write the extended model as a machine description (TOML, atomic): "
+                                        "fitted geometry plus the selected causes the cycle applies "
+                                        "([calibration] strut_scale / strut_nonlinearity_mm, ...)")
+    p.add_argument("--out-calibration", help="write only the [calibration] (and other changed) sections as a "
+                                             "TOML fragment (atomic); they belong to the geometry fitted with them")
 
 
 def parse_causes(text: str) -> tuple[str, ...]:
@@ -70,10 +75,23 @@ def main(args: argparse.Namespace) -> int:
                    prior_joint_mm=args.prior_mm)
     diag = diagnose(cfg, meas, hold, opts)
     res = diag.result
+    written = None
+    if args.out_config or args.out_calibration:
+        from ..calib.output import extended_config_texts
+        written = extended_config_texts(cfg, diag, " ".join(["hexacnc diagnose"] + _argv_words(args)))
+        res["config_out"] = {"config": args.out_config, "calibration": args.out_calibration,
+                             "applied": written["applied"], "not_applied": written["not_applied"],
+                             "source": written["source"], "date": written["date"]}
     rd = ReportDir(args.report) if args.report else None
     try:
         if rd is not None:
             write_diagnosis_report(rd, diag, cfg)
+        if written is not None:
+            from ..csvio import write_text_atomic
+            if args.out_config:
+                write_text_atomic(args.out_config, written["config"])
+            if args.out_calibration:
+                write_text_atomic(args.out_calibration, written["fragment"])
         write_json(args.json, res)
     except BaseException:
         if rd is not None:
@@ -88,9 +106,24 @@ def main(args: argparse.Namespace) -> int:
         h = res["holdout"]
         print(f"  holdout: first {h['rereference_rows']} of {h['rows']} rows re-referenced ({h['rereferenced']}); "
               f"gain {res['gain']['holdout_rms_ratio']}")
+    if written is not None:
+        print(f"  written: {', '.join(p_ for p_ in (args.out_config, args.out_calibration) if p_)} "
+              f"(applied in the cycle: {', '.join(written['applied']) or 'geometry only'}"
+              + (f"; not applicable: {', '.join(n['name'] for n in written['not_applied'])}"
+                 if written["not_applied"] else "") + ")")
     print(f"  json: {args.json}" + (f"; report: {args.report} ({len(files)} files)" if files else ""))
     sys.stdout.flush()
     return 0
+
+
+def _argv_words(args) -> list[str]:
+    """The inputs that define the fit, for the provenance text."""
+    out = [f"--config {args.config}", f"--data {args.data}"]
+    if args.map:
+        out.append(f"--map {args.map}")
+    if args.causes != "all":
+        out.append(f"--causes {args.causes}")
+    return out
 
 
 def _r(r: dict) -> str:
