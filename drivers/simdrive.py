@@ -51,7 +51,8 @@ from hexacnc.errors import BusError, ConfigError
 from . import EDS_PATH
 from .layout import plan_layout
 from .simnode import FaultSpec, SimDrive
-from .strutmodel import ModelFactory, SecondOrderStrut, StrutModel, default_model_factory, load_model_factory
+from .strutmodel import (ModelFactory, SecondOrderStrut, StrutModel, config_model_factory, default_model_factory,
+                         load_model_factory)
 
 __all__ = ["SimDrives", "SimDrive", "FaultSpec", "StrutModel", "SecondOrderStrut", "ModelFactory",
            "default_model_factory", "load_model_factory", "spawn", "main"]
@@ -86,7 +87,7 @@ class SimDrives:
             lengths = Hexapod(cfg).lengths(cfg.home_pose)
             start_positions_inc = [round((float(lengths[i]) - float(cfg.strut_offset_mm[i])) *
                                          self.increments_per_mm) for i in range(6)]
-        factory = model_factory or default_model_factory
+        factory = model_factory or config_model_factory(cfg)
         self.networks = [canopen.Network(b) for b in self.buses]
         self._hb_subs: list[list] = [[] for _ in self.buses]
         self.drives: list[SimDrive] = []

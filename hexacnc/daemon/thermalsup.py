@@ -45,8 +45,12 @@ log = logging.getLogger("hexacnc.thermal")
 
 #: the thermal thread's tick (wall s): sim sampling, observer, stale check
 TICK_S = 0.05
-#: a gap longer than this many observer steps re-initialises the estimate from the probes
-MAX_GAP_STEPS = 20000
+#: a gap between readings longer than this (plant s) re-initialises the estimate from the probes
+MAX_GAP_S = 86400.0
+#: readings closer than this (plant s) are shown but not observed separately
+MIN_STEP_S = 1e-3
+#: observer step quantisation (1 %): one discretisation per step size, cached
+_LOG_Q = math.log(1.01)
 
 
 class ThermalInputError(HexacncError):
@@ -161,11 +165,10 @@ class ThermalSupervisor:
         self.hx = Hexapod(cfg)
         self.rate = float(tc.probe_rate_hz)
         self.scale = float(tc.sim_time_scale) if self.source == "sim" else 1.0
-        self.obs_dt = self.scale / self.rate           #: observer step, plant s
         self.observer = None
+        self._obs_cache: dict = {}
         if self.source != "none":
-            from ..thermal import thermal_observer
-            self.observer = thermal_observer(cfg, self.obs_dt)
+            self.observer = self._observer_for_init(self.scale / self.rate)
         self.plant = None
         if self.source == "sim":
             from ..sim.thermalplant import thermal_plant
@@ -301,29 +304,51 @@ class ThermalSupervisor:
         s = self.sh.s
         return np.array([s[S.S_TRAVEL + i] for i in range(6)])
 
+    def _observer_for_init(self, dt_s: float):
+        from ..thermal import thermal_observer
+        key = round(math.log(dt_s) / _LOG_Q)
+        ob = self._obs_cache[key] = thermal_observer(self.cfg, math.exp(key * _LOG_Q))
+        return ob
+
+    def _observer_for(self, dt_s: float):
+        """Observer discretised for a step of ``dt_s`` (quantised to 1 % steps, cached), holding the
+        current estimate."""
+        key = round(math.log(dt_s) / _LOG_Q)
+        ob = self._obs_cache.get(key)
+        if ob is None:
+            from ..thermal import thermal_observer
+            if len(self._obs_cache) >= 32:
+                self._obs_cache.pop(next(iter(self._obs_cache)))
+            ob = self._obs_cache[key] = thermal_observer(self.cfg, math.exp(key * _LOG_Q))
+        if ob is not self.observer:
+            ob.T_est = self.observer.T_est.copy()
+            self.observer = ob
+        return ob
+
     def _observe(self, r: dict) -> None:
+        """One reading: predict over the plant time since the last one (exact ZOH with the mean
+        commanded strut speed), correct with the probes."""
         obs = self.observer
         travel = self._travel_cmd()
-        if self.obs_t is None or (r["time_s"] - self.obs_t) / self.obs_dt > MAX_GAP_STEPS:
-            # first reading (or after a very long gap): the field from the probes, per strut
-            T0 = np.repeat(r["struts"].mean(axis=1)[:, None], obs.n, axis=1)
-            if len(obs.probes) >= 2:      # linear through the probes along the strut
-                x = (np.arange(obs.n) + 0.5)
-                xp = np.array(obs.probes, dtype=float) + 0.5
-                T0 = np.stack([np.interp(x, xp, r["struts"][i]) for i in range(6)])
+        if self.obs_t is None or r["time_s"] - self.obs_t > MAX_GAP_S:
+            # first reading (or after a very long gap): the field from the probes, linear along
+            # each strut through its probes (constant beyond them)
+            x = np.arange(obs.n) + 0.5
+            xp = np.array(obs.probes, dtype=float) + 0.5
+            order = np.argsort(xp)
+            T0 = np.stack([np.interp(x, xp[order], r["struts"][i][order]) for i in range(6)])
             obs.reset(T0)
             self.obs_t, self.obs_carry = r["time_s"], 0.0
         else:
-            dt_plant = r["time_s"] - self.obs_t
-            dt_wall = max(1e-3, r["wall"] - self.obs_wall)
-            speed = np.abs(travel - self.obs_travel) / dt_wall
-            acc = self.obs_carry + dt_plant
-            n = int(acc / self.obs_dt + 1e-9)
-            self.obs_carry = acc - n * self.obs_dt
+            dt = r["time_s"] - self.obs_t + self.obs_carry
             self.obs_t = r["time_s"]
-            for _ in range(max(0, n - 1)):
-                obs.predict_only(speed, r["ambient"], r["frame"])
-            if n >= 1:
+            if dt < MIN_STEP_S:
+                self.obs_carry = dt        # too soon: the reading is shown, the next step covers the time
+            else:
+                dt_wall = max(1e-3, r["wall"] - self.obs_wall)
+                speed = np.abs(travel - self.obs_travel) / dt_wall
+                obs = self._observer_for(dt)
+                self.obs_carry = dt - obs.dt_s
                 obs.update(speed, r["ambient"], r["frame"], r["struts"])
         self.obs_travel, self.obs_wall = travel, r["wall"]
         off = np.asarray(obs.offsets_mm, dtype=float)

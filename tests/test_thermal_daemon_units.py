@@ -1,0 +1,93 @@
+"""Units of the daemon's thermal compensation: config keys, reading validation, the simulated plant,
+and the simulated drives' strut model selection."""
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config, parse_config
+from hexacnc.daemon.thermalsup import ThermalInputError, parse_reading, resolve_source
+from hexacnc.errors import ConfigError
+from hexacnc.sim.thermalplant import ThermalPlant
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def _doc_with(cfg, section, **kv):
+    import copy
+    doc = copy.deepcopy(cfg.raw)
+    doc.setdefault(section, {}).update(kv)
+    return doc
+
+
+@pytest.mark.parametrize("key,value", [("max_offset_mm", 0.0), ("max_offset_mm", 10.0),
+                                       ("max_offset_rate_mm_s", -1.0), ("probe_rate_hz", 0.0),
+                                       ("sim_time_scale", 0.5), ("stale_after_s", 0.0),
+                                       ("source", "probes"), ("probe_max_C", -30.0), ("max_offset_mm", math.nan)])
+def test_thermal_daemon_keys_are_range_checked(cfg, key, value):
+    with pytest.raises(ConfigError, match=key):
+        parse_config(_doc_with(cfg, "thermal", **{key: value}))
+
+
+def test_thermal_keys_parse_and_source_resolution(cfg):
+    c = parse_config(_doc_with(cfg, "thermal", source="socket", max_offset_mm=0.05, sim_time_scale=600.0))
+    assert c.thermal.source == "socket" and c.thermal.max_offset_mm == 0.05 and c.thermal.sim_time_scale == 600.0
+    assert resolve_source(cfg) == "sim"                    # default machine: simulated bus
+    real = cfg.replace(bus=dataclasses.replace(cfg.bus, simulate=False))
+    assert resolve_source(real) == "socket"
+    off = cfg.replace(thermal=dataclasses.replace(cfg.thermal, enabled=False))
+    assert resolve_source(off) == "none"
+
+
+def test_parse_reading_both_forms_agree(cfg):
+    tc = cfg.thermal
+    rows = [[20.0 + i, 21.0 + i] for i in range(6)]
+    a = parse_reading({"probes_C": {"struts": rows, "ambient": 19.5, "frame": 19.8}, "spindle_C": 25.0}, tc)
+    flat = [v for r in rows for v in r] + [19.5, 19.8]
+    b = parse_reading({"probes_C": flat, "spindle_C": 25.0, "time_s": 12.0}, tc)
+    assert np.array_equal(a["struts"], b["struts"]) and a["ambient"] == b["ambient"] == 19.5
+    assert a["frame"] == 19.8 and a["spindle"] == 25.0 and b["time_s"] == 12.0 and a["time_s"] is None
+
+
+@pytest.mark.parametrize("bad,field", [(True, "probes_C[3]"), (None, "probes_C[3]"), ("20", "probes_C[3]")])
+def test_parse_reading_rejects_non_numbers(cfg, bad, field):
+    flat = [20.0] * 14
+    flat[3] = bad
+    with pytest.raises(ThermalInputError) as ei:
+        parse_reading({"probes_C": flat}, cfg.thermal)
+    assert ei.value.field == field and ei.value.code == "bad_type"
+
+
+def test_plant_heats_with_speed_and_probes_are_noisy_around_truth(cfg):
+    p = ThermalPlant(cfg, seed=3)
+    g0 = p.growth_mm().copy()
+    assert np.allclose(g0, 0.0)                            # from cold at the reference temperature
+    for _ in range(60):
+        p.step(60.0, [20.0, 20.0, 10.0, 10.0, 0.0, 0.0], True)
+    g = p.growth_mm()
+    assert g[0] > g[2] > g[4] >= -1e-3 and g[0] > 0.01    # more speed, more heat, more growth
+    assert p.spindle_growth_mm() > 0.0 and p.housing_C > p.shaft_C > p.ambient_C - 0.2
+    r = p.readings()
+    truth = p.T[:, p.pidx]
+    err = np.array(r["probes_C"]["struts"]) - truth
+    assert 0 < np.std(err) < 5 * cfg.thermal.probe_noise_K
+    assert r["time_s"] == pytest.approx(3600.0)
+    # the plant's heat is the configured model's times the scenario's truth ratio (model is wrong on purpose)
+    assert p.heat_per_speed_W_s_mm == pytest.approx(cfg.thermal.heat_per_speed_W_s_mm * 1.15)
+
+
+def test_simulated_drives_model_selected_by_config(cfg):
+    from drivers.strutmodel import SecondOrderStrut, config_model_factory
+    assert isinstance(config_model_factory(cfg)(0, cfg), SecondOrderStrut)
+    cc = cfg.replace(dynamics=dataclasses.replace(cfg.dynamics, simulated_drives="coupled"))
+    f = config_model_factory(cc)
+    views = [f(i, cc) for i in range(6)]
+    assert type(views[0]).__name__ == "_StrutView" and views[0].s is views[5].s     # one coupled model
+    with pytest.raises(ConfigError, match="simulated_drives"):
+        parse_config(_doc_with(cfg, "dynamics", simulated_drives="rigid"))
