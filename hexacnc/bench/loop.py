@@ -48,7 +48,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=60.0, help="duration of each phase (default 60)")
     parser.add_argument("--config", metavar="F", help="machine description (default: embedded default)")
     parser.add_argument("--period-s", type=float, help="cycle period (default: [cycle] period_s)")
-    parser.add_argument("--io", choices=("auto", "bus", "pipe", "inproc"), default="auto")
+    parser.add_argument("--io", choices=("auto", "bus", "shm", "pipe", "inproc"), default="auto")
     parser.add_argument("--poll-hz", type=float, default=50.0, help="status polls per second by the client process")
     parser.add_argument("--no-realtime", action="store_true")
     parser.add_argument("--skip-idle", action="store_true")

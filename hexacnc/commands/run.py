@@ -15,10 +15,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         "default machine with simulated drives (no root, no network)")
     parser.add_argument("--socket", metavar="PATH", help="Unix socket path (default: [daemon] socket_path)")
     parser.add_argument("--duration", type=float, metavar="S", help="run S seconds, then stop cleanly (exit 0)")
-    parser.add_argument("--io", choices=("auto", "bus", "pipe", "inproc"), default="auto",
+    parser.add_argument("--io", choices=("auto", "bus", "shm", "pipe", "inproc"), default="auto",
                         help="drive I/O: bus = [bus] interface (with drivers.simdrive when [bus] simulate); "
-                             "pipe = simulated drives over a Unix socket pair; inproc = model inside the loop; "
-                             "auto: pipe for interface 'virtual' with simulate, else bus")
+                             "shm = simulated drives over a shared-memory frame ring; pipe = over a Unix "
+                             "socket pair; inproc = model inside the loop; "
+                             "auto: shm for interface 'virtual' with simulate, else bus")
     parser.add_argument("--demo", action="store_true",
                         help="run the embedded demo program (a small 5-axis part) and show its progress; "
                              "without --duration, exit when it has finished")

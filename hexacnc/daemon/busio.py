@@ -6,9 +6,14 @@ Modes (``Daemon(io_mode=...)``; ``auto`` picks from the config):
   inside the hot process *before* the loop starts, then ``drivers.cyclic`` does the hot-path
   frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
   process on the same bus (``udp_multicast``: only inside a network namespace or on loopback).
+* ``shm`` - the default for ``[bus] simulate`` with ``interface = "virtual"`` (python-can's
+  virtual bus does not cross processes): the simulated drives run in their own process
+  (:mod:`hexacnc.daemon.simhost`) and the frames travel through a shared-memory frame ring per bus
+  (:mod:`hexacnc.daemon.shmbus`): no system call per cycle in the hot loop.
+* ``pipe`` - the same, over one Unix stream socket pair per bus (:mod:`hexacnc.daemon.pipebus`):
+  one ``send(2)`` and one ``recv(2)`` per bus per cycle.
 * ``inproc`` - the hot loop drives an in-process model (:class:`~hexacnc.daemon.simio.SimIO`)
-  instead of a bus: no second process, no sockets.  Used by ``auto`` for ``[bus] interface =
-  "virtual"`` with ``simulate``, because python-can's virtual bus does not cross processes.
+  instead of a bus: no second process, no CAN frames (the lower bound of the cycle's cost).
 """
 from __future__ import annotations
 
@@ -20,36 +25,55 @@ from ..errors import BusError
 log = logging.getLogger("hexacnc.busio")
 
 
+MODES = ("auto", "bus", "shm", "pipe", "inproc")
+
+
 def resolve_mode(cfg, mode: str) -> str:
-    if mode not in ("auto", "bus", "pipe", "inproc"):
-        raise ValueError(f"io mode {mode!r} is not one of auto, bus, pipe, inproc")
+    if mode not in MODES:
+        raise ValueError(f"io mode {mode!r} is not one of {', '.join(MODES)}")
     if mode != "auto":
         return mode
     if cfg.bus.simulate and cfg.bus.interface == "virtual":
-        return "pipe"
+        return "shm"
     return "bus"
 
 
 class PipeSim:
-    """The simulated drives process on pipe buses, and the hot loop's ends of the pipes."""
+    """The simulated drives process (:mod:`hexacnc.daemon.simhost`) and the hot loop's ends of its
+    buses: Unix socket pairs (``transport="pipe"``) or shared-memory frame rings (``"shm"``)."""
 
-    def __init__(self, cfg, faults=()):
+    def __init__(self, cfg, faults=(), transport: str = "pipe"):
         import pickle
         import subprocess
         import sys
         import time
-        from .pipebus import socket_pairs
-        pairs = socket_pairs(cfg.bus.buses)
-        self.hot_fds = [a.detach() for a, _ in pairs]
-        sim_fds = [b.detach() for _, b in pairs]
+        self.transport = transport
+        self.hot_fds: list[int] = []
+        self.segments = []
+        sim_fds: list[int] = []
+        payload = {"cfg": cfg, "faults": list(faults)}
+        if transport == "shm":
+            from .shmbus import create_segments
+            self.segments = create_segments(cfg.bus.buses)
+            payload["shm"] = [seg.name for seg in self.segments]
+        else:
+            from .pipebus import socket_pairs
+            pairs = socket_pairs(cfg.bus.buses)
+            self.hot_fds = [a.detach() for a, _ in pairs]
+            sim_fds = [b.detach() for _, b in pairs]
+            payload["fds"] = sim_fds
         try:
             self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc.daemon.simhost"], stdin=subprocess.PIPE,
                                          stdout=subprocess.PIPE, stderr=subprocess.PIPE, pass_fds=sim_fds,
                                          text=False)
+        except BaseException:
+            self.close_fds()
+            self.release()
+            raise
         finally:
             for fd in sim_fds:
                 os.close(fd)
-        self.proc.stdin.write(pickle.dumps({"cfg": cfg, "fds": sim_fds, "faults": list(faults)}))
+        self.proc.stdin.write(pickle.dumps(payload))
         self.proc.stdin.close()
         import selectors
         sel = selectors.DefaultSelector()
@@ -71,6 +95,7 @@ class PipeSim:
             self.terminate()
             err = self.proc.stderr.read().decode(errors="replace")[-2000:]
             self.close_fds()
+            self.release()
             raise BusError(f"simulated drives did not start: {err.strip()}")
 
     def close_fds(self) -> None:
@@ -80,6 +105,12 @@ class PipeSim:
             except OSError:
                 pass
         self.hot_fds = []
+
+    def release(self) -> None:
+        """Unlink the shared-memory rings (after both processes are done with them)."""
+        from .shmbus import release_segments
+        release_segments(self.segments)
+        self.segments = []
 
     def terminate(self) -> None:
         if self.proc.poll() is None:
@@ -103,8 +134,8 @@ class PipeSim:
 
 def start_simulation(cfg, mode: str, period_s: float, faults=(), channel: str | None = None):
     """Start the simulated drives process when the mode needs one; returns its handle or None."""
-    if mode == "pipe":
-        return PipeSim(cfg, faults)
+    if mode in ("pipe", "shm"):
+        return PipeSim(cfg, faults, transport=mode)
     if mode != "bus" or not cfg.bus.simulate:
         return None
     from drivers import simdrive
@@ -136,6 +167,8 @@ def drives_realtime(pid: int, priority: int) -> bool:
 
 def child_args(sim, channel: str | None = None) -> dict:
     if isinstance(sim, PipeSim):
+        if sim.transport == "shm":
+            return {"channel": channel, "shm_rings": [seg.name for seg in sim.segments]}
         return {"channel": channel, "pipe_fds": list(sim.hot_fds)}
     return {"channel": channel}
 
@@ -160,6 +193,8 @@ def stop_simulation(sim) -> None:
             f.close()
         except Exception:
             pass
+    if isinstance(sim, PipeSim):
+        sim.release()
 
 
 class CyclicAdapter:
@@ -249,10 +284,16 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
     from drivers.master import Master
     rep = busload.check_layout(cfg.bus, period_s)      # BusError with the figures if it does not fit
     load = float(rep["load"])
-    if sim_args.get("pipe_fds"):
+    if sim_args.get("shm_rings"):
+        from .shmbus import ShmBus
+        buses = [ShmBus(name, side=0) for name in sim_args["shm_rings"]]
+        transport = "shared-memory frame ring"
+    elif sim_args.get("pipe_fds"):
         from .pipebus import PipeBus
         buses = [PipeBus(fd=fd) for fd in sim_args["pipe_fds"]]
+        transport = "pipe (Unix socket pair)"
     else:
+        transport = cfg.bus.interface
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
     try:
         m = Master(cfg, buses)
@@ -279,7 +320,7 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
             except Exception:
                 pass
         raise
-    info = {"mode": mode, "interface": "pipe (Unix socket pair)" if sim_args.get("pipe_fds") else cfg.bus.interface, "layout": cfg.bus.layout, "buses": cfg.bus.buses,
+    info = {"mode": mode, "interface": transport, "layout": cfg.bus.layout, "buses": cfg.bus.buses,
             "bus_load": load, "bus_summary": busload.describe(rep),
             "frame_batch": cio.batch}     # one write/read per bus per cycle (drivers.framerec)
     return CyclicAdapter(cio, load, info)

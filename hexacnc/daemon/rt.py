@@ -79,3 +79,95 @@ def acquire(priority: int, cpu: int, want_fifo: bool = True) -> dict:
     msgs.append(m)
     (log.info if fifo else log.warning)("hot loop: %s", m)
     return {"sched_fifo": fifo, "mlockall": locked, "affinity_cpu": pinned, "messages": msgs}
+
+
+def bare_loop(period_s: float, seconds: float, spin_s: float, work_s: float = 0.0) -> dict:
+    """The hot loop's timing skeleton with nothing in it: the machine's own lateness.
+
+    Same wake-up strategy as :class:`hexacnc.daemon.loop.HotLoop` (absolute deadlines on the
+    monotonic clock, ``time.sleep`` until ``spin_s`` before the deadline, then spin) and the same
+    overrun rule (a cycle whose end passes the next deadline; the missed deadlines are skipped and
+    counted), with ``work_s`` of busy-waiting per cycle standing for the cycle's compute.  Run it
+    in a process with the hot loop's privileges (see :func:`bare_loop_main`).  Returns lateness
+    percentiles (us), overruns, the longest run of consecutive overruns and the longest wake-up gap.
+    """
+    import gc
+    import time
+    period = int(round(period_s * 1e9))
+    spin = int(round(spin_s * 1e9))
+    work = int(round(work_s * 1e9))
+    n = int(round(seconds / period_s))
+    hist = [0] * 4096
+    mono = time.monotonic_ns
+    sleep = time.sleep
+    overruns = in_row = max_row = 0
+    lat_max = 0
+    gap_max = 0
+    prev = 0
+    cycles = 0
+    gc.collect()
+    gc.freeze()
+    gc.disable()
+    deadline = mono() + period
+    try:
+        while cycles < n:
+            rem = deadline - mono()
+            if rem > spin:
+                sleep((rem - spin) * 1e-9)
+            while mono() < deadline:
+                pass
+            t0 = mono()
+            if work:
+                t_w = t0 + work
+                while mono() < t_w:
+                    pass
+            late = t0 - deadline
+            k = late // 1000
+            hist[k if k < 4095 else 4095] += 1
+            if late > lat_max:
+                lat_max = late
+            if prev and t0 - prev > gap_max:
+                gap_max = t0 - prev
+            prev = t0
+            t1 = mono()
+            cycles += 1
+            deadline += period
+            if t1 > deadline:
+                missed = (t1 - deadline) // period + 1
+                deadline += (missed - 1) * period
+                overruns += missed
+                in_row += missed
+                if in_row > max_row:
+                    max_row = in_row
+            else:
+                in_row = 0
+    finally:
+        gc.enable()
+        gc.unfreeze()
+    from .shm import percentiles_us
+    p = percentiles_us(hist)
+    return {"cycles": cycles, "period_s": period_s, "spin_us": spin / 1e3, "work_us": work / 1e3,
+            "lateness_us": {"median": p[0], "p99": p[1], "p999": p[2], "max": lat_max / 1e3},
+            "overruns": overruns, "overrun_pct": 100.0 * overruns / cycles if cycles else 0.0,
+            "max_overruns_in_row": max_row, "longest_gap_us": gap_max / 1e3,
+            "late_over_100us": sum(hist[100:]), "late_over_period": sum(hist[int(period_s * 1e6):])}
+
+
+def bare_loop_main(argv=None) -> int:
+    """``python -m hexacnc.daemon.rt PERIOD_S SECONDS SPIN_S WORK_S PRIORITY CPU``: take the hot
+    loop's privileges (:func:`acquire`), run :func:`bare_loop`, print one JSON object."""
+    import json
+    import sys
+    a = sys.argv[1:] if argv is None else argv
+    period_s, seconds, spin_s, work_s = (float(v) for v in a[:4])
+    priority, cpu = int(a[4]), int(a[5])
+    priv = acquire(priority, cpu)
+    out = bare_loop(period_s, seconds, spin_s, work_s)
+    out["privileges"] = {k: priv[k] for k in ("sched_fifo", "mlockall", "affinity_cpu")}
+    print(json.dumps(out))
+    return 0
+
+
+if __name__ == "__main__":
+    import sys as _sys
+    _sys.exit(bare_loop_main())

@@ -55,6 +55,10 @@ H_EXIT = 29             #: 1 when the loop has exited cleanly
 H_STATS_CYCLES0 = 30    #: cycle count at the last statistics reset
 H_STATUSWORDS = 32      #: 6 slots: last statusword per drive
 H_DRIVE_STATE = 38      #: 6 slots: 1 when the drive reports Operation Enabled
+H_PHASE_SUM_NS = 44     #: N_PHASES slots: compute time per phase of the cycle, summed since the stats reset
+H_PHASE_MAX_NS = 50     #: N_PHASES slots: longest time of each phase since the stats reset
+N_PHASES = 6
+PHASE_NAMES = ("poll", "supervise", "transform", "send", "feedback", "stats")
 N_HEADER = 64
 
 # -- float64 status slots -------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """``python -m hexacnc.daemon.simhost``: the simulated drives process on pipe buses.
 
 Runs :class:`drivers.simdrive.SimDrives` (six CiA 402 nodes from the EDS) on
-:class:`~hexacnc.daemon.pipebus.PipeBus` ends inherited from the supervisor.  Arguments come as
-one pickle on stdin: ``{"cfg": MachineConfig, "fds": [fd per bus], "faults": [spec, ...]}``.
+:class:`~hexacnc.daemon.pipebus.PipeBus` ends inherited from the supervisor, or on side 1 of
+:class:`~hexacnc.daemon.shmbus.ShmBus` frame rings.  Arguments come as one pickle on stdin:
+``{"cfg": MachineConfig, "fds": [fd per bus] | "shm": [segment name per bus], "faults": [spec, ...]}``.
 Prints ``READY`` once the nodes are up; runs until SIGTERM/SIGINT or until the supervisor's
 end of stdin... (it stops when its parent dies: the pipe buses report EOF).
 """
@@ -36,7 +37,11 @@ def main() -> int:
     # look for frames on a timer instead of being woken by each write: the wake-up would be paid by
     # the hot loop on its CPU every cycle (see PipeBus); the drives answer within this interval
     poll_s = float(args.get("poll_interval_s", POLL_INTERVAL_S))
-    buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
+    if args.get("shm"):        # shared-memory frame rings (hexacnc.daemon.shmbus), side 1
+        from .shmbus import ShmBus
+        buses = [ShmBus(name, side=1, poll_interval_s=poll_s) for name in args["shm"]]
+    else:
+        buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
