@@ -238,11 +238,11 @@ def _horner(coeffs, var: str) -> str:
 def _emit_calibrated_command(ct, w) -> None:
     """Physical lengths v0..v5 -> drive-scale commands (calibrated map, :mod:`hexacnc.strutmap`).
 
-    Linear maps fold to ``v * m + c``; polynomial maps take warm-started Newton steps in
-    t until a step is below the map's tolerance (one step per cycle when tracking).
+    Linear maps fold to ``v * m + c``; polynomial maps take one Newton step in t from a
+    warm-start guess and hand the rare case whose step is not below the map's tolerance
+    to :meth:`StrutMap.solve_t` (more steps).
     The commands are then checked against the stroke.
     """
-    from .strutmap import MAX_ITER
     sm = ct.strut_map
     w("    ph = self.phys_mm; cs = self._cal_state")
     for i in range(6):
@@ -257,21 +257,19 @@ def _emit_calibrated_command(ct, w) -> None:
         else:
             B = [float(v) for v in sm.B[i]]
             tol = float(sm.step_tol_t[i])
-            j = 3 * i
-            w(f"    e = v{i} - {o!r}")
-            w(f"    t = cs[{j}] + (e - cs[{j + 1}]) * cs[{j + 2}]")
-            w("    n = 0")
-            w("    while True:")
-            w(f"        gp = {_horner(B, 't')}")
-            w(f"        dt = (e - ({_horner(A, 't')})) / gp")
-            w("        t += dt")
-            w(f"        if -{tol!r} < dt < {tol!r}:")
-            w("            break")
-            w("        n += 1")
-            w(f"        if n >= {MAX_ITER} or dt != dt:")
-            w(f"            cs[{j}] = 0.0; cs[{j + 1}] = {A[0]!r}; cs[{j + 2}] = {1.0 / A[1]!r}")
+            j = 2 * i
+            A0 = [A[0] + o] + A[1:]          # G(t) + strut_offset: compared with v directly
+            w(f"    t = cs[{j}] + v{i} * cs[{j + 1}]")
+            w(f"    gp = {_horner(B, 't')}")
+            w(f"    dt = (v{i} - ({_horner(A0, 't')})) / gp")
+            w("    t += dt")
+            w(f"    if dt >= {tol!r} or dt <= -{tol!r}:")
+            w(f"        t, gp = self.strut_map.solve_t({i}, v{i}, t)")
+            w("        if t != t:")
+            w(f"            cs[{j}] = {-(o + A[0]) / A[1]!r}; cs[{j + 1}] = {1.0 / A[1]!r}")
             w(f"            self.fail_index = {i}; self.fail_value = v{i}; return 8")
-            w(f"    cs[{j}] = t; cs[{j + 1}] = e; cs[{j + 2}] = 1.0 / gp")
+            w("    g = 1.0 / gp")
+            w(f"    cs[{j}] = t - v{i} * g; cs[{j + 1}] = g")
             w(f"    v{i} = t * {h!r} + {o + c!r}")
         w(f"    if v{i} < {ct._lmin[i]!r} or v{i} > {ct._lmax[i]!r}:")
         w(f"        self.fail_index = {i + 6}; self.fail_value = v{i}; return 1")

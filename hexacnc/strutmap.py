@@ -149,41 +149,53 @@ class StrutMap:
 
     # ------------------------------------------------------------------ per cycle (lists)
     def new_state(self) -> list[float]:
-        """Warm-start state for :meth:`command_inplace`: per strut t, target, 1/slope (18 floats)."""
-        st = [0.0] * 18
+        """Warm-start state for the per-cycle inverse: per strut ``a, g`` with the next guess
+        ``t = a + v * g`` for physical length ``v`` (g: 1/slope dt/dv at the last solution), 12 floats."""
+        st = [0.0] * 12
         for i in range(6):
-            st[3 * i + 2] = 1.0 / self._Al[i][1]
+            A = self._Al[i]
+            st[2 * i + 1] = 1.0 / A[1]
+            st[2 * i] = -(self._o[i] + A[0]) / A[1]
         return st
+
+    def solve_t(self, i: int, v: float, t: float) -> tuple[float, float]:
+        """Newton in t for strut ``i``'s physical length ``v`` from guess ``t``: (t, dG/dt); t is NaN
+        when it does not converge within :data:`MAX_ITER` steps."""
+        A = self._Al[i]; B = self._Bl[i]
+        e = v - self._o[i]
+        tol = self._tol[i]
+        Gp = 1.0
+        for _ in range(MAX_ITER):
+            G = A[-1]
+            for j in range(len(A) - 2, -1, -1):
+                G = G * t + A[j]
+            Gp = B[-1]
+            for j in range(len(B) - 2, -1, -1):
+                Gp = Gp * t + B[j]
+            dt = (e - G) / Gp
+            t += dt
+            if -tol < dt < tol:
+                return t, Gp
+            if dt != dt:
+                break
+        return math.nan, Gp
 
     def command_inplace(self, vals, state) -> int:
         """Physical lengths in ``vals`` -> drive-scale lengths, in place; -1, or the failing strut."""
         for i in range(6):
             A = self._Al[i]
-            e = vals[i] - self._o[i]
+            v = vals[i]
             if len(A) == 2:
-                t = (e - A[0]) / A[1]
+                t = (v - self._o[i] - A[0]) / A[1]
             else:
-                B = self._Bl[i]
-                k = 3 * i
-                t = state[k] + (e - state[k + 1]) * state[k + 2]
-                tol = self._tol[i]
-                n = 0
-                while True:
-                    G = A[-1]
-                    for j in range(len(A) - 2, -1, -1):
-                        G = G * t + A[j]
-                    Gp = B[-1]
-                    for j in range(len(B) - 2, -1, -1):
-                        Gp = Gp * t + B[j]
-                    dt = (e - G) / Gp
-                    t += dt
-                    if -tol < dt < tol:
-                        break
-                    n += 1
-                    if n >= MAX_ITER or dt != dt:
-                        state[k] = 0.0; state[k + 1] = A[0]; state[k + 2] = 1.0 / A[1]
-                        return i
-                state[k] = t; state[k + 1] = e; state[k + 2] = 1.0 / Gp
+                k = 2 * i
+                t, Gp = self.solve_t(i, v, state[k] + v * state[k + 1])
+                if t != t:
+                    st = self.new_state()
+                    state[k] = st[k]; state[k + 1] = st[k + 1]
+                    return i
+                g = 1.0 / Gp
+                state[k] = t - v * g; state[k + 1] = g
             vals[i] = self._o[i] + self._c[i] + t * self._h[i]
         return -1
 

@@ -185,6 +185,11 @@ def bench_jugglebot_cycle(cfg, m, h, d, k: int) -> dict:
                 c3 = rereferenced_config(c2, theta[36:42])
                 fr = theta[fit.layout.frame] if fit.layout.frame is not None else None
                 entry[f"holdout_k{k}"] = holdout_through_cycle(c3, h, fr, rows)
+            from .model import bench_cycle   # per-cycle cost of the written config (command + feedback)
+            bc = bench_cycle(c2, 5.0)
+            entry["cycle_time_us"] = {"median": bc["median_us"], "p99": bc["p99_us"],
+                                      "fk_iterations_mean": bc["fk_iterations_mean"],
+                                      "path": "bench model's realistic path, 5 s at the cycle rate"}
             entry["diagnose_holdout_k%d_strut_mm" % k] = (d.result["baseline" if name == "refit_42" else "extended"]
                                                          ["rms_holdout"]["strut_mm"])
             entry["time_s"] = time.perf_counter() - t0
