@@ -172,3 +172,36 @@ def test_limits_apply_to_physical_length_and_drive_command(fast):
         if found:
             break
     assert found
+
+
+def test_kin_cli_applies_the_calibration(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+    repo = Path(__file__).resolve().parents[1]
+    d = calibrated_doc(seed=9, tol_mm=None)
+    text = default_config_path().read_text() + "\n[calibration]\n" + "\n".join(
+        f"{k} = {v!r}" if not isinstance(v, str) else f'{k} = "{v}"' for k, v in d["calibration"].items()) + "\n"
+    cal = tmp_path / "cal.toml"
+    cal.write_text(text)
+    cfg = parse_config(tomllib.loads(text), str(cal))
+    poses = tmp_path / "p.csv"
+    rng = np.random.default_rng(2)
+    P = np.array(cfg.home_pose) + rng.uniform(-1, 1, (20, 6)) * np.r_[50, 50, 50, 5, 5, 5]
+    poses.write_text("x,y,z,a,b,c\n" + "\n".join(",".join(f"{v:.9f}" for v in r) for r in P) + "\n")
+    inv, fwd = tmp_path / "inv.csv", tmp_path / "fwd.csv"
+    run = lambda *a: subprocess.run([sys.executable, "-m", "hexacnc", "kin", *a], capture_output=True, text=True,
+                                    cwd=repo, timeout=120)
+    p = run("inverse", "--config", str(cal), "--poses", str(poses), "--out", str(inv))
+    assert p.returncode == 0, p.stderr
+    out = np.loadtxt(inv, delimiter=",", skiprows=1)
+    L, q = out[:, :6], out[:, 6:]
+    sm = strut_map_from_config(cfg)
+    assert np.max(np.abs(sm.strut_from_drive(q + cfg.strut_offset_mm) - L)) < 1e-6
+    assert np.max(np.abs(q - (L - cfg.strut_offset_mm))) > 1e-2        # not the uncalibrated reading
+    qf = tmp_path / "q.csv"
+    qf.write_text("q1,q2,q3,q4,q5,q6\n" + "\n".join(",".join(f"{v:.9f}" for v in r) for r in q) + "\n")
+    p = run("forward", "--config", str(cal), "--readings", str(qf), "--out", str(fwd))
+    assert p.returncode == 0, p.stderr
+    X = np.loadtxt(fwd, delimiter=",", skiprows=1)[:, :6]
+    assert np.max(np.abs(X - P)) < 1e-6

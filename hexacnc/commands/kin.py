@@ -1,4 +1,8 @@
-"""``hexacnc kin inverse|forward``: kinematics on CSV files."""
+"""``hexacnc kin inverse|forward``: kinematics on CSV files.
+
+``L1..L6`` are geometric strut lengths; ``q1..q6`` drive readings, through the
+machine's ``[calibration]`` reading-to-length map where it has one
+(:mod:`hexacnc.strutmap`; else ``q = L - strut_offset_mm``)."""
 from __future__ import annotations
 
 import argparse
@@ -10,6 +14,7 @@ from ..config import load_config
 from ..csvio import format_csv, read_numeric_csv, write_text_atomic
 from ..errors import KinematicsError
 from ..kinematics import Hexapod
+from ..strutmap import strut_map_from_config
 
 HELP = "inverse and forward kinematics on CSV files (poses x,y,z,a,b,c <-> readings q1..q6)"
 
@@ -57,7 +62,8 @@ def _inverse(args: argparse.Namespace) -> int:
                                   + "; ".join(hx.limit_violations(poses[i]))
                                   + f" ({len(bad)} row(s) outside limits; --unchecked computes them anyway)")
     L = hx.inverse_batch(poses)
-    q = L - hx.offset
+    # drive readings through the [calibration] reading-to-length map (identity without one)
+    q = strut_map_from_config(cfg).drive_from_strut(L) - hx.offset
     rows = np.hstack([L, q])
     write_text_atomic(args.out, format_csv(L_COLS + Q_COLS, rows.tolist()))
     return 0
@@ -70,8 +76,9 @@ def _forward(args: argparse.Namespace) -> int:
     if ignored:
         print(f"hexacnc kin forward: ignoring column(s) {', '.join(ignored)} of {args.readings}", file=sys.stderr)
     out = []
+    Lq = strut_map_from_config(cfg).strut_from_drive(q + hx.offset)   # [calibration] map (identity without one)
     for i, qi in enumerate(q):
-        res = hx.forward(qi + hx.offset, tol_mm=OFFLINE_TOL_MM, max_iter=max(50, hx.max_iter))
+        res = hx.forward(Lq[i], tol_mm=OFFLINE_TOL_MM, max_iter=max(50, hx.max_iter))
         where = f"{args.readings}: data row {i + 1} (line {i + 2}) readings {qi.tolist()}"
         if res.status != "ok":
             raise KinematicsError(f"{where}: forward kinematics {res.status} after {res.iterations} "
