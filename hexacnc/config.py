@@ -13,6 +13,12 @@ Public contract (more keys may be added, none renamed):
 * ``[carrier] mass_kg, center_of_gravity_mm`` (platform frame), gravity along
   -z of the base frame unless ``gravity_mm_s2`` is given.
 * ``[tools] length_mm = {"1" = 62.5}``: tool lengths (mm along the tool axis) for G43 H.
+* ``[calibration] strut_scale`` (6 or one, dimensionless, 0.5..2), ``strut_nonlinearity_mm``
+  (6 rows of Legendre coefficients P1..Pd, d <= 7), ``strut_nonlinearity_center_mm`` and
+  ``strut_nonlinearity_half_range_mm`` (6, required with the polynomial), ``source``, ``date``:
+  the reading-to-length map ``L = strut_offset + s q + sum_k c_k P_k((q - center) / half_range)``
+  applied by the cycle (:mod:`hexacnc.strutmap`); absent = identity; the map's slope must stay in
+  [0.5, 2] over the stroke.
 
 Everything is stored in mm, mm/s, degrees at this interface; radians are
 derived for the inside (``*_rad`` attributes).
