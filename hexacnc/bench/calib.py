@@ -185,6 +185,8 @@ def bench_jugglebot_cycle(cfg, m, h, d, k: int) -> dict:
                 c3 = rereferenced_config(c2, theta[36:42])
                 fr = theta[fit.layout.frame] if fit.layout.frame is not None else None
                 entry[f"holdout_k{k}"] = holdout_through_cycle(c3, h, fr, rows)
+                entry[f"holdout_k{k}_sag_compensated_strut_mm"] = holdout_through_cycle(c3, h, fr, rows,
+                                                                                        sag=True)["strut_mm"]
             from .model import bench_cycle   # per-cycle cost of the written config (command + feedback)
             bc = bench_cycle(c2, 5.0)
             entry["cycle_time_us"] = {"median": bc["median_us"], "p99": bc["p99_us"],
