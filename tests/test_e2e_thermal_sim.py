@@ -21,7 +21,7 @@ from hexacnc.pose import matrix_from_euler
 from e2e_fixtures import machine, client  # noqa: F401  (shared fixtures; cfg is overridden below)
 
 SCALE = 1800.0
-RATE_MM_S = 0.05
+RATE_MM_S = 0.0035      # the most the 0.5 ms cycle's acceleration guard allows (3.9 um/s)
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +74,7 @@ def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, cl
     assert th["state"] == "ok" and th["warning"] is None and th["rejected"] == 0
     assert th["time_s"] > 3600.0                   # > 1 h of plant time went by
     off = np.array(th["offsets_mm"])
-    assert np.all(off > 0.005), off                # struts grew: > 5 um offsets applied
+    assert np.all(off > 0.003), off                # struts grew: > 3 um offsets applied
     assert np.all(np.abs(off) <= cfg.thermal.max_offset_mm)
     # the strut commands differ from the plain IK by exactly the applied offsets (one increment)
     got = np.array(st["struts_cmd_mm"])

@@ -19,8 +19,8 @@ from hexacnc.daemon import protocol as P
 
 from e2e_fixtures import machine, client  # noqa: F401  (shared fixtures; cfg is overridden below)
 
-RATE_MM_S = 0.01
-MAX_MM = 0.004
+RATE_MM_S = 0.0035
+MAX_MM = 0.002
 STALE_S = 1.5
 
 

@@ -91,3 +91,51 @@ def test_simulated_drives_model_selected_by_config(cfg):
     assert type(views[0]).__name__ == "_StrutView" and views[0].s is views[5].s     # one coupled model
     with pytest.raises(ConfigError, match="simulated_drives"):
         parse_config(_doc_with(cfg, "dynamics", simulated_drives="rigid"))
+
+
+def test_offset_rate_the_cycle_cannot_take_is_refused(cfg):
+    from hexacnc.daemon.thermalsup import check_offset_rate, max_safe_offset_rate_mm_s
+    lim = max_safe_offset_rate_mm_s(cfg, 0.0005)
+    assert cfg.thermal.max_offset_rate_mm_s <= lim             # the default fits the default cycle
+    fast = cfg.replace(thermal=dataclasses.replace(cfg.thermal, max_offset_rate_mm_s=0.05))
+    with pytest.raises(ConfigError, match="max_offset_rate_mm_s"):
+        check_offset_rate(fast, 0.0005)
+    check_offset_rate(fast, 0.01)                              # a slower cycle takes it
+
+
+def test_coupled_views_stay_in_step_when_bus_threads_interleave(cfg):
+    """Drives stepped out of order (bus 0's cycle k+1 before bus 1's cycle k) see exactly what the
+    coupled model gives for the same commands stepped in order."""
+    from hexacnc.kinematics import Hexapod
+    from hexacnc.sim.strut import CoupledStruts, coupled_model_factory
+    hx = Hexapod(cfg)
+    dt = 0.0005
+    n = 400
+    t = np.arange(n) * dt
+    poses = np.tile(np.asarray(cfg.home_pose, dtype=float), (n, 1))
+    poses[:, 0] += 20.0 * (1 - np.cos(2 * np.pi * 2.5 * t))          # 2.5 Hz, 20 mm: strong accelerations
+    L = hx.inverse_batch(poses)
+    off = np.asarray(cfg.strut_offset_mm, dtype=float)
+    ref = CoupledStruts(cfg)
+    ref.reset(L[0])
+    want = np.array([ref.step(L[k], dt).copy() for k in range(n)])
+    f = coupled_model_factory(gains=ref.g)
+    views = [f(i, cfg) for i in range(6)]
+    for i in range(6):
+        views[i].reset(L[0, i] - off[i])
+    got = np.full((n, 6), np.nan)
+    bus0, bus1 = (0, 1, 2), (3, 4, 5)
+    for k in range(n + 1):           # bus 0 runs one cycle ahead of bus 1
+        if k < n:
+            for i in bus0:
+                got[k, i] = views[i].step(L[k, i] - off[i], dt, True)
+        if k >= 1:
+            for i in bus1:
+                got[k - 1, i] = views[i].step(L[k - 1, i] - off[i], dt, True)
+    # the last drive of a cycle reads the model exactly; drives stepped before it read their command
+    # plus the model's error of the last completed cycle (bus 1: one cycle old, bus 0 ahead: two)
+    e = want - L
+    np.testing.assert_allclose(got[:, 5] + off[5], want[:, 5], atol=1e-9)
+    np.testing.assert_allclose(got[1:, 3:5] + off[3:5] - L[1:, 3:5], e[:-1, 3:5], atol=1e-9)
+    np.testing.assert_allclose(got[2:, :3] + off[:3] - L[2:, :3], e[:-2, :3], atol=1e-9)
+    assert np.max(np.abs(want - L)) > 1e-4           # the model does have following errors here

@@ -45,6 +45,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     dy.add_argument("--no-ringdown", action="store_true", help="skip the nonlinear ring-down check")
     dy.set_defaults(_sim=_dynamics)
 
+    dt = sub.add_parser("daemon-thermal", help="thermal drift with/without compensation on the running daemon "
+                                               "(simulated drives and thermal plant, accelerated)")
+    common(dt)
+    dt.add_argument("--hours", type=float, default=2.5, help="plant time (default 2.5)")
+    dt.add_argument("--scale", type=float, default=300.0, help="plant seconds per wall second (default 300)")
+    dt.add_argument("--rate-hz", type=float, default=2.0, help="probe readings per wall second (default 2)")
+    dt.add_argument("--lines", type=int, default=300, help="lines of the synthetic program (default 300)")
+    dt.add_argument("--seed", type=int, default=1)
+    dt.set_defaults(_sim=_daemon_thermal)
+
     co = sub.add_parser("controller", help="cascade vs coupled state controller, step at the worst position (figure 7)")
     common(co)
     co.add_argument("--step-um", type=float, default=50.0, help="tool step along z (default 50 um)")
@@ -128,5 +138,25 @@ def _controller(args) -> int:
     if not args.no_plot:
         report.plot_controller(res, os.path.join(out, "controller.png"))
     json.dump(_public(res), sys.stdout, indent=1)
+    print()
+    return 0
+
+
+def _daemon_thermal(args) -> int:
+    from ..sim import daemonthermal, report
+    _positive("--hours", args.hours)
+    _positive("--rate-hz", args.rate_hz)
+    if not (1.0 <= args.scale <= 1e5):
+        raise DataError(f"--scale must be in [1, 100000], got {args.scale!r}")
+    if args.lines < 2:
+        raise DataError(f"--lines must be at least 2, got {args.lines}")
+    cfg = load_config(args.config)
+    out = _outdir(args)
+    res = daemonthermal.run(cfg, hours=args.hours, scale=args.scale, rate_hz=args.rate_hz, lines=args.lines,
+                            seed=args.seed)
+    report.write_json(res, os.path.join(out, "daemon_thermal.json"))
+    if not args.no_plot:
+        daemonthermal.plot(res, os.path.join(out, "daemon_thermal.png"))
+    json.dump({k: v for k, v in res.items() if k != "series"}, sys.stdout, indent=1)
     print()
     return 0

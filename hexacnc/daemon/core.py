@@ -174,9 +174,12 @@ class Daemon:
         rep = busload.check_layout(self.cfg.bus, self.period_s)   # refuse a layout over max_load, with figures
         self.info["bus_load"] = rep["load"]
         self.info["bus_summary"] = busload.describe(rep)
+        from .thermalsup import check_offset_rate, thermal_supervisor
+        check_offset_rate(self.cfg, self.period_s)      # refuse a rate the cycle's acceleration guard would trip on
         self.sh = S.Shared(create=True)
         self._keep_off_hot_cpu()
         try:
+            self.thermal = thermal_supervisor(self.cfg, self.sh, self.status_state)
             self.sim = busio.start_simulation(self.cfg, mode, self.period_s, self.sim_faults, self.channel)
             self.hot = _spawn_hot({"cfg": self.cfg, "shm": self.sh.name, "io_mode": mode,
                                    "period_s": self.period_s, "realtime": self.realtime,
@@ -208,8 +211,7 @@ class Daemon:
             self._teardown()
             raise
         self.sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
-        from .thermalsup import thermal_supervisor
-        self.thermal = thermal_supervisor(self.cfg, self.sh, lambda: self.status_state()).start()
+        self.thermal.start()
         self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
         self._feeder.start()
         log.info("daemon ready: %s drives enabled, cycle %.3f ms, io %s", self.cfg.name,

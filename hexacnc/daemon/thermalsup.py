@@ -136,6 +136,34 @@ def parse_reading(fields: dict, tc) -> dict:
     return {"struts": struts, "ambient": ambient, "frame": frame, "spindle": spindle, "time_s": t}
 
 
+#: the offsets' slew may use at most this fraction of the smallest strut acceleration limit (the cycle's
+#: guard allows 5 % over the limit; the planner may use all of it)
+ACCEL_SHARE = 0.025
+
+
+def max_safe_offset_rate_mm_s(cfg, period_s: float) -> float:
+    """Largest ``[thermal] max_offset_rate_mm_s`` whose slew steps stay within ``ACCEL_SHARE`` of the
+    strut acceleration limit: the hot loop moves the applied offsets every ``THERMAL_EVERY`` cycles by
+    ``rate * THERMAL_EVERY * period``, a step the strut commands see as an acceleration of
+    ``step / period**2`` on top of the motion's."""
+    from .loop import THERMAL_EVERY
+    a = float(np.min(cfg.max_acceleration_mm_s2))
+    return ACCEL_SHARE * a * period_s / THERMAL_EVERY
+
+
+def check_offset_rate(cfg, period_s: float) -> None:
+    """Refuse (ConfigError, with the numbers) an offset rate the cycle's acceleration guard could trip on."""
+    from ..errors import ConfigError
+    from .loop import THERMAL_EVERY
+    lim = max_safe_offset_rate_mm_s(cfg, period_s)
+    r = cfg.thermal.max_offset_rate_mm_s
+    if cfg.thermal.enabled and r > lim:
+        raise ConfigError(f"[thermal] max_offset_rate_mm_s = {r:g} mm/s is too fast for a {period_s * 1e3:g} ms "
+                          f"cycle: the offsets are slewed in steps every few cycles, and at this rate a step adds "
+                          f"{r * THERMAL_EVERY / period_s:.0f} mm/s^2 to the strut commands; at most {lim:.4g} mm/s "
+                          f"({ACCEL_SHARE * 100:g} % of the smallest max_acceleration_mm_s2)")
+
+
 def resolve_source(cfg) -> str:
     tc = cfg.thermal
     if not tc.enabled:

@@ -17,10 +17,10 @@ the factory::
     from hexacnc.sim.strut import coupled_model_factory
     SimDrives(cfg, buses, model_factory=coupled_model_factory())
 
-The six per-strut views share one :class:`CoupledStruts`; it advances once all
-six drives have stepped in a cycle (or when a drive steps again before the
-others); drives stepped earlier in the same cycle read their new command plus
-the model's current following error (the error one step old).
+The six per-strut views share one :class:`CoupledStruts`; it advances one step
+once all six drives have a command for that step (commands queued per drive, so
+bus threads that interleave never mix cycles); a drive ahead of the others reads
+its newest command plus the model's current following error (one step old).
 """
 from __future__ import annotations
 
@@ -129,35 +129,49 @@ class _StrutView:
 
 
 class _Shared:
+    """The coupled model behind six drive views, advanced once per cycle in step with all six.
+
+    The drives are stepped from their buses' SYNC handlers, which may run on different threads
+    and interleave (bus 0's SYNC k+1 before bus 1's SYNC k).  Each drive's commands are queued;
+    the model advances by one step whenever every drive has a command for it, so all six commands
+    of a step belong to the same cycle (no spurious acceleration from mixing cycles).  A drive that
+    is ahead reads its newest command plus the model's current following error.  A drive that stops
+    stepping (not operational) is held at its last command once another queue is ``MAX_LAG`` deep.
+    """
+
+    MAX_LAG = 8
+
     def __init__(self, cfg, gains=None):
+        from collections import deque
         self.cs = CoupledStruts(cfg, gains)
         self.off = np.asarray(cfg.strut_offset_mm, dtype=float)
-        self.pending: dict[int, float] = {}
+        self.q = [deque() for _ in range(6)]
         self.dt = None
 
     def reset(self, i: int, position_mm: float) -> None:
         L = self.cs.position_mm.copy()
         L[i] = position_mm + self.off[i]
         self.cs.reset(L)
-        self.pending.pop(i, None)
+        for q in self.q:
+            q.clear()
 
     def _advance(self) -> None:
         cmd = self.cs.r.copy()
-        for j, v in self.pending.items():
-            cmd[j] = v
-        self.pending.clear()
+        for j, q in enumerate(self.q):
+            if q:
+                cmd[j] = q.popleft()
         self.cs.step(cmd, self.dt)
 
     def step(self, i: int, target_mm: float, dt_s: float, enabled: bool) -> float:
-        if i in self.pending:
-            self._advance()
         self.dt = dt_s
-        self.pending[i] = (target_mm + self.off[i]) if enabled else float(self.cs.position_mm[i])
-        if len(self.pending) == 6:
+        q = self.q
+        q[i].append((target_mm + self.off[i]) if enabled else float(self.cs.position_mm[i]))
+        while all(q) or max(len(x) for x in q) > self.MAX_LAG:
             self._advance()
+        if not q[i]:
             return float(self.cs.position_mm[i] - self.off[i])
-        # not advanced yet this cycle: the new command plus the current following error
-        return float(self.pending[i] + self.cs.e[IQ][i] - self.off[i])
+        # ahead of the others: the newest command plus the current following error
+        return float(q[i][-1] + self.cs.e[IQ][i] - self.off[i])
 
 
 def coupled_model_factory(gains: Gains | None = None):
