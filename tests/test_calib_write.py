@@ -155,3 +155,27 @@ def test_jugglebot_cause_applied_by_the_cycle(tmp_path):
     assert ext["strut_mm"] == pytest.approx(r["extended"]["rms_holdout"]["strut_mm"], rel=1e-5)
     # beats the plain refit and the free-scale figure (about 1.0 mm) on the 54 evaluated rows
     assert ext["strut_mm"] < 0.5 * base["strut_mm"] and ext["strut_mm"] < 1.0
+
+
+@pytest.mark.parametrize("effect", ["elastic_sag", "thermal_expansion", "backlash"])
+def test_other_causes_written_where_the_cycle_applies_them(effect):
+    from hexacnc.calib.diagnose import fit_model
+    from hexacnc.calib.model import Context
+    from hexacnc.config import parse_config
+    cfg = load_config(None)
+    s = synth.generate(cfg, 4, effect, magnitude_range=(40.0, 60.0))
+    res = fit_model(cfg, Context(cfg, s.fit, s.noise_mm, s.noise_deg), [effect], None, Options())
+    w = fit_config_texts(cfg, res, [effect], "test", [])
+    written = parse_config(tomllib.loads(w["config"]), "written")
+    assert written.calibration.identity
+    if effect == "elastic_sag":
+        want = 1000.0 / s.effect_params["compliance_mm_per_kN"]
+        assert np.allclose(written.stiffness_N_per_mm, want, rtol=0.05)
+        assert effect in w["applied"]
+    elif effect == "thermal_expansion":
+        assert written.thermal.expansion_per_K == pytest.approx(s.effect_params["expansion_ppm_per_K"] * 1e-6,
+                                                                 rel=0.05)
+        assert effect in w["applied"]
+    else:
+        assert [n["name"] for n in w["not_applied"]] == ["backlash"] and not w["applied"]
+        assert "NOT applied: backlash" in w["config"]
