@@ -524,3 +524,32 @@ def sample_spacing(path: Path, plat: np.ndarray, Lmin: float, bound_mm: float):
     G = sp / Lmin + W
     amarg = G * h / 2.0
     return h, nint, lmarg, amarg
+
+
+def grid_offsets(path: Path, h: np.ndarray, nint: np.ndarray, grade: np.ndarray):
+    """Check-grid points of every piece: uniform steps ``h`` (M,) (``nint`` (M,) intervals) plus the
+    offsets ``grade`` from both piece ends that are below half the piece and below its step.
+
+    Returns (pidx (N,), u (N,) s-offsets inside each piece, counts (M,)), sorted by piece then u;
+    each piece's first point is 0 and its last ``slen`` (a zero-length piece keeps both); exact
+    duplicates are removed from pieces that got end offsets.
+    """
+    M = path.n
+    cu = nint.astype(np.int64) + 1
+    start = np.concatenate([[0], np.cumsum(cu)[:-1]])
+    pu = np.repeat(np.arange(M), cu)
+    u = (np.arange(pu.shape[0]) - start[pu]) * h[pu]
+    u[start + cu - 1] = path.slen
+    ext = (grade[None, :] < 0.5 * path.slen[:, None]) & (grade[None, :] < h[:, None])
+    pe, ge = np.nonzero(ext)
+    if pe.size:
+        p_all = np.concatenate([pu, pe, pe])
+        u_all = np.concatenate([u, grade[ge], path.slen[pe] - grade[ge]])
+        order = np.lexsort((u_all, p_all))
+        p_all = p_all[order]
+        u_all = u_all[order]
+        keep = np.ones(p_all.shape[0], dtype=bool)
+        keep[1:] = (p_all[1:] != p_all[:-1]) | (u_all[1:] != u_all[:-1]) | ~ext.any(axis=1)[p_all[1:]]
+        pu = p_all[keep]
+        u = u_all[keep]
+    return pu, u, np.bincount(pu, minlength=M)

@@ -138,13 +138,68 @@ class Plan:
 
 # ---------------------------------------------------------------------------
 def _strut_geometry(X: np.ndarray, hx: Hexapod):
-    """Strut vectors (N,6,3), lengths (N,6), rotation matrices (N,3,3) for platform poses mm/rad."""
+    """Per strut k (lists of 6): unit vectors ``u[k]`` (3 arrays (N,)), lengths ``L`` (N,6), the joint-angle
+    cosines ``cb``, ``cp`` (N,6) and the Jacobian (N,6,6) rows ``[u, (R p_k) x u / char_length]``
+    for platform poses X (N,6) mm/rad.  Component-wise on (N,) arrays: no (N,6,3) temporaries."""
     r = P.rot_elems(X[:, 3:])
-    R = np.stack(r, axis=1).reshape(-1, 3, 3)
-    rp = np.einsum("nij,kj->nki", R, hx.plat)
-    s = X[:, None, :3] + rp - hx.base[None]
-    L = np.sqrt(np.einsum("nki,nki->nk", s, s))
-    return s, L, R, rp
+    N = X.shape[0]
+    L = np.empty((N, 6))
+    cb = np.empty((N, 6))
+    cp = np.empty((N, 6))
+    J = np.empty((N, 6, 6))
+    cl = 1.0 / hx.char_length_mm
+    for k in range(6):
+        px, py, pz = hx.plat[k]
+        ax, ay, az = hx.plat_axes[k]
+        rx = r[0] * px + r[1] * py + r[2] * pz
+        ry = r[3] * px + r[4] * py + r[5] * pz
+        rz = r[6] * px + r[7] * py + r[8] * pz
+        sx = X[:, 0] + rx - hx.base[k, 0]
+        sy = X[:, 1] + ry - hx.base[k, 1]
+        sz = X[:, 2] + rz - hx.base[k, 2]
+        lk = np.sqrt(sx * sx + sy * sy + sz * sz)
+        L[:, k] = lk
+        inv = 1.0 / lk
+        ux, uy, uz = sx * inv, sy * inv, sz * inv
+        bx, by, bz = hx.base_axes[k]
+        cb[:, k] = ux * bx + uy * by + uz * bz
+        # platform joint: -u . (R a_k)
+        cp[:, k] = -(ux * (r[0] * ax + r[1] * ay + r[2] * az) + uy * (r[3] * ax + r[4] * ay + r[5] * az)
+                     + uz * (r[6] * ax + r[7] * ay + r[8] * az))
+        Jk = J[:, k]
+        Jk[:, 0] = ux
+        Jk[:, 1] = uy
+        Jk[:, 2] = uz
+        Jk[:, 3] = (ry * uz - rz * uy) * cl
+        Jk[:, 4] = (rz * ux - rx * uz) * cl
+        Jk[:, 5] = (rx * uy - ry * ux) * cl
+    np.clip(cb, -1.0, 1.0, out=cb)
+    np.clip(cp, -1.0, 1.0, out=cp)
+    return L, cb, cp, J
+
+
+def condition_numbers(J: np.ndarray, limit: float) -> np.ndarray:
+    """Spectral condition numbers of the square matrices J (N,n,n) where they may exceed ``limit``.
+
+    With singular values s_1 >= .. >= s_n, ``|det J| = prod s_i``, ``s_1^2 <= F^2 = ||J||_F^2`` and
+    (AM-GM) ``prod_{i<n} s_i^2 <= (F^2 / (n-1))^(n-1)``, so
+    ``cond = s_1 / s_n = s_1 prod_{i<n} s_i / |det J| <= F^n / ((n-1)^((n-1)/2) |det J|)``.
+    Where this bound is at most ``limit`` it is returned (the pose passes either way); elsewhere the
+    exact value from the eigenvalues of ``J^T J`` (inf where singular).
+    """
+    n = J.shape[-1]
+    F2 = np.einsum("nij,nij->n", J, J)
+    with np.errstate(all="ignore"):
+        det = np.abs(np.linalg.det(J))
+        out = F2 ** (0.5 * n) / ((n - 1) ** (0.5 * (n - 1)) * det)
+    todo = np.nonzero(~(out <= limit))[0]           # NaN / inf included
+    if todo.size:
+        Jt = J[todo]
+        with np.errstate(all="ignore"):
+            ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", Jt, Jt))      # singular values squared
+            c = np.sqrt(ev[:, -1] / np.maximum(ev[:, 0], 1e-300))
+        out[todo] = np.where(ev[:, 0] > 0, c, np.inf)
+    return out
 
 
 def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
@@ -152,11 +207,7 @@ def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
 
     Returns (min joint margin deg, min length margin mm); raises PlanError at the first violation.
     """
-    s, L, R, rp = _strut_geometry(Xg, hx)
-    u = s / L[..., None]
-    cb = np.clip(np.einsum("nki,ki->nk", u, hx.base_axes), -1.0, 1.0)
-    up = -np.einsum("nki,nij->nkj", u, R)
-    cp = np.clip(np.einsum("nkj,kj->nk", up, hx.plat_axes), -1.0, 1.0)
+    L, cb, cp, J = _strut_geometry(Xg, hx)
     ab = np.arccos(cb)
     ap = np.arccos(cp)
     lm = lmarg[pidx][:, None]
@@ -166,12 +217,8 @@ def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
     amax = hx.max_angle_rad[None]
     jb = amax - (ab + am)
     jp = amax - (ap + am)
-    # singularity (checked at the samples)
-    J = np.concatenate([u, np.cross(rp, u) / hx.char_length_mm], axis=2)
-    with np.errstate(all="ignore"):
-        ev = np.linalg.eigvalsh(np.einsum("nki,nkj->nij", J, J))      # singular values squared
-        cond = np.sqrt(ev[:, -1] / np.maximum(ev[:, 0], 1e-300))
-        cond = np.where(ev[:, 0] > 0, cond, np.inf)
+    # singularity (checked at the samples; a cheap upper bound, exact values only where it is inconclusive)
+    cond = condition_numbers(J, hx.max_condition)
     bad = (np.any(lo < 0, axis=1) | np.any(hi < 0, axis=1) | np.any(jb < 0, axis=1) | np.any(jp < 0, axis=1)
            | ~np.isfinite(cond) | (cond > hx.max_condition))
     if bad.any():
@@ -547,19 +594,9 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     h_p, nint, lmarg, amarg = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)), pc.sample_bound_mm)
     # uniform samples at the bounded spacing plus a geometric refinement near both ends of each
     # piece (speed changes concentrate there; extra samples only tighten the bound)
-    loc = []
-    for m in range(path.n):
-        L_m = float(path.slen[m])
-        u = np.arange(int(nint[m]) + 1) * float(h_p[m])
-        u[-1] = L_m
-        ext = GRADE_MM[(GRADE_MM < 0.5 * L_m) & (GRADE_MM < h_p[m])]
-        if ext.size:
-            u = np.unique(np.concatenate([u, ext, L_m - ext]))
-        loc.append(u)
-    counts = np.array([u.shape[0] for u in loc], dtype=np.int64)
-    pidx = np.repeat(np.arange(path.n), counts)
+    pidx, u_loc, counts = P.grid_offsets(path, h_p, nint, GRADE_MM)
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    sg = path.s0[pidx] + np.concatenate(loc)
+    sg = path.s0[pidx] + u_loc
     last = first + counts - 1
     sg[last] = path.s0 + path.slen
     Ng = sg.shape[0]

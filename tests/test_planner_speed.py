@@ -1,0 +1,66 @@
+"""Planner speed-ups that must not change the plan: condition-number bound, vectorised grid,
+incremental verification passes (seeded paths)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.kinematics import Hexapod
+from hexacnc.planner import path as P
+from hexacnc.planner import plan as PL
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def test_condition_bound_is_an_upper_bound_and_exact_where_inconclusive():
+    rng = np.random.default_rng(7)
+    J = rng.normal(size=(4000, 6, 6))
+    J[:50, 5] = J[:50, 4] + 1e-7 * rng.normal(size=(50, 6))      # near-singular
+    J[50:60, 5] = J[50:60, 4]                                     # singular
+    sv = np.linalg.svd(J, compute_uv=False)
+    with np.errstate(divide="ignore"):
+        exact = sv[:, 0] / sv[:, -1]
+    for limit in (10.0, 1e3, 1e6):
+        c = PL.condition_numbers(J, limit)
+        passed = c <= limit
+        # the verdict is the exact one, and every returned value bounds the true condition number
+        assert np.array_equal(passed, exact <= limit)
+        assert np.all(c[passed] >= exact[passed] * (1 - 1e-9))
+        # inconclusive bound: the eigenvalue value (accurate while cond^2 is well above 1e-16)
+        over = ~passed & (exact < 1e6)
+        if limit < 1e5:
+            assert over.sum() > 10
+        assert np.allclose(c[over], exact[over], rtol=1e-6)
+    assert not np.any(PL.condition_numbers(J[50:60], 1e3) <= 1e3)
+
+
+def test_grid_offsets_match_per_piece_reference(cfg):
+    from hexacnc.gcode.blocks import Block
+    rng = np.random.default_rng(3)
+    home = np.array(cfg.home_pose, dtype=float)
+    tip = home.copy()
+    tip[:3] += np.asarray(cfg.tool.tip_platform_mm)
+    pts = [tip + np.r_[rng.uniform(-5, 5, 3) * (10 ** rng.uniform(-2, 1, 3)), rng.uniform(-1, 1, 3)]
+           for _ in range(60)]
+    blocks = [Block("line", i + 1, pts[i], pts[i + 1], feed_mm_s=30.0, blend_tolerance_mm=0.05)
+              for i in range(len(pts) - 1)]
+    path, _ = P.build_path(blocks, cfg)
+    hx = Hexapod(cfg)
+    h, nint, _, _ = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)), 0.001)
+    ref = []
+    for m in range(path.n):
+        L_m = float(path.slen[m])
+        u = np.arange(int(nint[m]) + 1) * float(h[m])
+        u[-1] = L_m
+        ext = PL.GRADE_MM[(PL.GRADE_MM < 0.5 * L_m) & (PL.GRADE_MM < h[m])]
+        if ext.size:
+            u = np.unique(np.concatenate([u, ext, L_m - ext]))
+        ref.append(u)
+    pidx, u, counts = P.grid_offsets(path, h, nint, PL.GRADE_MM)
+    assert np.array_equal(u, np.concatenate(ref))
+    assert np.array_equal(counts, [r.shape[0] for r in ref])
+    assert np.array_equal(pidx, np.repeat(np.arange(path.n), counts))
