@@ -19,8 +19,8 @@ housing with a lag.
 Sensors, all with white Gaussian noise: per strut the ``[thermal] probes``
 segments (``probe_noise_K``), one ambient and one frame sensor (same noise), one
 spindle-housing probe (``spindle_probe_noise_K``).  The observer
-(:class:`hexacnc.thermal.ThermalObserver`) runs at ``1/dt_s`` (10 Hz, as in the
-daemon) and its offsets go into :class:`hexacnc.transform.CycleTransform`
+(:class:`hexacnc.thermal.ThermalObserver`) runs at ``1/dt_s`` (10 Hz; the daemon runs it
+at its probe rate, :mod:`hexacnc.daemon.thermalsup`) and its offsets go into :class:`hexacnc.transform.CycleTransform`
 exactly as the daemon sets them; the spindle growth from the probe goes to
 ``set_spindle_growth_mm``.  Drift is the tool-tip error at the measuring pose
 (home): strut commands from the transform plus the true thermal growth, through
