@@ -205,3 +205,55 @@ def test_kin_cli_applies_the_calibration(tmp_path):
     assert p.returncode == 0, p.stderr
     X = np.loadtxt(fwd, delimiter=",", skiprows=1)[:, :6]
     assert np.max(np.abs(X - P)) < 1e-6
+
+
+def test_hot_loop_applies_the_calibration_both_ways():
+    """The daemon's hot loop (in-process, ideal simulated drives) with a calibrated machine: the drive
+    targets are the calibrated commands, and the actual pose from the drive readings is the target."""
+    import dataclasses
+
+    from hexacnc.daemon import shm as S
+    from hexacnc.daemon.feed import point_to_point
+    from hexacnc.daemon.loop import HotLoop
+    from hexacnc.daemon.simio import SimIO
+    from hexacnc.kinematics import Hexapod
+    period = 0.0005
+    cfg = parse_config(calibrated_doc(seed=4, tol_mm=None), "calibrated")
+    cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, max_overruns_in_row=100000))
+    hx = Hexapod(cfg)
+    sm = strut_map_from_config(cfg)
+    # drives at the readings of the home pose under the calibrated map
+    start = sm.drive_from_strut(hx.lengths(cfg.home_pose)) - cfg.strut_offset_mm
+    sh = S.Shared(create=True)
+    try:
+        sent = []
+
+        class IO(SimIO):
+            def send(self):
+                sent.append(list(self.target))
+                return super().send()
+
+        io = IO(cfg, period, tau_s=0.0005, start_pos=start)
+        lp = HotLoop(cfg, sh, io, period_s=period)
+        lp.run(max_cycles=40)
+        assert sh.h[S.H_STATE] == S.ST_IDLE and sh.h[S.H_READY] == 1
+        h, s = sh.read_status()
+        act = np.array(s[S.S_POSE_ACT:S.S_POSE_ACT + 6])
+        home = home_rad(cfg)
+        assert np.max(np.abs(act[:3] - home[:3])) < 0.01          # seeded at home through the map
+        target = [20.0, -10.0, float(cfg.home_pose[2]) + 15.0, 2.0, -1.0, 3.0]
+        rows = point_to_point(cfg, hx, act, target, 300.0, period)
+        assert sh.push_rows(rows) == len(rows)
+        lp.run(max_cycles=sh.h[S.H_CYCLES] + len(rows) + 100)
+        assert sh.h[S.H_FAULT] == 0 and sh.h[S.H_STATE] == S.ST_IDLE
+        ct = T.CycleTransform(cfg, period_s=period)
+        assert ct.command(*rows[-1, :6]) == T.OK
+        k = cfg.bus.increments_per_mm
+        want = [round((ct.cmd_mm[i] - cfg.strut_offset_mm[i]) * k) for i in range(6)]
+        uncal = [round((ct.phys_mm[i] - cfg.strut_offset_mm[i]) * k) for i in range(6)]
+        assert all(abs(a - b) <= 1 for a, b in zip(sent[-1], want))
+        assert max(abs(a - b) for a, b in zip(sent[-1], uncal)) > 10        # the map moved the targets
+        h, s = sh.read_status()
+        assert np.allclose(s[S.S_POSE_ACT:S.S_POSE_ACT + 3], target[:3], atol=0.01)
+    finally:
+        sh.close()
