@@ -6,7 +6,7 @@ objects while cycling: detach the master first, see :meth:`drivers.master.Master
     io = CyclicIO(buses, cfg.bus, limits_inc=limits_inc(cfg))
     rc = io.send(targets_inc)          # RPDO1 targets (+ changed controlwords) + SYNC (+ master heartbeat)
     ev = io.poll()                     # non-blocking drain: feedback, statusword, heartbeats, EMCY
-    io.pos_inc[i], io.status[i], io.last_heartbeat_s[i], io.emcy (deque)
+    io.pos_inc[i], io.pos_count[i], io.status[i], io.last_heartbeat_s[i], io.emcy (deque)
 
 The drives consume the master heartbeat (``[bus] heartbeat_timeout_ms``): the first ``send`` sends
 one, so keep the gap between ``Master.detach()`` and the first ``send`` well below that time-out.
@@ -99,17 +99,19 @@ REC = framerec.RECORD
 DATA_OFFSET = framerec.DATA_OFFSET
 
 
-class _BatchTx:
-    """One bus's transmit buffer on the record path: ``[controlword event slots][RPDO records][SYNC]
-    [heartbeat]``, headers and constant bytes prebuilt; per cycle only data bytes are packed."""
+class _BusTx:
+    """One bus's transmit buffer: ``[controlword event slots][RPDO records][SYNC][heartbeat]`` as
+    :mod:`drivers.framerec` records, headers and constant bytes prebuilt; per cycle only data bytes
+    are packed.  Both transmit paths use it: the record path writes the slice in one call, the
+    python-can path sends one prebuilt ``can.Message`` per record of the slice."""
 
-    __slots__ = ("send", "buf", "view", "cw_nodes", "frames_at", "frames", "sync_at", "sync_data",
-                 "sync_end", "hb_end")
+    __slots__ = ("bus", "send_records", "buf", "view", "cw_nodes", "frames_at", "frames", "sync_at",
+                 "sync_data", "sync_end", "hb_end", "msgs", "cyclic_views")
 
     def __init__(self, io: "CyclicIO", b: int):
         plan = io.plan
-        bus = io.buses[b]
-        self.send = bus.send_records
+        self.bus = bus = io.buses[b]
+        self.send_records = getattr(bus, "send_records", None)
         self.cw_nodes = tuple((nd.index, nd.rpdo2_cob_id) for nd in plan.nodes
                               if nd.bus == b and nd.rpdo2_cob_id is not None)
         frames = [f for f in plan.frames if f.bus == b]
@@ -118,18 +120,44 @@ class _BatchTx:
         self.view = memoryview(buf)
         p = self.frames_at = REC * len(self.cw_nodes)
         out = []
+        msgs = {}                 # python-can path: one prebuilt message per COB-ID
         for f in frames:
             framerec.encode(buf, p, f.cob_id, bytes(f.length), is_fd=f.fd, bitrate_switch=f.fd)
             out.append((tuple((i, p + DATA_OFFSET + off) for i, off in f.slots), f.has_controlword))
+            msgs[f.cob_id] = can.Message(arbitration_id=f.cob_id, data=bytearray(f.length), is_extended_id=False,
+                                         is_fd=f.fd, bitrate_switch=f.fd)
             p += REC
         self.frames = tuple(out)
         self.sync_at = p
         framerec.encode(buf, p, SYNC_COB_ID, bytes(plan.sync_length))
+        msgs[SYNC_COB_ID] = can.Message(arbitration_id=SYNC_COB_ID, data=bytearray(plan.sync_length),
+                                        is_extended_id=False)
         self.sync_data = p + DATA_OFFSET
         p += REC
         self.sync_end = p
         framerec.encode(buf, p, 0x700 + MASTER_NODE_ID, bytes([NMT_OPERATIONAL]))
+        msgs[0x700 + MASTER_NODE_ID] = can.Message(arbitration_id=0x700 + MASTER_NODE_ID,
+                                                   data=bytearray([NMT_OPERATIONAL]), is_extended_id=False)
+        for i, cob in self.cw_nodes:
+            msgs[cob] = can.Message(arbitration_id=cob, data=bytearray(2), is_extended_id=False)
         self.hb_end = p + REC
+        self.msgs = msgs
+        # the usual cycle's slices (no controlword event), prebuilt: no view made per cycle
+        self.cyclic_views = {self.sync_end: self.view[self.frames_at:self.sync_end],
+                             self.hb_end: self.view[self.frames_at:self.hb_end]}
+
+    def send_messages(self, start: int, end: int) -> None:
+        """python-can path: the records ``buf[start:end]`` as prebuilt messages, one ``bus.send``
+        each (raises ``can.CanError`` at the first refused frame)."""
+        buf = self.buf
+        msgs = self.msgs
+        send = self.bus.send
+        for p in range(start, end, REC):
+            msg = msgs[_HDR.unpack_from(buf, p)[0]]
+            data = msg.data
+            d = p + DATA_OFFSET
+            data[:] = buf[d:d + len(data)]
+            send(msg)
 
 
 class CyclicIO:
@@ -165,6 +193,7 @@ class CyclicIO:
         now = time.monotonic()
         self.pos_inc: list[int] = [int(v) for v in positions_inc] if positions_inc is not None else [0] * n
         self.pos_time_s: list[float] = [0.0] * n          #: monotonic time of the last TPDO1
+        self.pos_count: list[int] = [0] * n               #: TPDO1 frames decoded per drive
         self.status: list[int] = [int(v) for v in status] if status is not None else [0] * n
         self.status_time_s: list[float] = [0.0] * n
         self.last_heartbeat_s: list[float] = [now] * n    #: monotonic; starts at construction
@@ -177,28 +206,10 @@ class CyclicIO:
         # controlwords
         self.controlword: list[int] = [int(controlword)] * n
         self._cw_sent: list[int] = [int(controlword)] * n
-        self._cw_msgs: list[tuple[can.BusABC, can.Message] | None] = [None] * n
-        for nd in plan.nodes:
-            if nd.rpdo2_cob_id is not None:
-                self._cw_msgs[nd.index] = (self.buses[nd.bus], can.Message(
-                    arbitration_id=nd.rpdo2_cob_id, data=bytearray(2), is_extended_id=False))
-        # cyclic frames, per bus: [(msg, ((strut, offset), ...), has_controlword)]
-        self._tx: list[tuple[can.BusABC, list, can.Message]] = []
-        for b in range(plan.buses):
-            frames = []
-            for f in plan.frames:
-                if f.bus == b:
-                    msg = can.Message(arbitration_id=f.cob_id, data=bytearray(f.length), is_extended_id=False,
-                                      is_fd=f.fd, bitrate_switch=f.fd)
-                    frames.append((msg, f.slots, f.has_controlword))
-            sync = can.Message(arbitration_id=SYNC_COB_ID, data=bytearray(plan.sync_length), is_extended_id=False)
-            self._tx.append((self.buses[b], frames, sync))
         self._sync_counter = 0
         self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
-        self._hb_msg = can.Message(arbitration_id=0x700 + MASTER_NODE_ID, data=bytearray([NMT_OPERATIONAL]),
-                                   is_extended_id=False)
         self._hb_period_s = bus_cfg.heartbeat_ms * 1e-3
         self._hb_next_s = 0.0                    # first heartbeat with the first send()
         # receive dispatch
@@ -213,9 +224,10 @@ class CyclicIO:
         if batch and not can_batch:
             raise ValueError("CyclicIO(batch=True): a bus lacks the frame record interface")
         self.batch = can_batch if batch is None else bool(batch)
-        self._btx: list[_BatchTx] = [_BatchTx(self, b) for b in range(plan.buses)] if self.batch else []
+        self._btx: list[_BusTx] = [_BusTx(self, b) for b in range(plan.buses)]
         # struts whose controlword travels inside RPDO1 (single layout): no event frame
-        self._cw_inline = [i for i in range(n) if self._cw_msgs[i] is None]
+        with_event = {nd.index for nd in plan.nodes if nd.rpdo2_cob_id is not None}
+        self._cw_inline = [i for i in range(n) if i not in with_event]
 
     # -- transmit -----------------------------------------------------------------------------
     def set_controlword(self, strut: int, controlword: int) -> None:
@@ -251,10 +263,7 @@ class CyclicIO:
         beat = now >= self._hb_next_s
         if beat:                                 # every [bus] heartbeat_ms, whatever the call rate
             self._hb_next_s = now + self._hb_period_s
-        if self.batch:
-            rc, sent = self._send_batch(targets_inc, cw, limit, have_last, beat)
-        else:
-            rc, sent = self._send_frames(targets_inc, cw, limit, have_last, beat)
+        rc, sent = self._send(targets_inc, cw, limit, have_last, beat)
         self.frames_sent += sent
         self.cycles += 1
         if limit:
@@ -262,59 +271,11 @@ class CyclicIO:
         self._have_last = True
         return rc
 
-    def _send_frames(self, targets_inc, cw, limit: bool, have_last: bool, beat: bool) -> tuple[int, int]:
-        """python-can path: one ``bus.send`` per frame. Returns (SEND_* bits, frames sent)."""
-        rc = SEND_OK
-        sent = 0
-        # controlword events first (asynchronous RPDO2: applied on reception)
-        cw_sent = self._cw_sent
-        for i in range(self.n):
-            if cw[i] != cw_sent[i]:
-                ent = self._cw_msgs[i]
-                if ent is not None:
-                    _U16.pack_into(ent[1].data, 0, cw[i])
-                    try:
-                        ent[0].send(ent[1])
-                        sent += 1
-                    except can.CanError:
-                        rc |= SEND_BUS_ERROR
-                        continue
-                cw_sent[i] = cw[i]
-        pack_i32 = _I32.pack_into
-        pack_u16 = _U16.pack_into
-        for bus, frames, sync in self._tx:
-            try:
-                for msg, slots, has_cw in frames:
-                    data = msg.data
-                    if limit:
-                        if not have_last:
-                            continue
-                        if has_cw:
-                            for i, off in slots:
-                                pack_u16(data, off - 2, cw[i])
-                    else:
-                        for i, off in slots:
-                            pack_i32(data, off, targets_inc[i])
-                            if has_cw:
-                                pack_u16(data, off - 2, cw[i])
-                    bus.send(msg)
-                    sent += 1
-                if self._sync_overflow:
-                    sync.data[0] = self._sync_counter
-                bus.send(sync)
-                sent += 1
-                if beat:
-                    bus.send(self._hb_msg)
-                    sent += 1
-            except can.CanError:
-                rc |= SEND_BUS_ERROR
-        return rc, sent
-
-    def _send_batch(self, targets_inc, cw, limit: bool, have_last: bool, beat: bool) -> tuple[int, int]:
-        """Record path: per bus one write of controlword events + RPDOs + SYNC (+ heartbeat).
-
-        The same frames in the same order per bus as :meth:`_send_frames`; a failed write fails
-        the whole bus's batch (its controlword events are retried next cycle)."""
+    def _send(self, targets_inc, cw, limit: bool, have_last: bool, beat: bool) -> tuple[int, int]:
+        """Per bus: controlword events, RPDOs (unless held), SYNC (+ heartbeat), packed into the
+        bus's prebuilt records, then written in one call (record path) or sent as one
+        ``can.Message`` per frame (python-can path); the same frames in the same order either way.
+        A failed bus fails its whole cycle (its controlword events are retried next cycle)."""
         rc = SEND_OK
         sent = 0
         cw_sent = self._cw_sent
@@ -323,6 +284,7 @@ class CyclicIO:
         pack_i32 = _I32.pack_into
         pack_u16 = _U16.pack_into
         counter = self._sync_counter if self._sync_overflow else -1
+        batch = self.batch
         for bt in self._btx:
             buf = bt.buf
             # controlword events, packed right-aligned in front of the RPDO records
@@ -354,12 +316,19 @@ class CyclicIO:
             end = bt.hb_end if beat else bt.sync_end
             try:
                 if limit and not have_last:   # no valid target yet: events, SYNC (+ heartbeat) only
-                    if start < bt.frames_at:
-                        bt.send(bt.view[start:bt.frames_at])
-                    bt.send(bt.view[bt.sync_at:end])
+                    if batch:
+                        if start < bt.frames_at:
+                            bt.send_records(bt.view[start:bt.frames_at])
+                        bt.send_records(bt.view[bt.sync_at:end])
+                    else:
+                        bt.send_messages(start, bt.frames_at)
+                        bt.send_messages(bt.sync_at, end)
                     sent += (bt.frames_at - start + end - bt.sync_at) // REC
                 else:
-                    bt.send(bt.view[start:end])
+                    if batch:
+                        bt.send_records(bt.cyclic_views[end] if start == bt.frames_at else bt.view[start:end])
+                    else:
+                        bt.send_messages(start, end)
                     sent += (end - start) // REC
             except can.CanError:
                 rc |= SEND_BUS_ERROR
@@ -401,6 +370,7 @@ class CyclicIO:
                         continue
                     self.pos_inc[i] = _I32.unpack_from(data)[0]
                     self.pos_time_s[i] = now
+                    self.pos_count[i] += 1
                     ev |= EV_FEEDBACK
                 elif kind == _K_STATUS:
                     if len(data) < 2:
@@ -448,6 +418,7 @@ class CyclicIO:
         unpack_u16 = _U16.unpack_from
         pos_inc = self.pos_inc
         pos_time = self.pos_time_s
+        pos_count = self.pos_count
         status = self.status
         for bus in self.buses:
             left = max_frames
@@ -474,6 +445,7 @@ class CyclicIO:
                             continue
                         pos_inc[i] = unpack_i32(buf, d)[0]
                         pos_time[i] = now
+                        pos_count[i] += 1
                         ev |= EV_FEEDBACK
                     elif kind == _K_STATUS:
                         if length < 2:

@@ -204,11 +204,11 @@ class CyclicAdapter:
         from drivers import cyclic
         self.cio = cio
         self.n = cio.n
-        self.target = [0] * 6
+        self.target = self._target = [0] * 6
+        self._send = cio.send
         self.pos = cio.pos_inc                # same list objects: no copies per cycle
         self.statusword = cio.status
-        self.pos_count = [0] * 6
-        self._pt = list(cio.pos_time_s)
+        self.pos_count = cio.pos_count        # counted by the codec as it decodes
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
@@ -225,15 +225,6 @@ class CyclicAdapter:
     def poll(self, now_ns: int) -> int:
         cio = self.cio
         ev = cio.poll()
-        if ev & self._EV_FEEDBACK:
-            pt = cio.pos_time_s
-            lp = self._pt
-            pc = self.pos_count
-            for i in range(6):
-                t = pt[i]
-                if t != lp[i]:
-                    lp[i] = t
-                    pc[i] += 1
         if ev & self._EV_HEARTBEAT or self._hb_first:
             self._hb_first = False
             hb = self._hb
@@ -252,7 +243,7 @@ class CyclicAdapter:
         return ev
 
     def send(self) -> int:
-        return self.cio.send(self.target)
+        return self._send(self._target)
 
     def set_controlword(self, i: int, cw: int) -> None:
         self.cio.set_controlword(i, cw)

@@ -157,7 +157,7 @@ class HotLoop:
         self.exit_after = -1
         self.resync = False
         self.stats_reset = False
-        self.hist_cmd = [0.0] * 6
+        self.hist_cmd = [[0.0] * 2 for _ in range(6)]
         self.travel = [0.0] * 6
 
     # ------------------------------------------------------------------ slow path helpers
@@ -197,10 +197,10 @@ class HotLoop:
         self.streaming = False
 
     def _fill_hist(self, lengths) -> None:
-        h = self.hist_cmd
-        for k in range(0, len(h), 6):
-            for i in range(6):
-                h[k + i] = lengths[i]
+        for i, h in enumerate(self.hist_cmd):
+            v = lengths[i]
+            for k in range(len(h)):
+                h[k] = v
 
     def _rehold_from(self, lengths) -> None:
         """After a stop: hold the pose whose commands are ``lengths`` (FK), guards at standstill."""
@@ -343,7 +343,9 @@ class HotLoop:
         div = max(1, int(getattr(self.cfg.bus, "feedback_divider", 1)))
         n_hist = 64
         min_w = min(n_hist, max(2 * div + 2, int(math.ceil(0.005 / self.dt))))
-        hist_cmd = self.hist_cmd = [0.0] * (6 * n_hist)
+        # per strut, written twice (slot k and k + n_hist): any window of the last w <= n_hist
+        # commands is one contiguous slice ending at h_slot + n_hist (min/max in C, no Python scan)
+        hist_cmd = self.hist_cmd = [[0.0] * (2 * n_hist) for _ in range(6)]
         self._fill_hist(self.l0)
         sends = 0
         fb_base = 0
@@ -455,20 +457,15 @@ class HotLoop:
                             # its distance to the commands sent within the transport allowance
                             pos_seen[i] = pos_count[i]
                             a_i = act[i]
-                            lo = hi = l0[i]
                             w = min_w + div * ((sends - fb_base) // div - (pos_count[i] - fb_cnt[i]))
                             if w > n_hist:
                                 w = n_hist
                             elif w < min_w:
                                 w = min_w
-                            k = h_slot
-                            for _ in range(w):
-                                k = k - 1 if k > 0 else n_hist - 1
-                                v = hist_cmd[k * 6 + i]
-                                if v < lo:
-                                    lo = v
-                                elif v > hi:
-                                    hi = v
+                            k = h_slot + n_hist
+                            win = hist_cmd[i][k - w:k]
+                            lo = min(win)
+                            hi = max(win)
                             e = lo - a_i if a_i < lo else (a_i - hi if a_i > hi else 0.0)
                             if e > follow_max[i]:
                                 follow_max[i] = e
@@ -611,13 +608,16 @@ class HotLoop:
                 ps2 += d
                 if d > pm2:
                     pm2 = d
-                hb_ = h_slot * 6
+                hb_ = h_slot
+                hb2 = h_slot + n_hist
                 h_slot = h_slot + 1 if h_slot + 1 < n_hist else 0
                 for i in range(6):
                     v = out[i]
                     d = v - l0[i]
                     travel[i] += d if d >= 0.0 else -d
-                    hist_cmd[hb_ + i] = v
+                    hs = hist_cmd[i]
+                    hs[hb_] = v
+                    hs[hb2] = v
                     t = round((v - off[i]) * ipm)
                     target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
                     l2[i] = l1[i]
