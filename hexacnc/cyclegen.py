@@ -261,9 +261,12 @@ def _emit_calibrated_command(ct, w) -> None:
             A0 = [A[0] + o] + A[1:]          # G(t) + strut_offset: compared with v directly
             w(f"    t = cs[{j}] + v{i} * cs[{j + 1}]")
             w(f"    gp = {_horner(B, 't')}")
-            w(f"    dt = (v{i} - ({_horner(A0, 't')})) / gp")
-            w("    t += dt")
-            w(f"    if dt >= {tol!r} or dt <= -{tol!r}:")
+            w("    if gp > 0.0:")
+            w(f"        dt = (v{i} - ({_horner(A0, 't')})) / gp")
+            w("        t += dt")
+            w("    else:")
+            w("        dt = 1.0")
+            w(f"    if not -{tol!r} < dt < {tol!r}:")          # NaN too
             w(f"        t, gp = self.strut_map.solve_t({i}, v{i}, t)")
             w("        if t != t:")
             w(f"            cs[{j}] = {-(o + A[0]) / A[1]!r}; cs[{j + 1}] = {1.0 / A[1]!r}")
@@ -271,7 +274,7 @@ def _emit_calibrated_command(ct, w) -> None:
             w("    g = 1.0 / gp")
             w(f"    cs[{j}] = t - v{i} * g; cs[{j + 1}] = g")
             w(f"    v{i} = t * {h!r} + {o + c!r}")
-        w(f"    if v{i} < {ct._lmin[i]!r} or v{i} > {ct._lmax[i]!r}:")
+        w(f"    if not {ct._lmin[i]!r} <= v{i} <= {ct._lmax[i]!r}:")   # NaN never reaches a drive
         w(f"        self.fail_index = {i + 6}; self.fail_value = v{i}; return 1")
 
 

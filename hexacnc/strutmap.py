@@ -165,6 +165,7 @@ class StrutMap:
         e = v - self._o[i]
         tol = self._tol[i]
         Gp = 1.0
+        restarted = False
         for _ in range(MAX_ITER):
             G = A[-1]
             for j in range(len(A) - 2, -1, -1):
@@ -172,6 +173,12 @@ class StrutMap:
             Gp = B[-1]
             for j in range(len(B) - 2, -1, -1):
                 Gp = Gp * t + B[j]
+            if not Gp > 0.0:            # outside the checked range (or NaN): restart once from the linear guess
+                if restarted:
+                    break
+                restarted = True
+                t = (e - A[0]) / A[1]
+                continue
             dt = (e - G) / Gp
             t += dt
             if -tol < dt < tol:

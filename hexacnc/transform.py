@@ -273,7 +273,7 @@ class CycleTransform:
                 self.fail_index = k; self.fail_value = ph[k]
                 return LIMIT_CALIBRATION
             for i in range(6):
-                if fin[i] < lmin[i] or fin[i] > lmax[i]:
+                if not lmin[i] <= fin[i] <= lmax[i]:      # NaN never reaches a drive
                     self.fail_index = i + 6; self.fail_value = fin[i]
                     return LIMIT_LENGTH
         if self._have_prev >= 2:

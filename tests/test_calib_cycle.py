@@ -257,3 +257,26 @@ def test_hot_loop_applies_the_calibration_both_ways():
         assert np.allclose(s[S.S_POSE_ACT:S.S_POSE_ACT + 3], target[:3], atol=0.01)
     finally:
         sh.close()
+
+
+@pytest.mark.parametrize("fast", [True, False])
+def test_a_map_that_cannot_invert_is_a_status_not_a_command(fast):
+    cfg = parse_config(calibrated_doc(seed=3, tol_mm=None), "m")
+    ct = T.CycleTransform(cfg, fast=fast)
+    X = home_rad(cfg)
+    assert ct.command(*X) == T.OK
+    good = list(ct.cmd_mm)
+    # a corrupted warm-start state is recovered: the same exact command
+    ct._cal_state[:] = [float("nan")] * len(ct._cal_state)
+    ct._have_prev = 0
+    assert ct.command(*X) == T.OK and ct.cmd_mm == pytest.approx(good, abs=1e-9)
+    # constants corrupted behind the loader's back: no inverse exists; a status, nothing sent
+    sm = ct.strut_map
+    sm._Al = [[float("nan")] + a[1:] for a in sm._Al]
+    sm._Bl = [[0.0] * len(b) for b in sm._Bl]
+    ct._cal_state[:] = [float("nan")] * len(ct._cal_state)
+    ct._have_prev = 0
+    code = ct.command(*X)
+    assert code == T.LIMIT_CALIBRATION
+    assert ct.cmd_mm == pytest.approx(good, abs=1e-9)
+    assert "did not invert" in ct.describe(code)
