@@ -64,3 +64,43 @@ def test_grid_offsets_match_per_piece_reference(cfg):
     assert np.array_equal(u, np.concatenate(ref))
     assert np.array_equal(counts, [r.shape[0] for r in ref])
     assert np.array_equal(pidx, np.repeat(np.arange(path.n), counts))
+
+
+def _topp_problem(seed: int, n: int = 3000):
+    from hexacnc.planner.topp import accel_coefficients
+    rng = np.random.default_rng(seed)
+    s = np.cumsum(rng.uniform(0.002, 0.05, n))
+    Lp = np.sin(s[:, None] * rng.uniform(0.5, 3, 6) + rng.uniform(0, 6, 6)) * rng.uniform(0.2, 1, 6)
+    Lpp = np.cos(s[:, None] * rng.uniform(0.5, 3, 6)) * rng.uniform(0.0, 30, 6)
+    Lp[rng.integers(0, n, 20), 2] = 0.0                      # struts standing still along the path
+    h = np.diff(s)
+    h[rng.integers(0, n - 1, 15)] = 0.0                      # duplicated junction points
+    c, e, d, xmvc = accel_coefficients(Lp, Lpp, np.full(6, 5000.0))
+    xlim = np.minimum(xmvc, rng.uniform(100, 2e4, n))
+    xlim[rng.integers(0, n, 8)] = 0.0                        # stops
+    xlim[0] = xlim[-1] = 0.0
+    return h, c, e, d, xlim, rng
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_wavefront_topp_is_the_sequential_pass_bit_for_bit(seed):
+    from hexacnc.planner.topp import IncrementalTopp, forward_backward
+    from hexacnc.planner.toppvec import WavefrontTopp
+    h, c, e, d, xlim, rng = _topp_problem(seed)
+    ref = IncrementalTopp(h, c, e, d)
+    w = WavefrontTopp(h, c, e, d)
+    x = w.solve(xlim)
+    assert np.array_equal(x, ref.solve(xlim))
+    assert np.array_equal(x, forward_backward(h, xlim, c, e, d))
+    assert x.max() > 0
+    xl = xlim.copy()
+    for _ in range(4):
+        ranges = []
+        for _ in range(int(rng.integers(1, 12))):
+            a = int(rng.integers(0, xl.shape[0] - 40))
+            b = a + int(rng.integers(0, 40))
+            xl[a:b + 1] *= rng.uniform(0.2, 1.0)
+            ranges.append((a, b))
+        xw = w.solve_ranges(xl, ranges)
+        assert np.array_equal(xw, ref.solve_ranges(xl, ranges))
+        assert np.array_equal(xw, forward_backward(h, xl, c, e, d))

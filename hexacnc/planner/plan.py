@@ -36,7 +36,8 @@ from ..errors import PlanError
 from ..gcode import blocks as B
 from ..kinematics import Hexapod
 from . import path as P
-from .topp import IncrementalTopp, accel_coefficients, interval_times
+from .topp import accel_coefficients, interval_times
+from .toppvec import WavefrontTopp
 
 #: fraction of the acceleration and jerk limits the nominal plan may use
 ETA = 0.95
@@ -711,7 +712,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     xw[stop_all] = np.inf
     xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
     xlim[stop_all] = 0.0
-    topp = IncrementalTopp(h, c, e, dd)
+    topp = WavefrontTopp(h, c, e, dd)      # same result as topp.IncrementalTopp, numpy wavefronts
     changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
