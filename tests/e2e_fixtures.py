@@ -28,7 +28,10 @@ def cfg():
     # (another process) trail the catching-up command by > 1 mm. Tolerate those stalls (burst
     # count, following error); strut length/joint/velocity limits stay exactly as configured.
     cycle = dataclasses.replace(base.cycle, max_overruns_in_row=1000, following_error_mm=25.0)
-    return base.replace(cycle=cycle)
+    # these suites check the commands against the plain IK: no thermal offsets (the simulated plant
+    # would feed noise-level offsets of ~0.2 um); tests/test_e2e_thermal_*.py cover the compensation
+    thermal = dataclasses.replace(base.thermal, source="none")
+    return base.replace(cycle=cycle, thermal=thermal)
 
 
 @pytest.fixture(scope="module")
