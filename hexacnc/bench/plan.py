@@ -35,7 +35,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="G-code corpus directory (default: <repo>/../shared/data/gcode)")
     parser.add_argument("--skip-corpus", action="store_true", help="only the TOPP-RA comparison")
     parser.add_argument("--skip-topp", action="store_true", help="only the corpus timing")
-    parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section")
+    parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section (at least)")
+    parser.add_argument("--topp-files", default="tort.ngc,arcspiral.ngc,3D_Chips.ngc",
+                        help="corpus programs also compared with TOPP-RA (comma-separated; empty: none)")
 
 
 def _tip(cfg, P):
@@ -95,12 +97,60 @@ def smooth_path_blocks(cfg):
     return blocks
 
 
-def bench_topp(cfg, gridpoints: int) -> dict:
-    return {"corners": _bench_topp(cfg, gridpoints, topp_path_blocks(cfg),
-                                   "9 moves (lines with A/B/C, helical arc), right-angle corners, G64 P0.5, "
-                                   "one exact stop"),
-            "smooth": _bench_topp(cfg, gridpoints, smooth_path_blocks(cfg),
-                                  "6 moves with A/B/C meeting at shallow angles, large helical arc, G64 P0.5")}
+def bench_topp(cfg, gridpoints: int, corpus: Path | None = None,
+               corpus_files=("tort.ngc", "arcspiral.ngc", "3D_Chips.ngc")) -> dict:
+    out = {"corners": _bench_topp(cfg, gridpoints, topp_path_blocks(cfg),
+                                  "9 moves (lines with A/B/C, helical arc), right-angle corners, G64 P0.5, "
+                                  "one exact stop"),
+           "smooth": _bench_topp(cfg, gridpoints, smooth_path_blocks(cfg),
+                                 "6 moves with A/B/C meeting at shallow angles, large helical arc, G64 P0.5")}
+    if corpus is not None:
+        out["corpus"] = bench_topp_corpus(cfg, gridpoints, corpus, corpus_files)
+    return out
+
+
+def _lift_feeds(blocks):
+    """The same blocks with feeds lifted (only strut limits bind) and dwell times zeroed (still stops)."""
+    out = []
+    for b in blocks:
+        kw = {}
+        if b.feed_mm_s is not None or b.inverse_time_s is not None:
+            kw.update(feed_mm_s=FEED_LIFTED, inverse_time_s=None)
+            if b.feed_deg_s is not None:
+                kw["feed_deg_s"] = FEED_LIFTED
+        if b.seconds:
+            kw["seconds"] = 0.0
+        out.append(dataclasses.replace(b, **kw) if kw else b)
+    return out
+
+
+def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files) -> dict:
+    """TOPP-RA against hexacnc on corpus programs (bench placement, feeds lifted, dwells zeroed)."""
+    res = {"placement": "G54 origin = home tool-tip position minus the program's bounding-box centre; no scaling",
+           "feeds": "lifted for both (only strut velocity/acceleration bind; hexacnc also its jerk limit); "
+                    "dwell times zeroed (the stops remain)"}
+    for name in files:
+        f = corpus / name
+        if not f.is_file():
+            res[name] = {"skipped": f"no file {f}"}
+            continue
+        try:
+            prog, wo = _place(f.read_text(encoding="utf-8", errors="replace"), name, cfg)
+            r = _bench_topp(cfg, gridpoints, _lift_feeds(prog.blocks), f"{name} (corpus)")
+        except HexacncError as exc:
+            res[name] = {"planned": False, "reason": str(exc)}
+            continue
+        r["work_offset_mm"] = [round(v, 3) for v in wo]
+        r.pop("sections", None)
+        res[name] = r
+    return res
+
+
+#: feed (mm/s) standing for "no feed limit" in the TOPP-RA comparison
+FEED_LIFTED = 1e6
+#: TOPP-RA grid step (path units) on long sections, and the cap on its grid points per section
+TOPPRA_STEP = 0.25
+TOPPRA_MAX_GRID = 40_000
 
 
 def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
@@ -118,7 +168,9 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
     hx = plan.hexapod
     path = plan.path
     # sections between stops, on the executed (blended) path
-    stops = sorted({0.0, path.total} | {float(path.s0[m] + path.slen[m]) for m in path.stops_after})
+    # (every point where hexacnc's plan is at rest: programmed stops and stopping events alike)
+    rest = {float(v) for v in np.asarray(plan.grid_s)[np.asarray(plan.grid_x) <= 0.0]}
+    stops = sorted({0.0, path.total} | {float(path.s0[m] + path.slen[m]) for m in path.stops_after} | rest)
     vl = np.stack([-cfg.max_velocity_mm_s, cfg.max_velocity_mm_s], axis=1)
     al = np.stack([-cfg.max_acceleration_mm_s2, cfg.max_acceleration_mm_s2], axis=1)
     total = 0.0
@@ -135,9 +187,11 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         s_in[0] = a + 1e-9
         X = path.platform(path.piece_at(s_in), s_in)
         L = P.strut_lengths(X, hx.plat, hx.base)
-        spl = ta.SplineInterpolator(s - a, L)
+        # path parameter scaled to [0, 1]: TOPP-RA's LP tolerances fail on fine grids in mm (uncontrollable)
+        spl = ta.SplineInterpolator((s - a) / (b - a), L)
+        ng = int(min(TOPPRA_MAX_GRID, max(gridpoints, (b - a) / TOPPRA_STEP)))
         inst = algo.TOPPRA([constraint.JointVelocityConstraint(vl), constraint.JointAccelerationConstraint(al)],
-                           spl, gridpoints=np.linspace(0, b - a, gridpoints + 1),
+                           spl, gridpoints=np.linspace(0.0, 1.0, ng + 1),
                            parametrizer="ParametrizeConstAccel")
         traj = inst.compute_trajectory(0, 0)
         if traj is None:
@@ -145,6 +199,10 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         sections.append({"s_from": round(a, 4), "s_to": round(b, 4), "toppra_s": round(float(traj.duration), 6)})
         total += float(traj.duration)
     t_topp = time.perf_counter() - t1
+    from ..planner.topp import interval_times
+    gs = np.asarray(plan.grid_s)
+    raw_s = float(np.sum(interval_times(np.maximum(np.diff(gs), 0.0), np.asarray(plan.grid_x))))
+    dec = topp_decomposition(plan, cfg)
     return {
         "path": label,
         "hexacnc_duration_s": round(plan.duration_s, 6),
@@ -159,10 +217,55 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         "note": "TOPP-RA: strut velocity+acceleration only (no jerk limit, no standstill at stops); "
                 "hexacnc: also jerk-limited, stops held for the smoothing window",
         "jerk_filter_s": round(float(plan.filter_s), 6),
+        "hexacnc_topp_profile_s": round(raw_s, 6),
+        "hexacnc_topp_profile_note": "duration of hexacnc's own TOPP profile, whose speed limits include the "
+                                     "constant-speed jerk bound |d3L/ds3| s_dot^3 <= RHO_J ETA j_max, the spread of "
+                                     "slow spots over the filter's reach and the verification's local lowering; "
+                                     "before the moving-average jerk filter, without stop holds",
+        "topp_decomposition_s": {k: round(v, 6) for k, v in dec.items()},
+        "topp_decomposition_ratio": {k: round(v / total, 6) for k, v in dec.items()},
+        "topp_decomposition_note": "hexacnc's own TOPP pass on hexacnc's grid, no jerk filter, no holds: "
+                                   "va_full = strut v/a at 100 % (TOPP-RA's problem: checks the pass); "
+                                   "va_plan = v 99.5 %, a ETA*ACC_SHARE (the shares the plan may use); "
+                                   "va_full_jerk_const_speed = va_full plus |d3L/ds3| s_dot^3 <= j_max, the jerk "
+                                   "at constant path speed (an estimate for jerk-limited profiles, not a proven "
+                                   "bound: a profile that accelerates through a stretch can exceed it locally)",
         "gap_reason": "jerk limiting by a moving average of width jerk_filter_s = 2 max(a_max/j_max): every "
                       "stop, slowdown and curvature-bound stretch costs time a jerk-free profile does not pay; "
                       "a jerk-aware (third-order) pass that only pays where the jerk limit binds is not implemented",
     }
+
+
+def topp_decomposition(plan, cfg) -> dict:
+    """Durations (s) of hexacnc's TOPP pass on the plan's own grid under three constraint sets.
+
+    Only strut limits (the bench lifts feeds); the plan's stops are kept.  See the JSON note.
+    """
+    from ..planner.plan import ACC_SHARE, ETA
+    from ..planner.topp import accel_coefficients, forward_backward, interval_times
+    h = np.asarray(plan.grid_h)
+    Lp, Lpp, Lppp = (np.asarray(a) for a in (plan.grid_L1, plan.grid_L2, plan.grid_L3))
+    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
+    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
+    jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
+    rest = np.concatenate([np.asarray(plan.grid_stops, dtype=np.int64), [0, h.shape[0]]])
+
+    def duration(v_share: float, a_share: float, j_share: float | None) -> float:
+        aLp = np.abs(Lp)
+        with np.errstate(divide="ignore", over="ignore"):
+            xl = np.min(np.where(aLp > 1e-12, (v_share * vmax[None] / np.maximum(aLp, 1e-300)) ** 2, np.inf), axis=1)
+            if j_share is not None:
+                aL3 = np.abs(Lppp)
+                xl = np.minimum(xl, np.min(np.where(aL3 > 1e-12, (j_share * jmax[None] / np.maximum(aL3, 1e-300))
+                                                    ** (2.0 / 3.0), np.inf), axis=1))
+        c, e, d, xmvc = accel_coefficients(Lp, Lpp, a_share * amax)
+        xl = np.minimum(xl, xmvc)
+        xl[rest] = 0.0
+        return float(np.sum(interval_times(h, forward_backward(h, xl, c, e, d))))
+
+    return {"va_full": duration(1.0, 1.0, None),
+            "va_plan": duration(0.995, ETA * ACC_SHARE, None),
+            "va_full_jerk_const_speed": duration(1.0, 1.0, 1.0)}
 
 
 def _place(text: str, name: str, cfg):
@@ -232,10 +335,12 @@ def bench_corpus(cfg, corpus: Path) -> dict:
 def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     res: dict = {"bench": "plan", "machine": cfg.name, "cpu_count": os.cpu_count()}
+    corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
     if not args.skip_topp:
-        res["topp"] = bench_topp(cfg, args.gridpoints)
+        files = [f for f in (args.topp_files or "").split(",") if f.strip()]
+        res["topp"] = bench_topp(cfg, args.gridpoints, corpus if (files and corpus.is_dir()) else None,
+                                 tuple(f.strip() for f in files))
     if not args.skip_corpus:
-        corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
         if corpus.is_dir():
             res["corpus"] = bench_corpus(cfg, corpus)
         else:
