@@ -104,3 +104,68 @@ def test_wavefront_topp_is_the_sequential_pass_bit_for_bit(seed):
         xw = w.solve_ranges(xl, ranges)
         assert np.array_equal(xw, ref.solve_ranges(xl, ranges))
         assert np.array_equal(xw, forward_backward(h, xl, c, e, d))
+
+
+def _program(cfg, seed: int):
+    from hexacnc.gcode.blocks import Block
+    rng = np.random.default_rng(seed)
+    tip = np.array(cfg.home_pose, dtype=float)
+    tip[:3] += np.asarray(cfg.tool.tip_platform_mm)
+    out = []
+    ln = 1
+    for i in range(80):
+        nxt = tip.copy()
+        r = rng.uniform()
+        if r < 0.1:
+            pass                                                  # zero-length move (dropped)
+        elif r < 0.2:
+            nxt[3:] += rng.uniform(-2, 2, 3)                      # rotary only
+        else:
+            nxt[:3] += rng.uniform(-3, 3, 3)
+        kw = dict(feed_mm_s=float(rng.uniform(5, 50)), blend_tolerance_mm=0.05,
+                  exact_stop=bool(rng.uniform() < 0.05), tool_length_mm=float(rng.choice([0.0, 0.0, 10.0])))
+        if rng.uniform() < 0.2:
+            kw["inverse_time_s"] = float(rng.uniform(0.1, 2))
+        if rng.uniform() < 0.15:
+            out.append(Block("rapid", ln, tip, nxt))
+        elif rng.uniform() < 0.15 and np.linalg.norm(nxt[:2] - tip[:2]) > 0.5:
+            ctr = 0.5 * (tip[:3] + nxt[:3])
+            ctr[2] = tip[2]
+            out.append(Block("arc", ln, tip, nxt, center=ctr, normal=np.array([0.0, 0.0, 1.0]),
+                             clockwise=bool(rng.uniform() < 0.5), **kw))
+        else:
+            out.append(Block("line", ln, tip, nxt, **kw))
+        ln += 1
+        if rng.uniform() < 0.08:
+            out.append(Block(str(rng.choice(["dwell", "coolant", "spindle"])), ln, seconds=0.1))
+            ln += 1
+        tip = nxt
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_vectorised_raw_moves_equal_the_block_loop(cfg, seed):
+    blocks = _program(cfg, seed)
+    ref, ev_ref = P.raw_moves(blocks, cfg)
+    ra, ev = P.raw_arrays(blocks, cfg)
+    want = P.RawArrays.from_raws(ref)
+    for f in ("kind", "line", "slen", "coef", "tool_mm", "feed", "rapid", "exact_stop", "tolerance"):
+        assert np.array_equal(getattr(ra, f), getattr(want, f)), f
+    assert [(i, b.line) for i, b in ev] == [(i, b.line) for i, b in ev_ref]
+    assert ra.kind.shape[0] < sum(b.kind in ("line", "arc", "rapid") for b in blocks)   # zero-length dropped
+
+
+@pytest.mark.parametrize("field,value", [("feed_mm_s", -1.0), ("end", [0.0, 1.0]), ("inverse_time_s", 0.0),
+                                         ("end", [float("nan")] * 6), ("kind", "spline")])
+def test_vectorised_raw_moves_raise_the_first_error_with_its_line(cfg, field, value):
+    from hexacnc.errors import PlanError
+    blocks = _program(cfg, 5)
+    moves = [b for b in blocks if b.kind == "line" and np.linalg.norm(b.end - b.start) > 0
+             and b.inverse_time_s is None]
+    setattr(moves[7], field, value)
+    with pytest.raises(PlanError) as ref:
+        P.raw_moves(blocks, cfg)
+    with pytest.raises(PlanError) as got:
+        P.build_path(blocks, cfg)
+    assert (got.value.line, got.value.limit, str(got.value)) == (ref.value.line, ref.value.limit, str(ref.value))
+    assert got.value.line == moves[7].line

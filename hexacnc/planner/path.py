@@ -134,36 +134,47 @@ def eval_pieces(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, u: np.ndarr
 
     Only the coefficient columns a kind needs are gathered (memory bandwidth is the cost here).
     """
-    out = np.empty((u.shape[0], 6))
+    return eval_pieces_multi(kind, coef, idx, [u])[0]
+
+
+def eval_pieces_multi(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, us: list) -> list:
+    """:func:`eval_pieces` at several parameter arrays ``us`` (each (N,)) of the same pieces ``idx``:
+    the coefficients are gathered once.  Returns one (N,6) array per entry of ``us``."""
+    outs = [np.empty((u.shape[0], 6)) for u in us]
     kd = kind[idx]
     m = np.nonzero(kd == LINE)[0]
     if m.size:
         ii = idx[m]
-        out[m] = coef[ii, 0:6] + u[m, None] * coef[ii, 6:12]
+        c0 = coef[ii, 0:6]
+        c1 = coef[ii, 6:12]
+        for out, u in zip(outs, us):
+            out[m] = c0 + u[m, None] * c1
     m = np.nonzero(kd == ARC)[0]
     if m.size:
         c = coef[idx[m], 0:22]
-        uu = u[m]
-        r = c[:, 12] + c[:, 13] * uu
-        ph = c[:, 14] * uu
-        cp, sp = np.cos(ph), np.sin(ph)
-        out[m, 0:3] = (c[:, 0:3] + (r * cp)[:, None] * c[:, 3:6] + (r * sp)[:, None] * c[:, 6:9]
-                       + (c[:, 15] * uu)[:, None] * c[:, 9:12])
-        out[m, 3:6] = c[:, 16:19] + uu[:, None] * c[:, 19:22]
+        for out, u in zip(outs, us):
+            uu = u[m]
+            r = c[:, 12] + c[:, 13] * uu
+            ph = c[:, 14] * uu
+            cp, sp = np.cos(ph), np.sin(ph)
+            out[m, 0:3] = (c[:, 0:3] + (r * cp)[:, None] * c[:, 3:6] + (r * sp)[:, None] * c[:, 6:9]
+                           + (c[:, 15] * uu)[:, None] * c[:, 9:12])
+            out[m, 3:6] = c[:, 16:19] + uu[:, None] * c[:, 19:22]
     m = np.nonzero(kd == BLEND)[0]
     if m.size:
         # quintic Hermite: coef = [P0, V0, A0, A1, V1, P1] (6 each) in the blend parameter w
         c = coef[idx[m]]
-        w = u[m][:, None]
-        w2 = w * w
-        w3 = w2 * w
-        w4 = w3 * w
-        w5 = w4 * w
-        out[m] = ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[:, 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[:, 6:12]
-                  + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[:, 12:18]
-                  + (0.5 * w3 - w4 + 0.5 * w5) * c[:, 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[:, 24:30]
-                  + (10 * w3 - 15 * w4 + 6 * w5) * c[:, 30:36])
-    return out
+        for out, u in zip(outs, us):
+            w = u[m][:, None]
+            w2 = w * w
+            w3 = w2 * w
+            w4 = w3 * w
+            w5 = w4 * w
+            out[m] = ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[:, 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[:, 6:12]
+                      + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[:, 12:18]
+                      + (0.5 * w3 - w4 + 0.5 * w5) * c[:, 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[:, 24:30]
+                      + (10 * w3 - 15 * w4 + 6 * w5) * c[:, 30:36])
+    return outs
 
 
 def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
@@ -199,23 +210,22 @@ class Path:
     ``feed`` (s-units/s), ``rapid``, ``line``.
     """
 
-    def __init__(self, cfg, pieces: list[dict], stops_after: dict[int, dict]):
+    _FIELDS = (("kind", np.int8), ("coef", float), ("slen", float), ("u0", float), ("uscale", float),
+               ("tool_mm", float), ("feed", float), ("rapid", bool), ("line", np.int64))
+
+    def __init__(self, cfg, pieces, stops_after: dict[int, dict]):
+        """``pieces``: a list of dicts, or a dict of arrays (M,), with the keys of ``_FIELDS``."""
         self.cfg = cfg
-        M = len(pieces)
+        for name, dt in self._FIELDS:
+            v = pieces[name] if isinstance(pieces, dict) else [p[name] for p in pieces]
+            setattr(self, name, np.asarray(v, dtype=dt))
+        M = self.kind.shape[0]
         self.n = M
-        self.kind = np.array([p["kind"] for p in pieces], dtype=np.int8)
-        self.coef = np.array([p["coef"] for p in pieces], dtype=float).reshape(M, NCOEF)
-        self.slen = np.array([p["slen"] for p in pieces], dtype=float)
+        self.coef = self.coef.reshape(M, NCOEF)
         self.s0 = np.concatenate([[0.0], np.cumsum(self.slen)[:-1]]) if M else np.zeros(0)
-        self.u0 = np.array([p["u0"] for p in pieces], dtype=float)
-        self.uscale = np.array([p["uscale"] for p in pieces], dtype=float)
         axis = np.asarray(cfg.tool.axis_platform, dtype=float)
         tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
-        self.tool_mm = np.array([p["tool_mm"] for p in pieces], dtype=float)
         self.tool_point = tipp[None, :] + self.tool_mm[:, None] * axis[None, :]
-        self.feed = np.array([p["feed"] for p in pieces], dtype=float)
-        self.rapid = np.array([p["rapid"] for p in pieces], dtype=bool)
-        self.line = np.array([p["line"] for p in pieces], dtype=np.int64)
         self.total = float(self.s0[-1] + self.slen[-1]) if M else 0.0
         #: piece index -> stop/hold description at its end (see plan.py)
         self.stops_after = stops_after
@@ -228,6 +238,11 @@ class Path:
         """Tool-tip poses (N,6) mm/rad of pieces ``idx`` at global ``s`` (extrapolates outside the piece)."""
         u = self.u0[idx] + (s - self.s0[idx]) * self.uscale[idx]
         return eval_pieces(self.kind, self.coef, idx, u)
+
+    def tips(self, idx: np.ndarray, ss: list) -> list:
+        """:meth:`tip` at several position arrays ``ss`` (each (N,)) of the same pieces ``idx``."""
+        u0, s0, sc = self.u0[idx], self.s0[idx], self.uscale[idx]
+        return eval_pieces_multi(self.kind, self.coef, idx, [u0 + (s - s0) * sc for s in ss])
 
     def platform(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Platform poses (N,6) mm/rad (tool tip converted through the tool point)."""
@@ -320,6 +335,106 @@ def raw_moves(blocks, cfg) -> tuple[list, list]:
     return raws, events
 
 
+@dataclass
+class RawArrays:
+    """The programmed motions before blending as arrays (n,) (``coef`` (n, NCOEF)); see :class:`Raw`."""
+    kind: np.ndarray
+    line: np.ndarray
+    slen: np.ndarray
+    coef: np.ndarray
+    tool_mm: np.ndarray
+    feed: np.ndarray
+    rapid: np.ndarray
+    exact_stop: np.ndarray
+    tolerance: np.ndarray
+
+    @classmethod
+    def from_raws(cls, raws: list) -> "RawArrays":
+        return cls(*(np.array([getattr(r, f) for r in raws], dtype=dt).reshape(len(raws), -1).squeeze(1)
+                     if f != "coef" else np.array([r.coef for r in raws], dtype=float).reshape(len(raws), NCOEF)
+                     for f, dt in (("kind", np.int8), ("line", np.int64), ("slen", float), ("coef", float),
+                                   ("tool_mm", float), ("feed", float), ("rapid", bool), ("exact_stop", bool),
+                                   ("tolerance", float))))
+
+
+def _norms(v: np.ndarray) -> np.ndarray:
+    """Row norms of v (n,k), bit for bit ``np.linalg.norm`` of each row (a batched dot product)."""
+    return np.sqrt((v[:, None, :] @ v[:, :, None])[:, 0, 0])
+
+
+def raw_arrays(blocks, cfg) -> tuple[RawArrays, list]:
+    """:func:`raw_moves` as arrays, vectorised over the motion blocks.
+
+    Any bad input (unknown kind, pose, feed, arc) hands over to :func:`raw_moves`, which raises the
+    program's first error with its line.
+    """
+    pc = cfg.planner
+    mot = []
+    ev_at = []
+    motion_kinds = B.MOTION_KINDS
+    event_kinds = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.END, B.SPINDLE, B.TOOL_CHANGE, B.COOLANT)
+    for blk in blocks:
+        kind = getattr(blk, "kind", None)
+        if kind in motion_kinds:
+            mot.append(blk)
+        elif kind in event_kinds:
+            ev_at.append((len(mot) - 1, blk))
+            if kind == B.END:
+                break
+        else:
+            raws, events = raw_moves(blocks, cfg)          # raises the first error
+            return RawArrays.from_raws(raws), events
+    n = len(mot)
+    try:
+        S = np.array([b.start for b in mot], dtype=float).reshape(n, -1)
+        E = np.array([b.end for b in mot], dtype=float).reshape(n, -1)
+        feed_in = np.array([b.feed_mm_s if b.feed_mm_s is not None else pc.default_feed_mm_min / 60.0
+                            for b in mot], dtype=float)
+        inv_t = np.array([b.inverse_time_s if b.inverse_time_s is not None else np.nan for b in mot], dtype=float)
+        tool = np.array([b.tool_length_mm or 0.0 for b in mot], dtype=float)
+        tol = np.array([b.blend_tolerance_mm if b.blend_tolerance_mm is not None else pc.path_tolerance_mm
+                        for b in mot], dtype=float)
+    except (TypeError, ValueError):
+        S = E = None
+    if S is None or S.shape != (n, 6) or E.shape != (n, 6) or not (np.all(np.isfinite(S)) and np.all(np.isfinite(E))):
+        raws, events = raw_moves(blocks, cfg)
+        return RawArrays.from_raws(raws), events
+    kinds = [b.kind for b in mot]
+    rapid = np.array([k == B.RAPID for k in kinds], dtype=bool)
+    is_arc = np.array([k == B.ARC for k in kinds], dtype=bool)
+    S[:, 3:] = np.radians(S[:, 3:])
+    E[:, 3:] = np.radians(E[:, 3:])
+    coef = np.zeros((n, NCOEF))
+    coef[:, 0:6] = S
+    coef[:, 6:12] = E - S
+    lx = _norms(E[:, :3] - S[:, :3])
+    slen = np.where(lx > _EPS_LEN, lx, _norms(np.degrees(E[:, 3:] - S[:, 3:])))
+    kind = np.where(is_arc, ARC, LINE).astype(np.int8)
+    try:
+        for i in np.nonzero(is_arc)[0]:
+            coef[i], slen[i] = _arc_coef(mot[i], S[i], E[i])
+    except PlanError:
+        raws, events = raw_moves(blocks, cfg)
+        return RawArrays.from_raws(raws), events
+    keep = slen >= _EPS_LEN
+    inv = ~rapid & np.isfinite(inv_t)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        feed = np.where(rapid, pc.rapid_feed_mm_min / 60.0, np.where(inv, slen / np.where(inv, inv_t, 1.0), feed_in))
+    check = keep & ~rapid
+    if not (np.all((inv_t[check & inv] > 0)) and np.all(np.isfinite(inv_t[check & inv]))
+            and np.all(feed_in[check & ~inv] > 0) and np.all(np.isfinite(feed_in[check & ~inv]))):
+        raws, events = raw_moves(blocks, cfg)
+        return RawArrays.from_raws(raws), events
+    # events refer to the last kept move before them
+    nkept = np.concatenate([[0], np.cumsum(keep)])
+    events = [(int(nkept[i + 1]) - 1 if i >= 0 else -1, blk) for i, blk in ev_at]
+    line = np.array([int(getattr(b, "line", 0) or 0) for b in mot], dtype=np.int64)
+    exact = np.array([bool(b.exact_stop) for b in mot], dtype=bool)
+    ra = RawArrays(kind[keep], line[keep], slen[keep], coef[keep], tool[keep], feed[keep], rapid[keep],
+                   exact[keep], tol[keep])
+    return ra, events
+
+
 #: events that stop motion; coolant changes do not
 STOP_EVENTS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.END, B.SPINDLE, B.TOOL_CHANGE)
 
@@ -360,19 +475,14 @@ def _blend_deviation(rk, rc, rl, ia, da, db):
 
 def build_path(blocks, cfg) -> tuple[Path, list]:
     """Blocks -> :class:`Path` with corner blends; returns (path, events placed at piece indices)."""
-    raws, events = raw_moves(blocks, cfg)
-    if not raws:
+    ra, events = raw_arrays(blocks, cfg)
+    nr = ra.kind.shape[0]
+    if nr == 0:
         return Path(cfg, [], {}), events
     axis = np.asarray(cfg.tool.axis_platform, dtype=float)
     tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     stop_after_raw = set(i for i, blk in events if blk.kind in STOP_EVENTS)
-    nr = len(raws)
-    rk = np.array([r.kind for r in raws], dtype=np.int8)
-    rc = np.array([r.coef for r in raws])
-    rl = np.array([r.slen for r in raws])
-    tool = np.array([r.tool_mm for r in raws])
-    tol = np.array([r.tolerance for r in raws])
-    exact = np.array([r.exact_stop for r in raws])
+    rk, rc, rl, tool, tol, exact = ra.kind, ra.coef, ra.slen, ra.tool_mm, ra.tolerance, ra.exact_stop
     qp = tipp[None, :] + tool[:, None] * axis[None, :]
     Pe, Te, _ = _raw_at(rk, rc, rl, np.ones(nr))
     Ps, Ts, _ = _raw_at(rk, rc, rl, np.zeros(nr))
@@ -385,8 +495,8 @@ def build_path(blocks, cfg) -> tuple[Path, list]:
         if badj.size:
             i = int(badj[0])
             raise PlanError(f"path is discontinuous: the move starts at platform pose "
-                            f"{np.round(_deg(Xs[i + 1]), 6).tolist()} but the previous move (line {raws[i].line}) "
-                            f"ended at {np.round(_deg(Xe[i]), 6).tolist()}", line=raws[i + 1].line,
+                            f"{np.round(_deg(Xs[i + 1]), 6).tolist()} but the previous move (line {ra.line[i]}) "
+                            f"ended at {np.round(_deg(Xe[i]), 6).tolist()}", line=int(ra.line[i + 1]),
                             limit="continuity", code="gcode")
     junction_stop = np.zeros(nr, dtype=bool)
     junction_stop[-1] = True
@@ -432,22 +542,27 @@ def build_path(blocks, cfg) -> tuple[Path, list]:
             bmap = {}
     else:
         bmap = {}
-    pieces: list[dict] = []
-    stops_after: dict[int, dict] = {}
-    raw_last_piece = np.zeros(nr, dtype=int)
-    for i, r in enumerate(raws):
-        t0, t1 = blend_d[i]
-        pieces.append(dict(kind=r.kind, coef=r.coef, slen=r.slen - t0 - t1, u0=t0 / r.slen, uscale=1.0 / r.slen,
-                           tool_mm=r.tool_mm, feed=r.feed, rapid=r.rapid, line=r.line))
-        raw_last_piece[i] = len(pieces) - 1
-        if junction_stop[i]:
-            stops_after[len(pieces) - 1] = {"corner": True}
-        if t1 > 0:
-            nb_ = raws[i + 1]
-            D = t1 + blend_d[i + 1, 0]
-            pieces.append(dict(kind=BLEND, coef=bcoef[bmap[i]], slen=D, u0=0.0, uscale=1.0 / D, tool_mm=r.tool_mm,
-                               feed=min(r.feed, nb_.feed), rapid=r.rapid and nb_.rapid, line=nb_.line))
-    placed = [(int(raw_last_piece[i]) if i >= 0 else -1, blk) for i, blk in events]
+    # pieces: every move (trimmed by its blends), each followed by its corner blend if any
+    has_b = blend_d[:, 1] > 0
+    mp = np.arange(nr) + np.concatenate([[0], np.cumsum(has_b)[:-1]])      # piece index of each move
+    bi = np.nonzero(has_b)[0]                                               # moves followed by a blend
+    bp = mp[bi] + 1
+    M = nr + bi.size
+    t0, t1 = blend_d[:, 0], blend_d[:, 1]
+    pc = {name: np.zeros(M, dtype=dt) for name, dt in Path._FIELDS if name != "coef"}
+    pc["coef"] = np.zeros((M, NCOEF))
+    for name, v in (("kind", rk), ("coef", rc), ("slen", rl - t0 - t1), ("u0", t0 / rl), ("uscale", 1.0 / rl),
+                    ("tool_mm", tool), ("feed", ra.feed), ("rapid", ra.rapid), ("line", ra.line)):
+        pc[name][mp] = v
+    if bi.size:
+        D = t1[bi] + blend_d[bi + 1, 0]
+        for name, v in (("kind", BLEND), ("coef", bcoef[[bmap[int(i)] for i in bi]]), ("slen", D), ("u0", 0.0),
+                        ("uscale", 1.0 / D), ("tool_mm", tool[bi]), ("feed", np.minimum(ra.feed[bi], ra.feed[bi + 1])),
+                        ("rapid", ra.rapid[bi] & ra.rapid[bi + 1]), ("line", ra.line[bi + 1])):
+            pc[name][bp] = v
+    pieces = pc
+    stops_after: dict[int, dict] = {int(m): {"corner": True} for m in mp[junction_stop]}
+    placed = [(int(mp[i]) if i >= 0 else -1, blk) for i, blk in events]
     return Path(cfg, pieces, stops_after), placed
 
 

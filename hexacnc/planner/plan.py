@@ -610,10 +610,9 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     offs = (-2 * d, -d, 0.0, d, 2 * d)
     Ls = []
     tips = []
-    for o in offs:
-        so = sg + o
-        tip = path.tip(pidx, so)
-        X = P.tip_to_platform(tip, path.tool_point[pidx])
+    tool_pt = path.tool_point[pidx]
+    for o, tip in zip(offs, path.tips(pidx, [sg + o for o in offs])):
+        X = P.tip_to_platform(tip, tool_pt)
         Ls.append(P.strut_lengths(X, hx.plat, hx.base))
         if o == 0.0:
             Xg = X
