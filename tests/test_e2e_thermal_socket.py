@@ -37,8 +37,14 @@ def _reading(T_struts, ambient=20.0, frame=20.0):
     return {"struts": [[float(T_struts)] * 2 for _ in range(6)], "ambient": ambient, "frame": frame}
 
 
-def _th(c):
-    return c.call("status")["thermal"]
+def _th(c, settle_s: float = 10.0):
+    """The thermal status once every accepted reading has gone through the observer."""
+    t_end = time.monotonic() + settle_s
+    while True:
+        th = c.call("status")["thermal"]
+        if th["pending"] == 0 or time.monotonic() > t_end:
+            return th
+        time.sleep(0.02)
 
 
 def _err(c, **fields):
@@ -128,6 +134,9 @@ def test_offsets_are_rate_and_magnitude_limited(cfg, client):
 def test_stale_probes_warn_and_freeze_the_offsets(cfg, client):
     client.call("temperatures", probes_C=_reading(30.0), spindle_C=30.0, time_s=300000.0)
     time.sleep(STALE_S + 0.4)
+    t_end = time.monotonic() + 5.0
+    while _th(client)["state"] != "stale" and time.monotonic() < t_end:
+        time.sleep(0.05)
     a = _th(client)
     assert a["state"] == "stale" and "stale" in a["warning"]
     assert a["probes_age_s"] > STALE_S

@@ -708,7 +708,7 @@ class Daemon:
             "fault": fault,
             "cycle": self.cycle_stats(),
             "program": prog,
-            "thermal": self.thermal.status(s) if self.thermal is not None else {"source": "none", "state": "off"},
+            "thermal": self.thermal.status(s, h) if self.thermal is not None else {"source": "none", "state": "off"},
         }
 
     def wait(self, timeout_s: float) -> dict:

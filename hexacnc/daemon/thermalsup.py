@@ -203,6 +203,7 @@ class ThermalSupervisor:
             self.plant = thermal_plant(cfg)
         # readings
         self.pending: deque = deque(maxlen=256)  #: accepted readings not yet observed (oldest dropped)
+        self._busy = False                       #: a reading is being observed
         self.last: dict | None = None           #: last accepted reading
         self.last_wall = None                   #: monotonic s of the last accepted reading
         self.spindle_wall = None
@@ -310,9 +311,13 @@ class ThermalSupervisor:
                 while True:
                     with self.lock:
                         r = self.pending.popleft() if self.pending else None
+                        self._busy = r is not None
                     if r is None:
                         break
-                    self._observe(r)
+                    try:
+                        self._observe(r)
+                    finally:
+                        self._busy = False
                 self._check_stale(time.monotonic())
             except Exception:
                 log.exception("thermal thread error (offsets held)")
@@ -478,7 +483,8 @@ class ThermalSupervisor:
         self.drift = out
 
     # ------------------------------------------------------------------ status
-    def status(self, s: list) -> dict:
+    def status(self, s: list, h: list | None = None) -> dict:
+        """The status map from a status-block copy ``s`` (and header ``h`` of the same read)."""
         now = time.monotonic()
         with self.lock:
             last = self.last
@@ -504,7 +510,9 @@ class ThermalSupervisor:
                 "spindle_age_s": None if self.spindle_wall is None else now - self.spindle_wall,
                 "time_s": None if last is None else last["time_s"],
                 "readings": self.readings,
+                "pending": len(self.pending) + (1 if self._busy else 0),
                 "rejected": self.rejected,
+                "loop_cycles": None if h is None else h[S.H_CYCLES],
                 "last_error": self.last_error,
                 "max_offset_mm": self.tc.max_offset_mm,
                 "max_offset_rate_mm_s": self.tc.max_offset_rate_mm_s,
