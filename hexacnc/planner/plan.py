@@ -57,6 +57,9 @@ GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
 SCREEN = 0.5
 #: s step of the central differences (mm or deg)
 FD_STEP = 0.01
+#: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds
+#: (the bounds are upper bounds of the model, so a sample below them cannot violate), 1e-9 lower
+MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
 
 _DEBUG = bool(__import__('os').environ.get('HEXACNC_PLAN_DEBUG'))
 
@@ -255,56 +258,6 @@ def _check_limits(path: P.Path, hx: Hexapod, cfg, sg, pidx, Xg, lmarg, amarg):
     return jm, lmm
 
 
-def _measure(path: P.Path, hx: Hexapod, s_f: np.ndarray, dt: float, vmax, amax, jmax, chunk: int = 200_000):
-    """Strut velocity/acceleration/jerk of the table by finite differences at dt of the exact inverse kinematics.
-
-    Returns per-sample arrays: uv, ua, uj (max over struts of |.|/limit),
-    va = max|v|/amax, ajr = max|a|/jmax, vjr = max|v|/jmax.
-    """
-    N = s_f.shape[0]
-    res = {k: np.zeros(N) for k in ("uv", "ua", "uj", "va", "ajr", "vjr")}
-    if N < 4:
-        return tuple(res.values())
-    for c0 in range(0, N, chunk):
-        a0 = max(0, c0 - 2)
-        a1 = min(N, c0 + chunk + 2)
-        s = s_f[a0:a1]
-        X = path.platform(path.piece_at(s), s)
-        L = P.strut_lengths(X, hx.plat, hx.base)
-        n = L.shape[0]
-        off = c0 - a0
-        m = min(chunk, N - c0)
-        dst = slice(c0, c0 + m)
-        bv = np.zeros(n)
-        ba = np.zeros(n)
-        bj = np.zeros(n)
-        bva = np.zeros(n)
-        baj = np.zeros(n)
-        bvj = np.zeros(n)
-        for i in range(6):
-            col = L[:, i]
-            v = np.abs(np.diff(col)) / dt                  # between samples k, k+1
-            acc = np.abs(col[2:] - 2 * col[1:-1] + col[:-2]) / (dt * dt)        # at k+1
-            jk = np.abs(col[3:] - 3 * col[2:-1] + 3 * col[1:-2] - col[:-3]) / dt ** 3  # k+1..k+2
-            V = np.zeros(n)
-            V[1:] = v
-            V[:-1] = np.maximum(V[:-1], v)
-            A = np.zeros(n)
-            A[1:-1] = acc
-            J = np.zeros(n)
-            J[1:-2] = jk
-            J[2:-1] = np.maximum(J[2:-1], jk)
-            np.maximum(bv, V / vmax[i], out=bv)
-            np.maximum(ba, A / amax[i], out=ba)
-            np.maximum(bj, J / jmax[i], out=bj)
-            np.maximum(bva, V / amax[i], out=bva)
-            np.maximum(baj, A / jmax[i], out=baj)
-            np.maximum(bvj, V / jmax[i], out=bvj)
-        for k, arr in zip(("uv", "ua", "uj", "va", "ajr", "vjr"), (bv, ba, bj, bva, baj, bvj)):
-            res[k][dst] = arr[off:off + m]
-    return tuple(res[k] for k in ("uv", "ua", "uj", "va", "ajr", "vjr"))
-
-
 def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
@@ -372,6 +325,9 @@ class _Bounds:
             out = np.maximum(m[:-1], m[1:])
             return np.concatenate([out, out[-1:]])
         aLp, aLpp, aLppp = np.abs(Lp), np.abs(Lpp), np.abs(Lppp)
+        #: the grid derivatives and their steps to the next point (for the interpolated model)
+        self.L = (Lp, Lpp, Lppp)
+        self.dL = tuple(np.diff(a, axis=0) for a in self.L)
         self.v = both(aLp / vmax)
         self.a1 = both(aLp / amax)
         self.a2 = both(aLpp / amax)
@@ -395,53 +351,63 @@ class _Bounds:
         return uv, ua, uj, va, ajr, vjr
 
 
-def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax, amax, jmax, exact: bool,
-                  screen: float):
-    """Utilisation per sample: interval bounds everywhere; where a bound exceeds ``screen`` (or a
-    piece junction is within 3 cycles) the model (``exact=False``: interpolated grid derivatives)
-    or the exact inverse kinematics (``exact=True``: finite differences at dt) replaces it.
+def _near_junctions(sg: np.ndarray, s_f: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Table samples within 4 cycles of a piece junction while moving (curvature steps are not in the
+    interval bounds): indices, may repeat."""
+    N = s_f.shape[0]
+    jn = np.nonzero(np.diff(sg) == 0)[0]
+    if jn.size == 0 or N < 2:
+        return np.zeros(0, dtype=np.int64)
+    gi = np.searchsorted(s_f, sg[jn])
+    near = (gi[:, None] + np.arange(-4, 5)[None, :]).ravel()
+    near = near[(near >= 0) & (near < N)]
+    return near[np.abs(sd[near]) > 0]
 
-    Returns uv, ua, uj, va, ajr, vjr (per sample) and the number of samples evaluated in detail.
+
+def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax, amax, jmax, exact: bool,
+                  screen):
+    """Utilisation per sample: interval bounds everywhere; where a bound exceeds ``screen`` the model
+    (``exact=False``: interpolated grid derivatives) or the exact inverse kinematics (``exact=True``:
+    finite differences at dt, also at every moving sample within 4 cycles of a piece junction, whose
+    stencil spans the curvature step) replaces it.
+
+    ``screen``: one number, or (velocity, acceleration, jerk) thresholds.
+    Returns uv, ua, uj, va, ajr, vjr (per sample; va, ajr, vjr None unless exact) and the number of
+    samples evaluated in detail.
     """
     N = s_f.shape[0]
     sd, sdd, sddd = _path_rates(s_f, dt)
     g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
     res = list(bounds.at(g, sd, sdd, sddd, extras=exact))     # governor ratios only for the final table
-    need = (res[0] > screen) | (res[1] > screen) | (res[2] > screen)
-    # samples next to a piece junction (curvature steps are not in the bounds)
-    jn = np.nonzero(np.diff(sg) == 0)[0]
-    if jn.size and N > 1:
-        gi = np.searchsorted(s_f, sg[jn])
-        near = np.concatenate([gi + o for o in range(-4, 5)])
-        near = near[(near >= 0) & (near < N)]
-        moving = np.abs(sd[near]) > 0
-        need[near[moving]] = True
+    sv, sa, sj = screen if isinstance(screen, tuple) else (screen,) * 3
+    need = (res[0] > sv) | (res[1] > sa) | (res[2] > sj)
+    if exact:
+        need[_near_junctions(sg, s_f, sd)] = True
     idx = np.nonzero(need)[0]
     if idx.size == 0:
         return (*res, 0)
     if not exact:
-        for c0 in range(0, idx.size, 200_000):
-            mv = idx[c0:c0 + 200_000]
-            gg = g[mv]
-            s = s_f[mv]
-            hh = sg[gg + 1] - sg[gg]
-            w = np.where(hh > 0, (s - sg[gg]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
-            l1 = Lp[gg]
-            l1 += (Lp[gg + 1] - l1) * w
-            l2 = Lpp[gg]
-            l2 += (Lpp[gg + 1] - l2) * w
-            l3 = Lppp[gg]
-            l3 += (Lppp[gg + 1] - l3) * w
-            v1, v2, v3 = sd[mv][:, None], sdd[mv][:, None], sddd[mv][:, None]
-            V = np.abs(l1 * v1)
-            A = np.abs(l2 * (v1 * v1) + l1 * v2)
-            Jk = np.abs(l3 * (v1 * v1 * v1) + 3 * l2 * (v1 * v2) + l1 * v3)
-            res[0][mv] = (V / vmax).max(axis=1)
-            res[1][mv] = (A / amax).max(axis=1)
-            res[2][mv] = (Jk / jmax).max(axis=1)
+        gg = g[idx]
+        s = s_f[idx]
+        hh = sg[gg + 1] - sg[gg]
+        w = np.where(hh > 0, (s - sg[gg]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
+        L0, dL = bounds.L, bounds.dL
+        l1 = L0[0][gg] + dL[0][gg] * w
+        l2 = L0[1][gg] + dL[1][gg] * w
+        l3 = L0[2][gg] + dL[2][gg] * w
+        v1, v2, v3 = sd[idx][:, None], sdd[idx][:, None], sddd[idx][:, None]
+        V = np.abs(l1 * v1)
+        A = np.abs(l2 * (v1 * v1) + l1 * v2)
+        Jk = np.abs(l3 * (v1 * v1 * v1) + 3 * l2 * (v1 * v2) + l1 * v3)
+        res[0][idx] = (V / vmax).max(axis=1)
+        res[1][idx] = (A / amax).max(axis=1)
+        res[2][idx] = (Jk / jmax).max(axis=1)
         return (*res, idx.size)
     # exact: inverse kinematics on the needed samples with 3 neighbours either side
-    ext = np.unique(np.clip((idx[:, None] + np.arange(-3, 4)[None, :]).ravel(), 0, N - 1))
+    mask = np.zeros(N, dtype=bool)
+    for o in range(-3, 4):
+        mask[np.clip(idx + o, 0, N - 1)] = True
+    ext = np.nonzero(mask)[0]
     for c0 in range(0, ext.size, 200_000):
         e = ext[c0:c0 + 200_000 + 6]
         s = s_f[e]
@@ -480,54 +446,9 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
             np.maximum(bvj, V / jmax[i], out=bvj)
         # keep only samples whose whole stencil was present
         keep = np.isin(e, idx)
-        for arr, b in zip(res, (bv, ba, bj, bva, baj, bvj)):
-            arr[e[keep]] = b[keep]
+        for arr, bb in zip(res, (bv, ba, bj, bva, baj, bvj)):
+            arr[e[keep]] = bb[keep]
     return (*res, idx.size)
-
-
-def _measure_model(sg, Lp, Lpp, Lppp, s_f, dt, vmax, amax, jmax, chunk: int = 100_000):
-    """Utilisation from the grid derivatives (interpolated in s) and the s(t) table: cheap, used while iterating.
-
-    v = L' s_dot, a = L'' s_dot^2 + L' s_ddot, j = L''' s_dot^3 + 3 L'' s_dot s_ddot + L' s_dddot.
-    """
-    N = s_f.shape[0]
-    uv = np.zeros(N)
-    ua = np.zeros(N)
-    uj = np.zeros(N)
-    if N < 5:
-        return uv, ua, uj
-    sd = np.zeros(N)
-    sdd = np.zeros(N)
-    sddd = np.zeros(N)
-    sd[1:-1] = (s_f[2:] - s_f[:-2]) / (2 * dt)
-    sdd[1:-1] = (s_f[2:] - 2 * s_f[1:-1] + s_f[:-2]) / (dt * dt)
-    sddd[1:-2] = (s_f[3:] - 3 * s_f[2:-1] + 3 * s_f[1:-2] - s_f[:-3]) / dt ** 3
-    mv_all = np.nonzero((sd != 0) | (sdd != 0) | (sddd != 0))[0]
-    for c0 in range(0, mv_all.size, chunk):
-        mv = mv_all[c0:c0 + chunk]
-        s = s_f[mv]
-        g = np.clip(np.searchsorted(sg, s, side="right") - 1, 0, sg.shape[0] - 2)
-        hh = sg[g + 1] - sg[g]
-        w = np.where(hh > 0, (s - sg[g]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
-        v1, v2, v3 = sd[mv], sdd[mv], sddd[mv]
-        w = w[:, 0]
-        bv = np.zeros(mv.size)
-        ba = np.zeros(mv.size)
-        bj = np.zeros(mv.size)
-        for i in range(6):
-            l1 = Lp[g, i]
-            l1 = l1 + (Lp[g + 1, i] - l1) * w
-            l2 = Lpp[g, i]
-            l2 = l2 + (Lpp[g + 1, i] - l2) * w
-            l3 = Lppp[g, i]
-            l3 = l3 + (Lppp[g + 1, i] - l3) * w
-            np.maximum(bv, np.abs(l1 * v1) / vmax[i], out=bv)
-            np.maximum(ba, np.abs(l2 * (v1 * v1) + l1 * v2) / amax[i], out=ba)
-            np.maximum(bj, np.abs(l3 * (v1 * v1 * v1) + 3 * l2 * (v1 * v2) + l1 * v3) / jmax[i], out=bj)
-        uv[mv] = bv
-        ua[mv] = ba
-        uj[mv] = bj
-    return uv, ua, uj
 
 
 def _sample_profile(sg, h, x, holds_s, dt):
@@ -730,8 +651,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
                 path.line[pidx[k]]), limit="speed") from exc
         s_f = _box_filter(s_raw, nf)
+        # model passes only decide where to slow down: a sample whose bound is within its violation
+        # threshold cannot violate (model <= bound), so only the others are evaluated
         uv, ua, uj, va, ajr, vjr, n_detail = _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds, s_f, dt, vmax,
-                                                            amax, jmax, exact, SCREEN if exact else 0.8 * ETA)
+                                                            amax, jmax, exact, SCREEN if exact else MODEL_SCREEN)
         viol_v = uv > ETA_V * 0.9995
         viol_a = ua > ETA
         viol_j = uj > ETA
