@@ -169,3 +169,38 @@ def test_vectorised_raw_moves_raise_the_first_error_with_its_line(cfg, field, va
         P.build_path(blocks, cfg)
     assert (got.value.line, got.value.limit, str(got.value)) == (ref.value.line, ref.value.limit, str(ref.value))
     assert got.value.line == moves[7].line
+
+
+def _dynamic_program(cfg, seed: int, n: int = 120):
+    """Short blended moves at a high feed (dynamics-bound, several verification passes)."""
+    from hexacnc.gcode.blocks import Block
+    rng = np.random.default_rng(seed)
+    tip = np.array(cfg.home_pose, dtype=float)
+    tip[:3] += np.asarray(cfg.tool.tip_platform_mm)
+    out = []
+    for i in range(n):
+        nxt = tip.copy()
+        nxt[:3] += rng.uniform(-1.5, 1.5, 3)
+        nxt[3:] += rng.uniform(-0.3, 0.3, 3)
+        out.append(Block("line", i + 1, tip, nxt, feed_mm_s=250.0, blend_tolerance_mm=0.05))
+        tip = nxt
+    return out
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_incremental_passes_give_the_plan_of_full_passes(cfg, seed, monkeypatch):
+    """The verification loop re-solves the TOPP only where limits changed and evaluates the model
+    only where a bound exceeds a violation threshold; re-solving everything and evaluating every
+    moving sample in every pass must give the same plan."""
+    blocks = _dynamic_program(cfg, seed)
+    fast = PL.plan_program(blocks, cfg)
+    assert fast.iterations >= 3                       # several passes, so incremental ones happened
+    from hexacnc.planner.toppvec import WavefrontTopp
+    monkeypatch.setattr(WavefrontTopp, "solve_ranges", lambda self, xlim, ranges: self.solve(xlim))
+    monkeypatch.setattr(PL, "MODEL_SCREEN", (0.0, 0.0, 0.0))
+    full = PL.plan_program(blocks, cfg)
+    assert full.iterations == fast.iterations
+    assert full.duration_s == pytest.approx(fast.duration_s, rel=1e-9)
+    assert full.utilisation == fast.utilisation
+    assert np.array_equal(full.s_tab, fast.s_tab)
+    assert max(fast.utilisation.values()) <= 1.0
