@@ -204,3 +204,16 @@ def test_incremental_passes_give_the_plan_of_full_passes(cfg, seed, monkeypatch)
     assert full.utilisation == fast.utilisation
     assert np.array_equal(full.s_tab, fast.s_tab)
     assert max(fast.utilisation.values()) <= 1.0
+
+
+@pytest.mark.parametrize("seed", [0, 4])
+def test_lean_accel_coefficients_equal_topp_ones(seed):
+    from hexacnc.planner import topp, toppvec
+    rng = np.random.default_rng(seed)
+    Lp = rng.normal(size=(500, 6))
+    Lpp = rng.normal(size=(500, 6)) * 40
+    Lp[rng.integers(0, 500, 30), rng.integers(0, 6, 30)] = 0.0
+    Lpp[rng.integers(0, 500, 10), rng.integers(0, 6, 10)] = 0.0
+    amax = rng.uniform(1e3, 1e4, 6)
+    for a, b in zip(toppvec.accel_coefficients(Lp, Lpp, amax), topp.accel_coefficients(Lp, Lpp, amax)):
+        assert np.array_equal(a, b)

@@ -165,16 +165,20 @@ def eval_pieces_multi(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, us: l
         # quintic Hermite: coef = [P0, V0, A0, A1, V1, P1] (6 each) in the blend parameter w
         c = coef[idx[m]]
         for out, u in zip(outs, us):
-            w = u[m][:, None]
-            w2 = w * w
-            w3 = w2 * w
-            w4 = w3 * w
-            w5 = w4 * w
-            out[m] = ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[:, 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[:, 6:12]
-                      + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[:, 12:18]
-                      + (0.5 * w3 - w4 + 0.5 * w5) * c[:, 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[:, 24:30]
-                      + (10 * w3 - 15 * w4 + 6 * w5) * c[:, 30:36])
+            out[m] = _quintic(u[m][:, None], c)
     return outs
+
+
+def _quintic(w: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Quintic Hermite blend at w (broadcast against c[..., :6]); c[..., :36] = [P0, V0, A0, A1, V1, P1]."""
+    w2 = w * w
+    w3 = w2 * w
+    w4 = w3 * w
+    w5 = w4 * w
+    return ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[..., 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[..., 6:12]
+            + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[..., 12:18]
+            + (0.5 * w3 - w4 + 0.5 * w5) * c[..., 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[..., 24:30]
+            + (10 * w3 - 15 * w4 + 6 * w5) * c[..., 30:36])
 
 
 def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
@@ -460,14 +464,15 @@ def _blend_deviation(rk, rc, rl, ia, da, db):
     nw = 17
     n = ia.shape[0]
     coef = _blend_coefs(rk, rc, rl, ia, da, db)
-    W = np.tile(np.linspace(0.0, 1.0, nw), n)
+    w = np.linspace(0.0, 1.0, nw)
+    W = np.tile(w, n)
     rep = np.repeat(np.arange(n), nw)
-    Pb = eval_raw(np.full(n * nw, BLEND, dtype=np.int8), coef[rep], W)
+    Pb = _quintic(w[None, :, None], coef[:, None, :]).reshape(n * nw, 6)
     s = W * (da + db)[rep] - da[rep]
     onA = s <= 0
     ir = np.where(onA, ia[rep], ia[rep] + 1)
     u = np.where(onA, 1.0 + s / rl[ir], s / rl[ir])
-    ref = eval_raw(rk[ir], rc[ir], u)
+    ref = eval_pieces(rk, rc, ir, u)
     dx = np.linalg.norm(Pb[:, :3] - ref[:, :3], axis=1)
     dang = np.linalg.norm(np.degrees(Pb[:, 3:] - ref[:, 3:]), axis=1)
     return np.maximum(dx, dang).reshape(n, nw).max(axis=1)

@@ -36,8 +36,8 @@ from ..errors import PlanError
 from ..gcode import blocks as B
 from ..kinematics import Hexapod
 from . import path as P
-from .topp import accel_coefficients, interval_times
-from .toppvec import WavefrontTopp
+from .topp import interval_times
+from .toppvec import WavefrontTopp, accel_coefficients
 
 #: fraction of the acceleration and jerk limits the nominal plan may use
 ETA = 0.95

@@ -16,6 +16,45 @@ from __future__ import annotations
 
 import numpy as np
 
+from .topp import _BIG
+
+
+def accel_coefficients(Lp: np.ndarray, Lpp: np.ndarray, amax: np.ndarray):
+    """:func:`hexacnc.planner.topp.accel_coefficients`, bit for bit, strut by strut and pair by pair
+    on (N,) columns (no (N,6,6) temporaries: ~100 MB less memory traffic on 3D_Chips).
+
+    Lp, Lpp: (N,6); amax: (6,).  Returns c, e, d (N,6) (``c_i + d_i x <= u <= e_i + d_i x``) and
+    x_mvc (N,), the largest x for which every pair of those bounds still overlaps.
+    """
+    N = Lp.shape[0]
+    e = np.empty((N, 6))
+    d = np.empty((N, 6))
+    x_mvc = np.full(N, _BIG)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(6):
+            l1 = Lp[:, i]
+            l2 = Lpp[:, i]
+            a = np.abs(l1)
+            small = a < 1e-12
+            inv = np.where(small, 0.0, 1.0 / np.where(small, 1.0, l1))
+            d[:, i] = np.where(small, 0.0, -l2 * inv)
+            e[:, i] = np.where(small, _BIG, amax[i] / np.where(small, 1.0, a))
+            # a strut that does not move along the path: |L''| x <= A
+            np.minimum(x_mvc, np.where(small & (np.abs(l2) > 1e-15), amax[i] / np.abs(l2), _BIG), out=x_mvc)
+        c = -e
+        dc = [d[:, i].copy() for i in range(6)]
+        ec = [e[:, i].copy() for i in range(6)]
+        cc = [c[:, i].copy() for i in range(6)]
+        for i in range(6):
+            for j in range(6):
+                if i == j:
+                    continue
+                # lower bound of i below upper bound of j: (d_i - d_j) x <= e_j - c_i
+                den = dc[i] - dc[j]
+                ok = den > 1e-15
+                np.minimum(x_mvc, np.where(ok, (ec[j] - cc[i]) / np.where(ok, den, 1.0), _BIG), out=x_mvc)
+    return c, e, d, x_mvc
+
 
 class WavefrontTopp:
     """Forward-backward pass on x = s_dot^2 (see :mod:`hexacnc.planner.topp`), redone where limits change.
