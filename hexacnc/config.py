@@ -301,6 +301,9 @@ class PlannerConfig:
     path_tolerance_mm: float = 0.01
     sample_bound_mm: float = 0.001
     work_offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    #: user/remap M-codes (100..9999) the interpreter accepts as no-ops (noted in the program's
+    #: messages), e.g. LinuxCNC's M428/M429 kinematics switches, which a hexapod does not need
+    noop_m_codes: tuple = ()
 
 
 @dataclass(frozen=True)
@@ -588,6 +591,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         path_tolerance_mm=p.getfloat("path_tolerance_mm", pd.path_tolerance_mm, above=0.0),
         sample_bound_mm=p.getfloat("sample_bound_mm", pd.sample_bound_mm, above=0.0),
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
+        noop_m_codes=_noop_m_codes(p),
     )
 
     tl = sec("tools")
