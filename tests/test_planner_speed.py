@@ -217,3 +217,25 @@ def test_lean_accel_coefficients_equal_topp_ones(seed):
     amax = rng.uniform(1e3, 1e4, 6)
     for a, b in zip(toppvec.accel_coefficients(Lp, Lpp, amax), topp.accel_coefficients(Lp, Lpp, amax)):
         assert np.array_equal(a, b)
+
+
+def test_interval_screen_finds_exactly_the_samples_above_threshold():
+    rng = np.random.default_rng(9)
+    sg = np.cumsum(rng.uniform(0.0, 0.2, 400))
+    sg[rng.integers(1, 399, 30)] = sg[rng.integers(1, 399, 30)]
+    sg = np.sort(sg)
+    sg[0] = 0.0
+    sg[50] = sg[51]                                                  # duplicated junction point
+    s_f = np.sort(np.concatenate([rng.uniform(0, sg[-1], 3000), np.full(40, sg[120]), [sg[-1]] * 5]))
+    s_f[0] = 0.0
+    sd, sdd, sddd = (rng.normal(size=s_f.shape[0]) * k for k in (50.0, 3e3, 1e5))
+    Lp, Lpp, Lppp = (rng.normal(size=(sg.shape[0], 6)) * k for k in (1.0, 0.1, 0.01))
+    b = PL._Bounds(Lp, Lpp, Lppp, np.full(6, 300.0), np.full(6, 1e4), np.full(6, 1e6))
+    g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
+    uv, ua, uj, _, _, _ = b.at(g, sd, sdd, sddd, extras=False)
+    for thr in ((0.1, 0.2, 0.3), (0.5, 0.5, 0.5), (0.0, 0.0, 0.0)):
+        want = np.nonzero((uv > thr[0]) | (ua > thr[1]) | (uj > thr[2]))[0]
+        idx, gi, bv, ba, bj = PL._screen_intervals(sg, s_f, sd, sdd, sddd, b, thr)
+        assert np.array_equal(idx, want) and np.array_equal(gi, g[want])
+        assert np.array_equal(bv, uv[want]) and np.array_equal(ba, ua[want]) and np.array_equal(bj, uj[want])
+        assert 0 < want.size

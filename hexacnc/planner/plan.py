@@ -364,6 +364,37 @@ def _near_junctions(sg: np.ndarray, s_f: np.ndarray, sd: np.ndarray) -> np.ndarr
     return near[np.abs(sd[near]) > 0]
 
 
+def _screen_intervals(sg, s_f, sd, sdd, sddd, bounds: "_Bounds", thr):
+    """Samples whose interval bound exceeds a threshold of ``thr`` = (v, a, j), found grid interval by
+    grid interval: the bound of interval g with the largest |s_dot|, |s_ddot|, |s_dddot| of its
+    samples (same arithmetic, each factor at least the sample's: at least every sample's bound)
+    selects the intervals whose samples are then bounded one by one.
+
+    Returns (sample indices, their grid intervals, their bounds uv, ua, uj): exactly the samples
+    with a per-sample bound above ``thr``.
+    """
+    N = s_f.shape[0]
+    Ng = sg.shape[0]
+    start = np.searchsorted(s_f, sg[:-1], side="left")          # first sample of each interval
+    end = np.empty_like(start)
+    end[:-1] = start[1:]
+    end[-1] = N                                                  # the end point belongs to the last one
+    occ = np.nonzero(end > start)[0]
+    asd, asdd, asddd = np.abs(sd), np.abs(sdd), np.abs(sddd)
+    m1, m2, m3 = (np.maximum.reduceat(a, start[occ]) for a in (asd, asdd, asddd))
+    uv, ua, uj, _, _, _ = bounds.at(occ, m1, m2, m3, extras=False)
+    flag = occ[(uv > thr[0]) | (ua > thr[1]) | (uj > thr[2])]
+    if flag.size == 0:
+        z = np.zeros(0, dtype=np.int64)
+        return z, z, np.zeros(0), np.zeros(0), np.zeros(0)
+    cnt = end[flag] - start[flag]
+    g = np.repeat(flag, cnt)
+    idx = np.arange(g.shape[0]) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(start[flag], cnt)
+    uv, ua, uj, _, _, _ = bounds.at(g, sd[idx], sdd[idx], sddd[idx], extras=False)
+    keep = (uv > thr[0]) | (ua > thr[1]) | (uj > thr[2])
+    return idx[keep], g[keep], uv[keep], ua[keep], uj[keep]
+
+
 def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax, amax, jmax, exact: bool,
                   screen):
     """Utilisation per sample: interval bounds everywhere; where a bound exceeds ``screen`` the model
@@ -377,17 +408,14 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     """
     N = s_f.shape[0]
     sd, sdd, sddd = _path_rates(s_f, dt)
-    g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
-    res = list(bounds.at(g, sd, sdd, sddd, extras=exact))     # governor ratios only for the final table
-    sv, sa, sj = screen if isinstance(screen, tuple) else (screen,) * 3
-    need = (res[0] > sv) | (res[1] > sa) | (res[2] > sj)
-    if exact:
-        need[_near_junctions(sg, s_f, sd)] = True
-    idx = np.nonzero(need)[0]
-    if idx.size == 0:
-        return (*res, 0)
     if not exact:
-        gg = g[idx]
+        # only samples above the thresholds matter (the others cannot violate): the rest stay 0
+        idx, gg, *b = _screen_intervals(sg, s_f, sd, sdd, sddd, bounds, screen)
+        res = [np.zeros(N) for _ in range(3)] + [None] * 3
+        for r, v in zip(res, b):
+            r[idx] = v
+        if idx.size == 0:
+            return (*res, 0)
         s = s_f[idx]
         hh = sg[gg + 1] - sg[gg]
         w = np.where(hh > 0, (s - sg[gg]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
@@ -403,6 +431,13 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         res[1][idx] = (A / amax).max(axis=1)
         res[2][idx] = (Jk / jmax).max(axis=1)
         return (*res, idx.size)
+    g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
+    res = list(bounds.at(g, sd, sdd, sddd, extras=True))      # governor ratios for the final table
+    need = (res[0] > screen) | (res[1] > screen) | (res[2] > screen)
+    need[_near_junctions(sg, s_f, sd)] = True
+    idx = np.nonzero(need)[0]
+    if idx.size == 0:
+        return (*res, 0)
     # exact: inverse kinematics on the needed samples with 3 neighbours either side
     mask = np.zeros(N, dtype=bool)
     for o in range(-3, 4):
