@@ -287,6 +287,7 @@ class ThermalSupervisor:
             if r["time_s"] is None:
                 r["time_s"] = self._wall_time_s(now)
             r["wall"] = now
+            r["travel"] = self._travel_cmd()      # the heat input's window ends with the reading
             self.pending.append(r)
             self.readings += 1
         return {"accepted": True, "readings": self.readings}
@@ -362,7 +363,7 @@ class ThermalSupervisor:
         """One reading: predict over the plant time since the last one (exact ZOH with the mean
         commanded strut speed), correct with the probes."""
         obs = self.observer
-        travel = self._travel_cmd()
+        travel = r["travel"]
         if self.obs_t is None or r["time_s"] - self.obs_t > MAX_GAP_S:
             # first reading (or after a very long gap): the field from the probes, linear along
             # each strut through its probes (constant beyond them)
