@@ -191,6 +191,7 @@ class ThermalSupervisor:
         self.stop_ev = threading.Event()
         self.thread: threading.Thread | None = None
         self.hx = Hexapod(cfg)
+        self.vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
         self.rate = float(tc.probe_rate_hz)
         self.scale = float(tc.sim_time_scale) if self.source == "sim" else 1.0
         self.observer = None
@@ -329,7 +330,7 @@ class ThermalSupervisor:
             self.sim_wall, self.sim_travel = now, tr
             return
         dt_wall = now - self.sim_wall
-        speed = np.abs(np.array(tr) - np.array(self.sim_travel)) / max(dt_wall, 1e-3)
+        speed = np.minimum(np.abs(np.array(tr) - np.array(self.sim_travel)) / max(dt_wall, 1e-3), self.vmax)
         self.sim_wall, self.sim_travel = now, tr
         self.plant.step(dt_wall * self.scale, speed, self.state_fn() == "running")
         self.push(self.plant.readings(), origin="sim")
@@ -380,7 +381,8 @@ class ThermalSupervisor:
                 self.obs_carry = dt        # too soon: the reading is shown, the next step covers the time
             else:
                 dt_wall = max(1e-3, r["wall"] - self.obs_wall)
-                speed = np.abs(travel - self.obs_travel) / dt_wall
+                # mean commanded speed; never above the strut limit (guards against a counter jump)
+                speed = np.minimum(np.abs(travel - self.obs_travel) / dt_wall, self.vmax)
                 obs = self._observer_for(dt)
                 self.obs_carry = dt - obs.dt_s
                 obs.update(speed, r["ambient"], r["frame"], r["struts"])
