@@ -229,7 +229,11 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
                                    "va_plan = v 99.5 %, a ETA*ACC_SHARE (the shares the plan may use); "
                                    "va_full_jerk_const_speed = va_full plus |d3L/ds3| s_dot^3 <= j_max, the jerk "
                                    "at constant path speed (an estimate for jerk-limited profiles, not a proven "
-                                   "bound: a profile that accelerates through a stretch can exceed it locally)",
+                                   "bound: a profile that accelerates through a stretch can exceed it locally); "
+                                   "plan_limits = every speed limit of the plan (shares, RHO_J jerk bound, "
+                                   "junction curvature steps) before the filter's spreading; plan_limits_spread "
+                                   "= the same after spreading slow spots over the moving-average filter's "
+                                   "reach (what the plan starts its verification from)",
         "gap_reason": "jerk limiting by a moving average of width jerk_filter_s = 2 max(a_max/j_max): every "
                       "stop, slowdown and curvature-bound stretch costs time a jerk-free profile does not pay; "
                       "a jerk-aware (third-order) pass that only pays where the jerk limit binds is not implemented",
@@ -241,7 +245,7 @@ def topp_decomposition(plan, cfg) -> dict:
 
     Only strut limits (the bench lifts feeds); the plan's stops are kept.  See the JSON note.
     """
-    from ..planner.plan import ACC_SHARE, ETA
+    from ..planner.plan import ACC_SHARE, ETA, RHO_J, RHO_STEP, _dilate_min
     from ..planner.topp import accel_coefficients, forward_backward, interval_times
     h = np.asarray(plan.grid_h)
     Lp, Lpp, Lppp = (np.asarray(a) for a in (plan.grid_L1, plan.grid_L2, plan.grid_L3))
@@ -249,8 +253,10 @@ def topp_decomposition(plan, cfg) -> dict:
     amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
     jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
     rest = np.concatenate([np.asarray(plan.grid_stops, dtype=np.int64), [0, h.shape[0]]])
+    rest = rest[rest <= h.shape[0]]
 
-    def duration(v_share: float, a_share: float, j_share: float | None) -> float:
+    def duration(v_share: float, a_share: float, j_share: float | None, plan_limits: bool = False,
+                 spread: bool = False) -> float:
         aLp = np.abs(Lp)
         with np.errstate(divide="ignore", over="ignore"):
             xl = np.min(np.where(aLp > 1e-12, (v_share * vmax[None] / np.maximum(aLp, 1e-300)) ** 2, np.inf), axis=1)
@@ -260,12 +266,27 @@ def topp_decomposition(plan, cfg) -> dict:
                                                     ** (2.0 / 3.0), np.inf), axis=1))
         c, e, d, xmvc = accel_coefficients(Lp, Lpp, a_share * amax)
         xl = np.minimum(xl, xmvc)
-        xl[rest] = 0.0
+        if plan_limits:
+            # the planner's curvature-step bound at tangent-continuous junctions
+            jn = np.nonzero(h == 0)[0]
+            if jn.size:
+                dL = np.abs(Lpp[jn + 1] - Lpp[jn])
+                with np.errstate(divide="ignore", over="ignore"):
+                    xs = np.min(np.where(dL > 1e-12, RHO_STEP * jmax[None] * plan.dt / np.maximum(dL, 1e-300),
+                                         np.inf), axis=1)
+                xl[jn] = np.minimum(xl[jn], xs)
+                xl[jn + 1] = np.minimum(xl[jn + 1], xs)
+        if spread:
+            xl[rest[rest < xl.shape[0]]] = np.inf
+            xl = _dilate_min(np.asarray(plan.grid_s), xl, 0.5 * float(plan.filter_s))
+        xl[rest[rest < xl.shape[0]]] = 0.0
         return float(np.sum(interval_times(h, forward_backward(h, xl, c, e, d))))
 
     return {"va_full": duration(1.0, 1.0, None),
             "va_plan": duration(0.995, ETA * ACC_SHARE, None),
-            "va_full_jerk_const_speed": duration(1.0, 1.0, 1.0)}
+            "va_full_jerk_const_speed": duration(1.0, 1.0, 1.0),
+            "plan_limits": duration(0.995, ETA * ACC_SHARE, RHO_J * ETA, plan_limits=True),
+            "plan_limits_spread": duration(0.995, ETA * ACC_SHARE, RHO_J * ETA, plan_limits=True, spread=True)}
 
 
 def _place(text: str, name: str, cfg):
