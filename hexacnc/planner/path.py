@@ -248,6 +248,10 @@ class Path:
         u0, s0, sc = self.u0[idx], self.s0[idx], self.uscale[idx]
         return eval_pieces_multi(self.kind, self.coef, idx, [u0 + (s - s0) * sc for s in ss])
 
+    def platform_struts(self, idx: np.ndarray, s: np.ndarray, plat: np.ndarray, base: np.ndarray):
+        """(platform poses (N,6), strut lengths (N,6)) at ``s`` of pieces ``idx``."""
+        return platform_struts(self.tip(idx, s), self.tool_point[idx], plat, base)
+
     def platform(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
         """Platform poses (N,6) mm/rad (tool tip converted through the tool point)."""
         P = self.tip(idx, s)
@@ -263,9 +267,12 @@ def rot_elems(abc: np.ndarray):
             -sb, cb * sa, cb * ca)
 
 
-def tip_to_platform(P: np.ndarray, q: np.ndarray) -> np.ndarray:
-    """Platform poses from tip poses P (N,6) mm/rad and tool points q (N,3) platform frame."""
-    r = rot_elems(P[:, 3:])
+def tip_to_platform(P: np.ndarray, q: np.ndarray, r=None) -> np.ndarray:
+    """Platform poses from tip poses P (N,6) mm/rad and tool points q (N,3) platform frame.
+
+    ``r``: :func:`rot_elems` of ``P[:, 3:]`` if already at hand (the platform has the same angles).
+    """
+    r = rot_elems(P[:, 3:]) if r is None else r
     out = P.copy()
     out[:, 0] -= r[0] * q[:, 0] + r[1] * q[:, 1] + r[2] * q[:, 2]
     out[:, 1] -= r[3] * q[:, 0] + r[4] * q[:, 1] + r[5] * q[:, 2]
@@ -273,17 +280,42 @@ def tip_to_platform(P: np.ndarray, q: np.ndarray) -> np.ndarray:
     return out
 
 
-def strut_lengths(X: np.ndarray, plat: np.ndarray, base: np.ndarray) -> np.ndarray:
-    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics."""
-    r = rot_elems(X[:, 3:])
-    L = np.empty((X.shape[0], 6))
+def strut_lengths(X: np.ndarray, plat: np.ndarray, base: np.ndarray, r=None) -> np.ndarray:
+    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics.
+
+    ``r``: :func:`rot_elems` of ``X[:, 3:]`` if already at hand.  In-place arithmetic in the
+    order ``x + r0 px + r1 py + r2 pz - b`` (the same rounding as the plain expression).
+    """
+    r = rot_elems(X[:, 3:]) if r is None else r
+    N = X.shape[0]
+    L = np.empty((N, 6))
+    t = np.empty(N)
+    acc = np.empty(N)
+    sq = np.empty(N)
     for i in range(6):
         px, py, pz = plat[i]
-        sx = X[:, 0] + r[0] * px + r[1] * py + r[2] * pz - base[i, 0]
-        sy = X[:, 1] + r[3] * px + r[4] * py + r[5] * pz - base[i, 1]
-        sz = X[:, 2] + r[6] * px + r[7] * py + r[8] * pz - base[i, 2]
-        L[:, i] = np.sqrt(sx * sx + sy * sy + sz * sz)
+        for c in range(3):
+            np.multiply(r[3 * c], px, out=acc)
+            np.add(X[:, c], acc, out=acc)
+            np.multiply(r[3 * c + 1], py, out=t)
+            acc += t
+            np.multiply(r[3 * c + 2], pz, out=t)
+            acc += t
+            acc -= base[i, c]
+            if c == 0:
+                np.multiply(acc, acc, out=sq)
+            else:
+                np.multiply(acc, acc, out=t)
+                sq += t
+        np.sqrt(sq, out=L[:, i])
     return L
+
+
+def platform_struts(P: np.ndarray, q: np.ndarray, plat: np.ndarray, base: np.ndarray):
+    """(platform poses (N,6), strut lengths (N,6)) of tip poses P with tool points q: one rotation."""
+    r = rot_elems(P[:, 3:])
+    X = tip_to_platform(P, q, r)
+    return X, strut_lengths(X, plat, base, r)
 
 
 # ---------------------------------------------------------------------------

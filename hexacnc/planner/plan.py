@@ -446,8 +446,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     for c0 in range(0, ext.size, 200_000):
         e = ext[c0:c0 + 200_000 + 6]
         s = s_f[e]
-        X = path.platform(path.piece_at(s), s)
-        L = P.strut_lengths(X, hx.plat, hx.base)
+        X, L = path.platform_struts(path.piece_at(s), s, hx.plat, hx.base)
         n = e.shape[0]
         cont = np.diff(e) == 1                      # consecutive samples
         bv = np.zeros(n)
@@ -568,8 +567,8 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     tips = []
     tool_pt = path.tool_point[pidx]
     for o, tip in zip(offs, path.tips(pidx, [sg + o for o in offs])):
-        X = P.tip_to_platform(tip, tool_pt)
-        Ls.append(P.strut_lengths(X, hx.plat, hx.base))
+        X, L = P.platform_struts(tip, tool_pt, hx.plat, hx.base)
+        Ls.append(L)
         if o == 0.0:
             Xg = X
         if o in (-d, d):
