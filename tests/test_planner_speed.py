@@ -239,3 +239,14 @@ def test_interval_screen_finds_exactly_the_samples_above_threshold():
         assert np.array_equal(idx, want) and np.array_equal(gi, g[want])
         assert np.array_equal(bv, uv[want]) and np.array_equal(ba, ua[want]) and np.array_equal(bj, uj[want])
         assert 0 < want.size
+
+
+def test_exact_measurement_does_not_depend_on_its_chunking(cfg, monkeypatch):
+    blocks = _dynamic_program(cfg, 13, n=60)
+    ref = PL.plan_program(blocks, cfg)
+    monkeypatch.setattr(PL, "EXACT_CHUNK", 97)
+    small = PL.plan_program(blocks, cfg)
+    assert small.utilisation == ref.utilisation
+    assert ref.gov.keys() == small.gov.keys()
+    assert all(np.array_equal(np.asarray(ref.gov[k]), np.asarray(small.gov[k])) for k in ref.gov)
+    assert np.array_equal(small.s_tab, ref.s_tab)

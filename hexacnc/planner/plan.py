@@ -60,6 +60,8 @@ FD_STEP = 0.01
 #: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds
 #: (the bounds are upper bounds of the model, so a sample below them cannot violate), 1e-9 lower
 MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
+#: samples per chunk of the exact measurement (bounds its memory)
+EXACT_CHUNK = 200_000
 
 _DEBUG = bool(__import__('os').environ.get('HEXACNC_PLAN_DEBUG'))
 
@@ -438,50 +440,43 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     idx = np.nonzero(need)[0]
     if idx.size == 0:
         return (*res, 0)
-    # exact: inverse kinematics on the needed samples with 3 neighbours either side
+    # exact: inverse kinematics on the needed samples with the 2 neighbours either side their
+    # differences use (velocity k-1..k+1, acceleration k-1..k+1, jerk k-2..k+2)
     mask = np.zeros(N, dtype=bool)
-    for o in range(-3, 4):
+    for o in range(-2, 3):
         mask[np.clip(idx + o, 0, N - 1)] = True
     ext = np.nonzero(mask)[0]
-    for c0 in range(0, ext.size, 200_000):
-        e = ext[c0:c0 + 200_000 + 6]
+    chunk = EXACT_CHUNK
+    for c0 in range(0, ext.size, chunk):
+        e0 = max(0, c0 - 4)                             # 4 more either side: whole stencils
+        e = ext[e0:c0 + chunk + 4]
         s = s_f[e]
-        X, L = path.platform_struts(path.piece_at(s), s, hx.plat, hx.base)
+        _, L = path.platform_struts(path.piece_at(s), s, hx.plat, hx.base)
         n = e.shape[0]
-        cont = np.diff(e) == 1                      # consecutive samples
-        bv = np.zeros(n)
-        ba = np.zeros(n)
-        bj = np.zeros(n)
-        bva = np.zeros(n)
-        baj = np.zeros(n)
-        bvj = np.zeros(n)
-        ok2 = cont[1:] & cont[:-1]
-        ok3 = ok2[1:] & cont[2:] if n > 3 else np.zeros(0, dtype=bool)
-        for i in range(6):
-            col = L[:, i]
-            v = np.where(cont, np.abs(np.diff(col)) / dt, 0.0)
-            acc = np.where(ok2, np.abs(col[2:] - 2 * col[1:-1] + col[:-2]) / (dt * dt), 0.0)
-            jk = np.where(ok3, np.abs(col[3:] - 3 * col[2:-1] + 3 * col[1:-2] - col[:-3]) / dt ** 3, 0.0) \
-                if n > 3 else np.zeros(0)
-            V = np.zeros(n)
-            V[1:] = v
-            V[:-1] = np.maximum(V[:-1], v)
-            A = np.zeros(n)
-            A[1:-1] = acc
-            J = np.zeros(n)
-            if n > 3:
-                J[1:-2] = jk
-                J[2:-1] = np.maximum(J[2:-1], jk)
-            np.maximum(bv, V / vmax[i], out=bv)
-            np.maximum(ba, A / amax[i], out=ba)
-            np.maximum(bj, J / jmax[i], out=bj)
-            np.maximum(bva, V / amax[i], out=bva)
-            np.maximum(baj, A / jmax[i], out=baj)
-            np.maximum(bvj, V / jmax[i], out=bvj)
-        # keep only samples whose whole stencil was present
-        keep = np.isin(e, idx)
-        for arr, bb in zip(res, (bv, ba, bj, bva, baj, bvj)):
-            arr[e[keep]] = bb[keep]
+        if n < 2:
+            continue
+        cont = (np.diff(e) == 1)[:, None]               # consecutive samples
+        V = np.zeros((n, 6))
+        v = np.where(cont, np.abs(np.diff(L, axis=0)) / dt, 0.0)         # between samples k, k+1
+        V[1:] = v
+        V[:-1] = np.maximum(V[:-1], v)
+        A = np.zeros((n, 6))
+        J = np.zeros((n, 6))
+        if n > 3:
+            ok2 = cont[1:] & cont[:-1]
+            ok3 = ok2[1:] & cont[2:]
+            A[1:-1] = np.where(ok2, np.abs(L[2:] - 2 * L[1:-1] + L[:-2]) / (dt * dt), 0.0)       # at k+1
+            jk = np.where(ok3, np.abs(L[3:] - 3 * L[2:-1] + 3 * L[1:-2] - L[:-3]) / dt ** 3, 0.0)  # k+1..k+2
+            J[1:-2] = jk
+            J[2:-1] = np.maximum(J[2:-1], jk)
+        # keep only the needed samples (their whole stencil is present)
+        own = np.zeros(n, dtype=bool)
+        own[c0 - e0:c0 - e0 + chunk] = True
+        keep = np.nonzero(own & np.isin(e, idx, assume_unique=True))[0]
+        V, A, J = V[keep], A[keep], J[keep]
+        ek = e[keep]
+        for arr, M, lim in zip(res, (V, A, J, V, A, V), (vmax, amax, jmax, amax, jmax, jmax)):
+            arr[ek] = (M / lim).max(axis=1)
     return (*res, idx.size)
 
 
