@@ -15,12 +15,13 @@ Neither call raises for bus trouble or bad frames: ``send`` returns ``SEND_*`` b
 bits. Nothing is allocated per cycle except what python-can forces (received ``can.Message``
 objects, the udp_multicast datagram).
 
-On buses with the batch interface of :mod:`drivers.framerec` (the daemon's pipe bus) the same
-frames travel as prebuilt records: one write per bus per cycle (controlword events, RPDOs, SYNC,
-heartbeat, in that order) and one read per bus per poll, decoded in place with ``struct`` (no
-``can.Message``). SocketCAN, udp_multicast and virtual buses take the python-can path, one
-``bus.send`` per frame as the kernel needs; both paths put the same frames on each bus in the
-same order and decode them into the same state.
+Every cycle's frames are packed once, per bus, into prebuilt :mod:`drivers.framerec` records
+(controlword events, RPDOs, SYNC, heartbeat, in that order). On buses with the record batch interface
+(the daemon's shared-memory ring and pipe buses) they go out in one write per bus, and one read per
+bus per poll is decoded in place with ``struct`` (no ``can.Message``). SocketCAN, udp_multicast and
+virtual buses take the python-can path: one prebuilt ``can.Message`` per record, one ``bus.send``
+each, as the kernel needs. Both paths put the same frames on each bus in the same order and decode
+them into the same state.
 
 Units: drive positions in increments, ``inc = round((strut_length_mm - strut_offset_mm) *
 increments_per_mm)``, int32; strut index 0..5 in ``[bus] node_ids`` order.

@@ -37,12 +37,15 @@ from .stopgen import StrutStop
 log = logging.getLogger("hexacnc.loop")
 
 #: wake up this long before a deadline and spin the rest (ns), at most SPIN_FRACTION of the period.
-#: The VM's sleep overshoot often exceeds 100 us (lateness p99 67 us with a 100 us spin, 23 us with
-#: 350 us, measured by ``hexacnc bench loop``); the spin keeps the CPU, which is the hot loop's alone.
-SPIN_NS = 350_000
-#: the rest of the period is slept: SCHED_FIFO throttling (95 % by default) and the hot CPU's
-#: kernel threads need it
-SPIN_FRACTION = 0.7
+#: The VM's sleep overshoot often exceeds 100 us: in 20 s of the bare loop (hexacnc.daemon.rt) with
+#: 45 us of work, 2513 / 696 / 65 wake-ups were late by over 100 us with a 100 / 200 / 350 us spin.
+#: The spin holds the CPU at SCHED_FIFO, though: 350 us (70 %) starved the rest of a loaded 2-CPU
+#: machine (the supervisor's feeder missed its refill, "dead setpoint source") and, with a second
+#: daemon on the same CPU, ran into SCHED_FIFO throttling (50 ms gaps). 200 us is the compromise.
+SPIN_NS = 200_000
+#: the rest of the period is slept: SCHED_FIFO throttling (95 % by default), the hot CPU's kernel
+#: threads and everything else on the machine need it
+SPIN_FRACTION = 0.4
 #: publish the status block every n cycles (and on every state change)
 PUBLISH_EVERY = 8
 #: time allowed for the CiA 402 enable walk (ns)
