@@ -353,6 +353,15 @@ class _Bounds:
         return uv, ua, uj, va, ajr, vjr
 
 
+def _rowmax(M: np.ndarray, lim: np.ndarray) -> np.ndarray:
+    """``(M / lim).max(axis=1)`` for M (n,6), column by column (a 6-wide row reduction is slow)."""
+    T = M / lim
+    out = T[:, 0].copy()
+    for i in range(1, T.shape[1]):
+        np.maximum(out, T[:, i], out=out)
+    return out
+
+
 def _near_junctions(sg: np.ndarray, s_f: np.ndarray, sd: np.ndarray) -> np.ndarray:
     """Table samples within 4 cycles of a piece junction while moving (curvature steps are not in the
     interval bounds): indices, may repeat."""
@@ -429,9 +438,9 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         V = np.abs(l1 * v1)
         A = np.abs(l2 * (v1 * v1) + l1 * v2)
         Jk = np.abs(l3 * (v1 * v1 * v1) + 3 * l2 * (v1 * v2) + l1 * v3)
-        res[0][idx] = (V / vmax).max(axis=1)
-        res[1][idx] = (A / amax).max(axis=1)
-        res[2][idx] = (Jk / jmax).max(axis=1)
+        res[0][idx] = _rowmax(V, vmax)
+        res[1][idx] = _rowmax(A, amax)
+        res[2][idx] = _rowmax(Jk, jmax)
         return (*res, idx.size)
     g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
     res = list(bounds.at(g, sd, sdd, sddd, extras=True))      # governor ratios for the final table
@@ -476,7 +485,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         V, A, J = V[keep], A[keep], J[keep]
         ek = e[keep]
         for arr, M, lim in zip(res, (V, A, J, V, A, V), (vmax, amax, jmax, amax, jmax, jmax)):
-            arr[ek] = (M / lim).max(axis=1)
+            arr[ek] = _rowmax(M, lim)
     return (*res, idx.size)
 
 
