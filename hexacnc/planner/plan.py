@@ -322,20 +322,20 @@ class _Bounds:
     """
 
     def __init__(self, Lp, Lpp, Lppp, vmax, amax, jmax):
-        def both(a):
-            m = np.max(a, axis=1)
+        def both(a, lim):
+            m = _rowmax(a, lim)
             out = np.maximum(m[:-1], m[1:])
             return np.concatenate([out, out[-1:]])
         aLp, aLpp, aLppp = np.abs(Lp), np.abs(Lpp), np.abs(Lppp)
         #: the grid derivatives and their steps to the next point (for the interpolated model)
         self.L = (Lp, Lpp, Lppp)
         self.dL = tuple(np.diff(a, axis=0) for a in self.L)
-        self.v = both(aLp / vmax)
-        self.a1 = both(aLp / amax)
-        self.a2 = both(aLpp / amax)
-        self.j1 = both(aLp / jmax)
-        self.j2 = 3.0 * both(aLpp / jmax)
-        self.j3 = both(aLppp / jmax)
+        self.v = both(aLp, vmax)
+        self.a1 = both(aLp, amax)
+        self.a2 = both(aLpp, amax)
+        self.j1 = both(aLp, jmax)
+        self.j2 = 3.0 * both(aLpp, jmax)
+        self.j3 = both(aLppp, jmax)
 
     def at(self, g, sd, sdd, sddd, extras: bool = True):
         """Bounds per sample; ``extras=False`` skips the governor ratios (va, ajr, vjr: returned as None)."""
