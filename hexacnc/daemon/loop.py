@@ -176,7 +176,8 @@ class HotLoop:
         hx = self.ct.hx
         ct = self.ct
         # slow-path FK from the home pose (numpy), then the hot path takes over
-        geo = [self.act[i] + ct.sag_mm[i] + ct.thermal_mm[i] for i in range(6)]
+        phys = ct.strut_map.strut_from_drive(self.act)      # [calibration] map (identity: a copy)
+        geo = [float(phys[i]) + ct.sag_mm[i] + ct.thermal_mm[i] for i in range(6)]
         res = hx.forward(geo)
         X = [float(res.pose[0]), float(res.pose[1]), float(res.pose[2]),
              math.radians(res.pose[3]), math.radians(res.pose[4]), math.radians(res.pose[5])]
