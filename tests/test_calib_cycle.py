@@ -283,3 +283,10 @@ def test_a_map_that_cannot_invert_is_a_status_not_a_command(fast):
     assert code == T.LIMIT_CALIBRATION
     assert ct.cmd_mm == pytest.approx(good, abs=1e-9)
     assert "did not invert" in ct.describe(code)
+
+
+def test_provenance_accepts_toml_dates():
+    text = default_config_path().read_text() + '\n[calibration]\nsource = "lab run 7"\ndate = 2026-11-21T19:27:19Z\n'
+    cfg = parse_config(tomllib.loads(text), "m")
+    assert cfg.calibration.source == "lab run 7" and cfg.calibration.date.startswith("2026-11-21T19:27:19")
+    assert cfg.calibration.identity
