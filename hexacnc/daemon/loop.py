@@ -343,9 +343,13 @@ class HotLoop:
         # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check: a
         # fresh sample is compared with the commands sent within its transport allowance, which is
         # 2 feedback periods + 2 cycles (at least 5 ms) plus the feedback backlog measured per drive
-        # (SYNCs sent / divider - samples received since enabling), capped at n_hist cycles
+        # (SYNCs sent / divider - samples received since enabling), capped at n_hist cycles: 256
+        # (128 ms at 0.5 ms; was 64: a loaded VM stalls the drives' process for 30-50 ms, which the
+        # measured backlog covers but the old cap did not - a spurious fault). The drives check
+        # their following error exactly (0x6065/0x6066); a drive that stops answering altogether
+        # is caught by its heartbeat time-out.
         div = max(1, int(getattr(self.cfg.bus, "feedback_divider", 1)))
-        n_hist = 64
+        n_hist = 256
         min_w = min(n_hist, max(2 * div + 2, int(math.ceil(0.005 / self.dt))))
         # per strut, written twice (slot k and k + n_hist): any window of the last w <= n_hist
         # commands is one contiguous slice ending at h_slot + n_hist (min/max in C, no Python scan)
