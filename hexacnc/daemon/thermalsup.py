@@ -289,6 +289,8 @@ class ThermalSupervisor:
                 r["time_s"] = self._wall_time_s(now)
             r["wall"] = now
             r["travel"] = self._travel_cmd()      # the heat input's window ends with the reading
+            if origin == "sim":
+                r["truth_growth_mm"] = fields.get("truth_growth_mm")
             self.pending.append(r)
             self.readings += 1
         return {"accepted": True, "readings": self.readings}
@@ -320,6 +322,9 @@ class ThermalSupervisor:
                         self._observe(r)
                     finally:
                         self._busy = False
+                with self.lock:
+                    if self.last is not None:
+                        self._write_targets(time.monotonic())
                 self._check_stale(time.monotonic())
             except Exception:
                 log.exception("thermal thread error (offsets held)")
@@ -333,7 +338,7 @@ class ThermalSupervisor:
         speed = np.minimum(np.abs(np.array(tr) - np.array(self.sim_travel)) / max(dt_wall, 1e-3), self.vmax)
         self.sim_wall, self.sim_travel = now, tr
         self.plant.step(dt_wall * self.scale, speed, self.state_fn() == "running")
-        self.push(self.plant.readings(), origin="sim")
+        self.push({**self.plant.readings(), "truth_growth_mm": self.plant.growth_mm().tolist()}, origin="sim")
 
     def _travel_cmd(self) -> np.ndarray:
         s = self.sh.s
@@ -401,12 +406,14 @@ class ThermalSupervisor:
             if self.stale:
                 log.warning("thermal probes back after a gap: offsets follow the estimate again")
             self.stale = False
-            self._write_targets(r["wall"])
+            self._write_targets(time.monotonic())
         if self.plant is not None:
             self._measure_drift()
 
     def _write_targets(self, now: float) -> None:
-        """Clamp, rate-limit and publish the targets (caller holds the lock)."""
+        """Move the targets towards the clamped estimate by at most the rate limit times the wall time
+        since the last call (called every tick, so they ramp), publish them (caller holds the lock).
+        Stale probes: those targets stay where they were frozen."""
         tc = self.tc
         lim = tc.max_offset_mm
         dt = 0.0 if self.tgt_wall is None else max(0.0, now - self.tgt_wall)
@@ -415,8 +422,9 @@ class ThermalSupervisor:
             self.tgt = np.array([s[S.S_THERMAL_APP + i] for i in range(6)])
             self.sp_tgt = s[S.S_SPINDLE_APP]
         step = tc.max_offset_rate_mm_s * dt
-        want = np.clip(self.offsets_est, -lim, lim)
-        self.tgt = self.tgt + np.clip(want - self.tgt, -step, step)
+        if not self.stale:
+            want = np.clip(self.offsets_est, -lim, lim)
+            self.tgt = self.tgt + np.clip(want - self.tgt, -step, step)
         if not self.spindle_stale and self.spindle_wall is not None:
             sp = min(lim, max(-lim, self.spindle_est))
             self.sp_tgt = self.sp_tgt + min(step, max(-step, sp - self.sp_tgt))
@@ -521,7 +529,8 @@ class ThermalSupervisor:
                 "max_offset_rate_mm_s": self.tc.max_offset_rate_mm_s,
             }
             if self.plant is not None:
-                out["sim"] = {**self.plant.truth(), "drift_um": self.drift, "peak_drift_z_um": dict(self.peak_um)}
+                out["sim"] = {**self.plant.truth(), "drift_um": self.drift, "peak_drift_z_um": dict(self.peak_um),
+                              "strut_growth_at_reading_mm": None if last is None else last.get("truth_growth_mm")}
         return out
 
 
