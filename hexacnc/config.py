@@ -261,6 +261,7 @@ class CycleConfig:
     cpu: int = -1                              #: -1: last CPU
     following_error_mm: float = 1.0
     watchdog_s: float = 2.0
+    spin_s: float = 0.0002                     #: the hot loop spins this long before each deadline
 
 
 @dataclass(frozen=True)
@@ -542,7 +543,11 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         cpu=cy.getint("cpu", cd.cpu, minval=-1, maxval=1023),
         following_error_mm=cy.getfloat("following_error_mm", cd.following_error_mm, above=0.0),
         watchdog_s=cy.getfloat("watchdog_s", cd.watchdog_s, above=0.0, maxval=600.0),
+        spin_s=cy.getfloat("spin_s", cd.spin_s, minval=0.0, maxval=0.1),
     )
+    if cycle.spin_s > 0.8 * cycle.period_s:
+        raise cy.error("spin_s", f"{cycle.spin_s:g} s is more than 80 % of period_s = {cycle.period_s:g} s: "
+                                 "the hot loop must sleep part of every period (SCHED_FIFO throttling)")
 
     b = sec("bus")
     bd = BusConfig()

@@ -4,14 +4,18 @@ import json
 import subprocess
 import sys
 
+import pytest
+
+from hexacnc.config import default_config_path, load_config
 from hexacnc.daemon import rt
+from hexacnc.errors import ConfigError
 from hexacnc.daemon.loop import spin_ns
 from hexacnc.daemon.shm import PHASE_NAMES
 
 
 def test_bare_loop_measures_its_work_and_counts_every_missed_deadline():
     # work shorter than the period: each cycle's measured compute covers the busy-wait
-    r = rt.bare_loop(0.0005, 0.05, spin_ns(500_000) * 1e-9, work_s=0.0001)
+    r = rt.bare_loop(0.0005, 0.05, spin_ns(500_000, 0.0002) * 1e-9, work_s=0.0001)
     assert r["cycles"] == 100
     assert r["compute_us"]["median"] >= 100.0
     assert r["spin_us"] == 200.0
@@ -22,10 +26,15 @@ def test_bare_loop_measures_its_work_and_counts_every_missed_deadline():
     assert r["max_overruns_in_row"] == r["overruns"]
 
 
-def test_spin_is_capped_to_a_fraction_of_the_period():
-    assert spin_ns(500_000) == 200_000
-    assert spin_ns(250_000) == 100_000
-    assert spin_ns(2_000_000) == 200_000
+def test_spin_comes_from_the_config_capped_to_a_fraction_of_the_period(tmp_path):
+    assert spin_ns(500_000, 0.0002) == 200_000
+    assert spin_ns(200_000, 0.0002) == 160_000
+    assert spin_ns(2_000_000, 0.00035) == 350_000
+    assert load_config().cycle.spin_s == 0.0002
+    bad = tmp_path / "m.toml"
+    bad.write_text(default_config_path().read_text().replace("[cycle]\n", "[cycle]\nspin_s = 0.00045\n", 1))
+    with pytest.raises(ConfigError, match=r"spin_s"):
+        load_config(str(bad))
 
 
 def test_bench_loop_prints_the_json_contract():

@@ -60,6 +60,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--io", choices=("auto", "bus", "shm", "pipe", "inproc"), default="auto")
     parser.add_argument("--poll-hz", type=float, default=50.0, help="status polls per second by the client process")
     parser.add_argument("--no-realtime", action="store_true")
+    parser.add_argument("--spin-s", type=float, help="override [cycle] spin_s (spin before each deadline)")
     parser.add_argument("--skip-idle", action="store_true")
     parser.add_argument("--keep-burst-fault", action="store_true",
                         help="keep [cycle] max_overruns_in_row (default: measure through bursts, report them)")
@@ -130,10 +131,10 @@ def _threads_fifo(pid: int) -> str:
         return "?"
 
 
-def bare_loop(period_s: float, seconds: float, work_s: float, priority: int, cpu: int) -> dict:
+def bare_loop(period_s: float, seconds: float, work_s: float, priority: int, cpu: int, spin_s: float) -> dict:
     """:func:`hexacnc.daemon.rt.bare_loop` in a fresh process with the hot loop's privileges."""
     from ..daemon.loop import spin_ns
-    spin_s = spin_ns(int(round(period_s * 1e9))) * 1e-9
+    spin_s = spin_ns(int(round(period_s * 1e9)), spin_s) * 1e-9
     r = subprocess.run([sys.executable, "-m", "hexacnc.daemon.rt", repr(period_s), repr(seconds), repr(spin_s),
                         repr(work_s), str(priority), str(cpu)], capture_output=True, text=True,
                        timeout=seconds * 3 + 30)
@@ -165,10 +166,12 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     if args.period_s:
         cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, period_s=args.period_s))
+    if args.spin_s is not None:
+        cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, spin_s=args.spin_s))
     if not args.keep_burst_fault:   # a benchmark measures through bursts instead of stopping at the first
         cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, max_overruns_in_row=1000))
     period = cfg.cycle.period_s
-    out: dict = {"bench": "loop", "machine": cfg.name, "period_s": period, "seconds_per_phase": args.seconds,
+    out: dict = {"bench": "loop", "machine": cfg.name, "period_s": period, "spin_s": cfg.cycle.spin_s, "seconds_per_phase": args.seconds,
                  "cpus": os.cpu_count(), "max_overruns_in_row_fault": cfg.cycle.max_overruns_in_row,
                  "load_average_at_start": list(os.getloadavg()),
                  "other_hexacnc_hot_loops_at_start": other_hot_loops()}
@@ -234,7 +237,7 @@ def main(args: argparse.Namespace) -> int:
         cpu = out["privileges"].get("affinity_cpu")
         out["bare_loop"] = bare_loop(period, bare_s, work_us * 1e-6,
                                      cfg.cycle.realtime_priority if not args.no_realtime else 0,
-                                     cpu if isinstance(cpu, int) and cpu >= 0 else -1)
+                                     cpu if isinstance(cpu, int) and cpu >= 0 else -1, cfg.cycle.spin_s)
         out["bare_loop"]["note"] = ("the hot loop's wake-up (sleep, then spin the last "
                                     f"{out['bare_loop'].get('spin_us')} us) and overrun rule, with a busy-wait "
                                     "of the idle median compute as the whole cycle, same CPU and privileges, "

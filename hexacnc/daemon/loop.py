@@ -4,7 +4,7 @@ Started by the supervisor (:mod:`hexacnc.daemon.core`) with the ``spawn`` start
 method, so nothing of the supervisor (threads, sockets, the planner) lives here.
 Per cycle, on plain floats and preallocated lists:
 
-1. sleep until ``SPIN_NS`` before the absolute deadline (``time.monotonic_ns``), spin to it;
+1. sleep until ``[cycle] spin_s`` before the absolute deadline (``time.monotonic_ns``), spin to it;
 2. ``io.poll`` - feedback frames (positions, statuswords, heartbeats, EMCY) of the previous SYNC;
 3. supervision: heartbeat age, EMCY, drive state, following error of each strut;
 4. next setpoint from the shared ring (hold the last pose when empty after an END row);
@@ -36,16 +36,14 @@ from .stopgen import StrutStop
 
 log = logging.getLogger("hexacnc.loop")
 
-#: wake up this long before a deadline and spin the rest (ns), at most SPIN_FRACTION of the period.
-#: The VM's sleep overshoot often exceeds 100 us: in 20 s of the bare loop (hexacnc.daemon.rt) with
-#: 45 us of work, 2513 / 696 / 65 wake-ups were late by over 100 us with a 100 / 200 / 350 us spin.
-#: The spin holds the CPU at SCHED_FIFO, though: 350 us (70 %) starved the rest of a loaded 2-CPU
-#: machine (the supervisor's feeder missed its refill, "dead setpoint source") and, with a second
-#: daemon on the same CPU, ran into SCHED_FIFO throttling (50 ms gaps). 200 us is the compromise.
-SPIN_NS = 200_000
-#: the rest of the period is slept: SCHED_FIFO throttling (95 % by default), the hot CPU's kernel
-#: threads and everything else on the machine need it
-SPIN_FRACTION = 0.4
+#: The loop sleeps until ``[cycle] spin_s`` (default 200 us) before each deadline, then spins; at
+#: most SPIN_FRACTION of the period (SCHED_FIFO throttling, 95 % by default, the hot CPU's kernel
+#: threads and everything else on the machine need the rest).  The VM's sleep overshoot often
+#: exceeds 100 us: in 20 s of the bare loop (hexacnc.daemon.rt) with 45 us of work, 2513 / 696 / 65
+#: wake-ups were late by over 100 us with a 100 / 200 / 350 us spin.  350 us suits a CPU that is
+#: the hot loop's alone; on a loaded 2-CPU machine it starved the rest (the supervisor's feeder
+#: missed refills) and, with a second daemon on the same CPU, ran into SCHED_FIFO throttling.
+SPIN_FRACTION = 0.8
 #: publish the status block every n cycles (and on every state change)
 PUBLISH_EVERY = 8
 #: time allowed for the CiA 402 enable walk (ns)
@@ -85,9 +83,10 @@ class IOProtocol(Protocol):
     def close(self) -> None: ...
 
 
-def spin_ns(period_ns: int) -> int:
-    """How long before each deadline the loop stops sleeping and spins (ns)."""
-    return min(SPIN_NS, int(SPIN_FRACTION * period_ns))
+def spin_ns(period_ns: int, spin_s: float) -> int:
+    """How long before each deadline the loop stops sleeping and spins (ns): ``[cycle] spin_s``,
+    at most ``SPIN_FRACTION`` of the period."""
+    return min(int(round(spin_s * 1e9)), int(SPIN_FRACTION * period_ns))
 
 
 def _op_enabled(sw: int) -> bool:
@@ -123,7 +122,7 @@ class HotLoop:
         self.priv = priv or {}
         self.period_ns = int(round((period_s or cfg.cycle.period_s) * 1e9))
         self.dt = self.period_ns * 1e-9
-        self.spin_ns = spin_ns(self.period_ns)
+        self.spin_ns = spin_ns(self.period_ns, float(getattr(cfg.cycle, "spin_s", 0.0002)))
         cy = cfg.cycle
         bus = cfg.bus
         self.ipm = float(bus.increments_per_mm)
