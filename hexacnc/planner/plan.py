@@ -152,7 +152,7 @@ def _strut_geometry(X: np.ndarray, hx: Hexapod):
     L = np.empty((N, 6))
     cb = np.empty((N, 6))
     cp = np.empty((N, 6))
-    J = np.empty((N, 6, 6))
+    Jt = np.empty((6, 6, N))                  # strut, column, pose: contiguous writes
     cl = 1.0 / hx.char_length_mm
     for k in range(6):
         px, py, pz = hx.plat[k]
@@ -172,16 +172,16 @@ def _strut_geometry(X: np.ndarray, hx: Hexapod):
         # platform joint: -u . (R a_k)
         cp[:, k] = -(ux * (r[0] * ax + r[1] * ay + r[2] * az) + uy * (r[3] * ax + r[4] * ay + r[5] * az)
                      + uz * (r[6] * ax + r[7] * ay + r[8] * az))
-        Jk = J[:, k]
-        Jk[:, 0] = ux
-        Jk[:, 1] = uy
-        Jk[:, 2] = uz
-        Jk[:, 3] = (ry * uz - rz * uy) * cl
-        Jk[:, 4] = (rz * ux - rx * uz) * cl
-        Jk[:, 5] = (rx * uy - ry * ux) * cl
+        Jk = Jt[k]
+        Jk[0] = ux
+        Jk[1] = uy
+        Jk[2] = uz
+        Jk[3] = (ry * uz - rz * uy) * cl
+        Jk[4] = (rz * ux - rx * uz) * cl
+        Jk[5] = (rx * uy - ry * ux) * cl
     np.clip(cb, -1.0, 1.0, out=cb)
     np.clip(cp, -1.0, 1.0, out=cp)
-    return L, cb, cp, J
+    return L, cb, cp, Jt.transpose(2, 0, 1)
 
 
 def condition_numbers(J: np.ndarray, limit: float) -> np.ndarray:
