@@ -124,5 +124,6 @@ def main(args: argparse.Namespace) -> int:
         daemon.close()
         shutil.rmtree(tmp, ignore_errors=True)
     out["loadavg"] = {"before": load0, "after": os.getloadavg()}
+    out["commands_rewound"], out["commands_at_queue_end"] = daemon.rewinds
     print(json.dumps(out, indent=2))
     return 0

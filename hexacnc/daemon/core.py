@@ -48,6 +48,8 @@ FEED_AHEAD_S = 0.3
 REWIND_LEAD_S = 0.04
 #: rows per feeder chunk: a source snapshot is kept at every chunk start (the rewind points)
 FEED_CHUNK_ROWS = 32
+#: marks tried before a command falls back to acting at the end of the queue
+REWIND_ATTEMPTS = 3
 #: feeder thread period
 FEED_PERIOD_S = 0.002
 #: how long the hot process may take to boot the bus and enable the drives
@@ -138,6 +140,8 @@ class Daemon:
         self.cfg = cfg
         self.period_s = float(period_s or cfg.cycle.period_s)
         self._rewind_rows = max(8, int(math.ceil(REWIND_LEAD_S / self.period_s)))
+        self._ahead_rows = max(50, int(FEED_AHEAD_S / self.period_s))
+        self.rewinds = [0, 0]           #: commands that took queued rows back / acted at the queue's end
         self.io_mode = io_mode
         self.sim_faults = list(sim_faults)
         self.channel = channel
@@ -285,7 +289,7 @@ class Daemon:
                 self.info["feeder_sched_fifo"] = True
             except (OSError, AttributeError):
                 self.info["feeder_sched_fifo"] = False
-        ahead = max(50, int(FEED_AHEAD_S / self.period_s))
+        ahead = self._ahead_rows
         while not self.closed and sh is not None:
             try:
                 sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
@@ -355,38 +359,59 @@ class Daemon:
         if src.finished and job.end_index < 0:
             job.end_index = sh.h[S.H_RING_W]
 
-    def _rewind(self) -> bool:
-        """Take back the current job's queued rows beyond ``REWIND_LEAD_S`` (caller holds the lock).
+    def _command(self, action) -> bool:
+        """Apply ``action`` (the source's pause, resume, stop or override) to the rows the drives
+        get ``REWIND_LEAD_S`` from now, not after the whole queue (caller holds the lock).
 
-        The source goes back to its snapshot at the first mark past the lead, the ring's write
-        index to that mark; the command that follows (pause, resume, stop, override) then acts
-        on the rows the drives get ``REWIND_LEAD_S`` from now instead of after the whole queue.
+        The source goes back to its snapshot at the first mark past the lead, the command is
+        applied there and the replacement rows (the full queue length, ~2-3 ms of work) are
+        generated first; only then is the ring's write index lowered to the mark and the new rows
+        written, so the queue stays full and the hot loop never waits for the generation.
         Continuity holds because the source continues from exactly the state it was in when it
-        produced that row the first time.  Returns whether rows were taken back.
+        produced that row the first time.  If the hot loop got past the mark meanwhile (a
+        descheduled supervisor), the source returns to where it was and the next mark is tried;
+        when there is nothing to take back the command acts on the end of the queue.  Returns
+        whether rows were taken back.
         """
         job, sh = self.current, self.sh
-        if job is None or sh is None or not job.marks:
+        src = job.source if job is not None else None
+        if src is None or sh is None or self.feed_hold or not job.marks or not hasattr(src, "snapshot"):
+            action()
             return False
-        k_min = sh.h[S.H_RING_R] + self._rewind_rows
-        for i, (k, snap) in enumerate(job.marks):
-            if k >= k_min:
+        end_snap = src.snapshot()
+        for _attempt in range(REWIND_ATTEMPTS):
+            k_min = sh.h[S.H_RING_R] + self._rewind_rows
+            w = sh.h[S.H_RING_W]
+            for i, (k, snap) in enumerate(job.marks):
+                if k >= k_min:
+                    break
+            else:
                 break
-        else:
-            return False
-        if not sh.retract(k):
-            return False
-        job.source.restore(snap)
-        while len(job.marks) > i:
-            job.marks.pop()
-        if job.end_index > k:
-            job.end_index = -1
-        return True
-
-    def _after_command(self) -> None:
-        """Refill right after a rewind so the hot loop never waits for the feeder thread."""
-        job, sh = self.current, self.sh
-        if job is not None and sh is not None and job.end_index < 0 and not self.feed_hold:
-            self._push(job, sh, 2 * self._rewind_rows - sh.ring_fill())
+            if k >= w:
+                break
+            src.restore(snap)
+            action()
+            marks, chunks, idx, need = [], [], k, self._ahead_rows
+            while need > 0 and not src.finished:
+                marks.append((idx, src.snapshot()))
+                rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
+                chunks.append(rows)
+                idx += len(rows)
+                need -= max(1, len(rows))
+            if sh.retract(k):
+                for rows in chunks:
+                    if len(rows):
+                        sh.push_rows(rows)
+                while len(job.marks) > i:
+                    job.marks.pop()
+                job.marks.extend(marks)
+                job.end_index = sh.h[S.H_RING_W] if src.finished else -1
+                self.rewinds[0] += 1
+                return True
+            src.restore(end_snap)           # the hot loop got there first: try a later mark
+        action()
+        self.rewinds[1] += 1
+        return False
 
     # ------------------------------------------------------------------ thermal
     def push_temperatures(self, fields: dict) -> dict:
@@ -519,9 +544,7 @@ class Daemon:
         with self.lock:
             if self.current is None:
                 raise HexacncError("nothing to pause: no program is running")
-            self._rewind()
-            self.current.source.pause()
-            self._after_command()
+            self._command(self.current.source.pause)
         return self.status()
 
     def resume(self) -> dict:
@@ -529,17 +552,14 @@ class Daemon:
             if self.current is None or not getattr(self.current.source, "paused", False):
                 raise HexacncError("nothing to resume: not paused")
             self._require_motion_ok()
-            self._rewind()
-            self.current.source.resume()
-            self._after_command()
+            self._command(self.current.source.resume)
         return self.status()
 
     def set_feed_override(self, factor: float) -> None:
         with self.lock:
             if self.current is not None:
-                self._rewind()
-                self.current.source.set_feed_override(factor)
-                self._after_command()
+                src = self.current.source
+                self._command(lambda: src.set_feed_override(factor))
 
     def stop(self) -> dict:
         """Controlled stop: decelerate along the path (jerk-limited), drop the queue, stay enabled."""
@@ -549,9 +569,7 @@ class Daemon:
             self.queue.clear()
             if self.current is not None:
                 self.stop_requested = True
-                self._rewind()
-                self.current.source.stop()
-                self._after_command()
+                self._command(self.current.source.stop)
             elif self.sh.h[S.H_STATE] == S.ST_RUNNING:
                 self.sh.command(S.CMD_STOP)
             self.cv.notify_all()
@@ -648,6 +666,7 @@ class Daemon:
             "underruns": h[S.H_UNDERRUNS],
             "bus_load": sh.s[S.S_BUS_LOAD],
             "ring_fill": sh.ring_fill(),
+            "commands_rewound": self.rewinds[0], "commands_at_queue_end": self.rewinds[1],
             "privileges": self.info.get("privileges"),
         }
         self._stats_cache = (now, out)
