@@ -69,7 +69,7 @@ def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, cl
     th0 = st0["thermal"]
     assert th0["source"] == "sim" and th0["time_scale"] == SCALE
     sub = client.send("subscribe", rate_hz=50.0)
-    for _ in range(4):
+    for _ in range(2):
         daemon.move_to(home + [120.0, 0.0, 0.0, 0.0, 0.0, 0.0], 400.0, name="out")
         daemon.move_to(home + [0.0, 80.0, -60.0, 0.0, 0.0, 0.0], 400.0, name="across")
         daemon.move_to(home, 400.0, name="back")

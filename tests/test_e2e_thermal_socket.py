@@ -21,7 +21,7 @@ from e2e_fixtures import machine, client  # noqa: F401  (shared fixtures; cfg is
 
 RATE_MM_S = 0.0035
 MAX_MM = 0.002
-STALE_S = 3.0
+STALE_S = 2.0
 
 
 @pytest.fixture(scope="module")
