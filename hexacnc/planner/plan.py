@@ -61,7 +61,7 @@ FD_STEP = 0.01
 #: (the bounds are upper bounds of the model, so a sample below them cannot violate), 1e-9 lower
 MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
 #: samples per chunk of the exact measurement (bounds its memory)
-EXACT_CHUNK = 200_000
+EXACT_CHUNK = 50_000
 
 _DEBUG = bool(__import__('os').environ.get('HEXACNC_PLAN_DEBUG'))
 
@@ -582,6 +582,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     Lpp = (Lp1 - 2 * L0 + Lm1) / (d * d)
     Lppp = (Lp2 - 2 * Lp1 + 2 * Lm1 - Lm2) / (2 * d ** 3)
     dtip = (tips[1] - tips[0]) / (2 * d)
+    del Ls, tips, Lm2, Lm1, L0, Lp1, Lp2, X, L, tip       # ~25 MB on 3D_Chips: less to fault in
 
     jmarg, lmmarg = _check_limits(path, hx, cfg, sg, pidx, Xg, lmarg, amarg)
 
@@ -671,6 +672,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
     xlim[stop_all] = 0.0
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.IncrementalTopp, numpy wavefronts
+    del c, e, dd
     changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
