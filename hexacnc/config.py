@@ -223,6 +223,7 @@ class ThermalConfig:
 class SpindleConfig:
     growth_mm_per_K: float = 0.0012            #: tool growth along the tool axis per K over reference
     reference_temperature_C: float = 20.0
+    probe_lag_s: float = 0.0                   #: the growing shaft lags the housing probe (first order); 0: none
 
 
 @dataclass(frozen=True)
@@ -473,7 +474,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     sp = sec("spindle")
     spindle = SpindleConfig(growth_mm_per_K=sp.getfloat("growth_mm_per_K", 0.0012, minval=0.0, maxval=1.0),
                             reference_temperature_C=sp.getfloat("reference_temperature_C", 20.0,
-                                                                minval=-50.0, maxval=200.0))
+                                                                minval=-50.0, maxval=200.0),
+                            probe_lag_s=sp.getfloat("probe_lag_s", 0.0, minval=0.0, maxval=36000.0))
 
     w = sec("workspace", True)
     home = w.getvec("home_pose", 6)

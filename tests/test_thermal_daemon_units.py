@@ -139,3 +139,42 @@ def test_coupled_views_stay_in_step_when_bus_threads_interleave(cfg):
     np.testing.assert_allclose(got[1:, 3:5] + off[3:5] - L[1:, 3:5], e[:-1, 3:5], atol=1e-9)
     np.testing.assert_allclose(got[2:, :3] + off[:3] - L[2:, :3], e[:-2, :3], atol=1e-9)
     assert np.max(np.abs(want - L)) > 1e-4           # the model does have following errors here
+
+
+def test_spindle_probe_lag_key(cfg):
+    c = parse_config(_doc_with(cfg, "spindle", probe_lag_s=300.0))
+    assert c.spindle.probe_lag_s == 300.0 and cfg.spindle.probe_lag_s == 0.0
+    with pytest.raises(ConfigError, match="probe_lag_s"):
+        parse_config(_doc_with(cfg, "spindle", probe_lag_s=-1.0))
+
+
+def test_supervisor_spindle_lag_and_target_ramp_without_a_daemon(cfg):
+    """ThermalSupervisor on a bare shared-memory block (no hot loop, no thread): the shaft lags the
+    housing probe by [spindle] probe_lag_s, and the targets ramp at the rate limit."""
+    import time
+    from hexacnc.daemon import shm as S
+    from hexacnc.daemon.thermalsup import ThermalSupervisor
+    c = cfg.replace(spindle=dataclasses.replace(cfg.spindle, probe_lag_s=300.0),
+                    thermal=dataclasses.replace(cfg.thermal, source="socket"))
+    sh = S.Shared(create=True)
+    try:
+        ts = ThermalSupervisor(c, sh)
+        flat = [20.0] * 14
+        for t_s, T_sp in ((0.0, 20.0), (300.0, 30.0)):
+            ts.push({"probes_C": flat, "spindle_C": T_sp, "time_s": t_s})
+            ts._observe(ts.pending.popleft())
+        shaft = 20.0 + (1.0 - math.exp(-1.0)) * 10.0          # housing stepped 10 K, one time constant
+        assert ts.shaft_C == pytest.approx(shaft, abs=1e-9)
+        assert ts.spindle_est == pytest.approx(c.spindle.growth_mm_per_K * (shaft - 20.0), abs=1e-12)
+        # targets: from what the loop applies (0) towards the estimate at max_offset_rate_mm_s
+        t0, sp0 = ts.tgt_wall, sh.s[S.S_SPINDLE_TGT]
+        assert 0.0 <= sp0 < ts.spindle_est
+        time.sleep(0.2)
+        with ts.lock:
+            ts._write_targets(time.monotonic())
+        dt = ts.tgt_wall - t0
+        step = sh.s[S.S_SPINDLE_TGT] - sp0
+        assert step == pytest.approx(min(ts.spindle_est - sp0, c.thermal.max_offset_rate_mm_s * dt), abs=1e-12)
+        assert 0.0 < step <= c.thermal.max_offset_rate_mm_s * dt + 1e-12
+    finally:
+        sh.close()

@@ -221,6 +221,8 @@ class ThermalSupervisor:
         self.obs_wall = None
         self.offsets_est = np.zeros(6)
         self.spindle_est = 0.0
+        self.shaft_C: float | None = None       #: estimated spindle shaft temperature (degC)
+        self.shaft_t: float | None = None
         # targets written to the shared memory
         self.tgt = np.zeros(6)
         self.sp_tgt = 0.0
@@ -398,7 +400,16 @@ class ThermalSupervisor:
                 self.offsets_est = off.copy()
             if r["spindle"] is not None:
                 from ..thermal import spindle_growth_mm
-                self.spindle_est = spindle_growth_mm(r["spindle"], self.cfg)
+                # the shaft that grows lags the housing probe: first order over the plant time between
+                # readings ([spindle] probe_lag_s; 0: the probe's temperature as it is)
+                tau = self.cfg.spindle.probe_lag_s
+                if self.shaft_C is None or tau <= 0.0 or self.shaft_t is None:
+                    self.shaft_C = r["spindle"]
+                else:
+                    a = math.exp(-max(0.0, r["time_s"] - self.shaft_t) / tau)
+                    self.shaft_C = a * self.shaft_C + (1.0 - a) * r["spindle"]
+                self.shaft_t = r["time_s"]
+                self.spindle_est = spindle_growth_mm(self.shaft_C, self.cfg)
                 self.spindle_wall = r["wall"]
                 self.spindle_stale = False
             self.last = r
@@ -515,6 +526,7 @@ class ThermalSupervisor:
                 "offsets_mm": s[S.S_THERMAL_APP:S.S_THERMAL_APP + 6],
                 "spindle_growth_mm": s[S.S_SPINDLE_APP],
                 "spindle_growth_est_mm": self.spindle_est,
+                "spindle_shaft_C_est": self.shaft_C,
                 "probes_C": None if last is None else {"struts": last["struts"].tolist(), "ambient": last["ambient"],
                                                        "frame": last["frame"], "spindle": last["spindle"]},
                 "probes_age_s": None if self.last_wall is None else now - self.last_wall,
