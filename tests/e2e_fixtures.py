@@ -28,10 +28,11 @@ def cfg():
     # (another process) trail the catching-up command by > 1 mm. Tolerate those stalls (burst
     # count, following error); strut length/joint/velocity limits stay exactly as configured.
     cycle = dataclasses.replace(base.cycle, max_overruns_in_row=1000, following_error_mm=25.0)
-    # these suites check the commands against the plain IK: no thermal offsets (the simulated plant
-    # would feed noise-level offsets of ~0.2 um); tests/test_e2e_thermal_*.py cover the compensation
-    thermal = dataclasses.replace(base.thermal, source="none")
-    return base.replace(cycle=cycle, thermal=thermal)
+    # the shipped [thermal] source ("socket", no readings pushed here) applies no offsets, so these
+    # suites check the commands against the plain IK + sag; tests/test_e2e_thermal_*.py cover the
+    # compensation (the simulated plant's probe noise alone would move them by ~0.2 um)
+    assert base.thermal.source == "socket"
+    return base.replace(cycle=cycle)
 
 
 @pytest.fixture(scope="module")

@@ -38,8 +38,10 @@ def test_thermal_daemon_keys_are_range_checked(cfg, key, value):
 def test_thermal_keys_parse_and_source_resolution(cfg):
     c = parse_config(_doc_with(cfg, "thermal", source="socket", max_offset_mm=0.05, sim_time_scale=600.0))
     assert c.thermal.source == "socket" and c.thermal.max_offset_mm == 0.05 and c.thermal.sim_time_scale == 600.0
-    assert resolve_source(cfg) == "sim"                    # default machine: simulated bus
-    real = cfg.replace(bus=dataclasses.replace(cfg.bus, simulate=False))
+    assert resolve_source(cfg) == "socket"                 # the embedded default: readings pushed
+    auto = cfg.replace(thermal=dataclasses.replace(cfg.thermal, source="auto"))
+    assert resolve_source(auto) == "sim"                   # auto on a simulated bus: the plant
+    real = auto.replace(bus=dataclasses.replace(cfg.bus, simulate=False))
     assert resolve_source(real) == "socket"
     off = cfg.replace(thermal=dataclasses.replace(cfg.thermal, enabled=False))
     assert resolve_source(off) == "none"
