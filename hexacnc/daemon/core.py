@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import __version__
-from ..errors import BusError, HexacncError, KinematicsError, PlanError
+from ..errors import BusError, HexacncError
 from ..kinematics import Hexapod
 from ..transform import CycleTransform
 from . import shm as S

@@ -170,7 +170,6 @@ class HotLoop:
 
     def seed_from_feedback(self) -> None:
         """Standstill at the measured position: command = actual, guards and FK re-seeded."""
-        from ..kinematics import Hexapod
         self._lengths_from_pos(self.act)
         hx = self.ct.hx
         ct = self.ct

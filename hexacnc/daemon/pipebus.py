@@ -17,7 +17,6 @@ from __future__ import annotations
 import os
 import select
 import socket
-import struct
 import time
 
 import can

@@ -27,7 +27,7 @@ import math
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Trajectory
 
-from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING, ETA
+from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING
 
 #: samples per governor block and look-ahead of the governor (seconds)
 GOV_BLOCK = 20
