@@ -151,7 +151,8 @@ def test_planner_needs_no_network(cfg, monkeypatch):
 
 
 def test_incremental_topp_equals_full_pass():
-    from hexacnc.planner.topp import IncrementalTopp, accel_coefficients, forward_backward
+    from hexacnc.planner.topp import accel_coefficients, forward_backward
+    from hexacnc.planner.toppvec import WavefrontTopp
     rng = np.random.default_rng(7)
     N = 2000
     h = rng.uniform(0.1, 1, N - 1)
@@ -159,7 +160,7 @@ def test_incremental_topp_equals_full_pass():
     c, e, d, xm = accel_coefficients(rng.normal(size=(N, 6)), 0.01 * rng.normal(size=(N, 6)), np.full(6, 100.0))
     xl = np.minimum(rng.uniform(10, 1000, N), xm)
     xl[[0, 700, N - 1]] = 0.0
-    it = IncrementalTopp(h, c, e, d)
+    it = WavefrontTopp(h, c, e, d)
     assert np.array_equal(it.solve(xl), forward_backward(h, xl, c, e, d))
     for _ in range(15):
         ranges = []

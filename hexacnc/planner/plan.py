@@ -671,7 +671,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     xw[stop_all] = np.inf
     xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
     xlim[stop_all] = 0.0
-    topp = WavefrontTopp(h, c, e, dd)      # same result as topp.IncrementalTopp, numpy wavefronts
+    topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
     del c, e, dd
     changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)

@@ -9,8 +9,8 @@ every equation holds, so the result is the chain's solution, bit for bit the seq
 number of rounds is the longest run of points whose value is set by its neighbour (acceleration-
 bound stretches: ~100-200 on the corpus), each round a few vector operations on that front.
 
-:class:`WavefrontTopp` has :class:`~hexacnc.planner.topp.IncrementalTopp`'s interface: after
-``solve``, ``solve_ranges`` starts the fronts from the changed speed limits only.
+After :meth:`WavefrontTopp.solve`, ``solve_ranges`` starts the fronts from the changed speed
+limits only; the result equals a full :func:`~hexacnc.planner.topp.forward_backward` (tested).
 """
 from __future__ import annotations
 
