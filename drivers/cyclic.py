@@ -373,39 +373,40 @@ class CyclicIO:
                     self.pos_time_s[i] = now
                     self.pos_count[i] += 1
                     ev |= EV_FEEDBACK
-                elif kind == _K_STATUS:
-                    if len(data) < 2:
-                        ev |= EV_BAD_FRAME
-                        continue
-                    sw = _U16.unpack_from(data)[0]
-                    if sw != self.status[i]:
-                        ev |= EV_STATUS
-                    self.status[i] = sw
-                    self.status_time_s[i] = now
-                elif kind == _K_HEARTBEAT:
-                    if len(data) < 1:
-                        ev |= EV_BAD_FRAME
-                        continue
-                    st = data[0] & 0x7F
-                    self.last_heartbeat_s[i] = now
-                    self.nmt_state[i] = st
-                    ev |= EV_HEARTBEAT
-                    if st == 0:
-                        self.bootups += 1
-                        ev |= EV_BOOTUP
-                    elif st != NMT_OPERATIONAL:
-                        ev |= EV_NMT
-                else:  # EMCY
-                    if len(data) < 8:
-                        ev |= EV_BAD_FRAME
-                        continue
-                    code, reg, extra = _EMCY.unpack_from(data)
-                    self.emcy.append((i, code, reg, extra, now))
-                    ev |= EV_EMCY
+                else:
+                    ev |= self._decode_event(kind, i, data, 0, len(data), now)
             else:
                 ev |= EV_OVERFLOW
         self.frames_received += count
         return ev
+
+    def _decode_event(self, kind: int, i: int, buf, d: int, length: int, now: float) -> int:
+        """Statusword, heartbeat or EMCY frame of drive ``i`` (data at ``buf[d:d + length]``):
+        update the state, return the ``EV_*`` bits.  Shared by both receive paths; position
+        feedback, the frame of nearly every cycle, stays inline in them."""
+        if kind == _K_STATUS:
+            if length < 2:
+                return EV_BAD_FRAME
+            sw = _U16.unpack_from(buf, d)[0]
+            ev = EV_STATUS if sw != self.status[i] else 0
+            self.status[i] = sw
+            self.status_time_s[i] = now
+            return ev
+        if kind == _K_HEARTBEAT:
+            if length < 1:
+                return EV_BAD_FRAME
+            st = buf[d] & 0x7F
+            self.last_heartbeat_s[i] = now
+            self.nmt_state[i] = st
+            if st == 0:
+                self.bootups += 1
+                return EV_HEARTBEAT | EV_BOOTUP
+            return (EV_HEARTBEAT | EV_NMT) if st != NMT_OPERATIONAL else EV_HEARTBEAT
+        if length < 8:      # EMCY
+            return EV_BAD_FRAME
+        code, reg, extra = _EMCY.unpack_from(buf, d)
+        self.emcy.append((i, code, reg, extra, now))
+        return EV_EMCY
 
     def _poll_batch(self, max_frames: int) -> int:
         """Record path of :meth:`poll`: one read per bus, frames decoded in place (same state and
@@ -416,11 +417,9 @@ class CyclicIO:
         count = 0
         unpack_hdr = _HDR.unpack_from
         unpack_i32 = _I32.unpack_from
-        unpack_u16 = _U16.unpack_from
         pos_inc = self.pos_inc
         pos_time = self.pos_time_s
         pos_count = self.pos_count
-        status = self.status
         for bus in self.buses:
             left = max_frames
             while True:
@@ -448,35 +447,8 @@ class CyclicIO:
                         pos_time[i] = now
                         pos_count[i] += 1
                         ev |= EV_FEEDBACK
-                    elif kind == _K_STATUS:
-                        if length < 2:
-                            ev |= EV_BAD_FRAME
-                            continue
-                        sw = unpack_u16(buf, d)[0]
-                        if sw != status[i]:
-                            ev |= EV_STATUS
-                        status[i] = sw
-                        self.status_time_s[i] = now
-                    elif kind == _K_HEARTBEAT:
-                        if length < 1:
-                            ev |= EV_BAD_FRAME
-                            continue
-                        st = buf[d] & 0x7F
-                        self.last_heartbeat_s[i] = now
-                        self.nmt_state[i] = st
-                        ev |= EV_HEARTBEAT
-                        if st == 0:
-                            self.bootups += 1
-                            ev |= EV_BOOTUP
-                        elif st != NMT_OPERATIONAL:
-                            ev |= EV_NMT
-                    else:  # EMCY
-                        if length < 8:
-                            ev |= EV_BAD_FRAME
-                            continue
-                        code, reg, extra = _EMCY.unpack_from(buf, d)
-                        self.emcy.append((i, code, reg, extra, now))
-                        ev |= EV_EMCY
+                    else:
+                        ev |= self._decode_event(kind, i, buf, d, length, now)
                 if left <= 0:
                     ev |= EV_OVERFLOW
                     break

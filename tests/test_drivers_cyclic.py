@@ -139,3 +139,50 @@ def test_no_target_before_the_first_valid_cycle():
         finally:
             for b in sniff:
                 b.shutdown()
+
+
+def test_statusword_heartbeat_emcy_and_short_frames_decode_alike_on_both_receive_paths():
+    """The python-can path (frames on a virtual bus) and the record path (the same bytes at an
+    offset inside a record buffer) share one decoder: same events, same state, short frames
+    flagged and ignored."""
+    import dataclasses
+    import uuid
+
+    import can
+
+    from hexacnc.config import load_config
+    from drivers.cyclic import (EV_BAD_FRAME, EV_BOOTUP, EV_EMCY, EV_HEARTBEAT, EV_NMT, EV_STATUS,
+                                CyclicIO)
+    base = load_config()
+    cfg = base.replace(bus=dataclasses.replace(base.bus, interface="virtual", buses=1, layout="single",
+                                               channel=f"dec-{uuid.uuid4().hex[:10]}"))
+    node = cfg.bus.node_ids[2]
+    frames = [  # (COB-ID, data, events expected, check of the state afterwards)
+        (0x280 + node, b"\x37\x02", EV_STATUS, lambda io: io.status[2] == 0x0237),
+        (0x280 + node, b"\x37\x02", 0, lambda io: io.status[2] == 0x0237),            # unchanged
+        (0x280 + node, b"\x37", EV_BAD_FRAME, lambda io: io.status[2] == 0x0237),     # too short
+        (0x700 + node, b"\x05", EV_HEARTBEAT, lambda io: io.nmt_state[2] == 5),
+        (0x700 + node, b"\x7f", EV_HEARTBEAT | EV_NMT, lambda io: io.nmt_state[2] == 127),
+        (0x700 + node, b"\x00", EV_HEARTBEAT | EV_BOOTUP, lambda io: io.bootups == 1),
+        (0x700 + node, b"", EV_BAD_FRAME, lambda io: io.bootups == 1),
+        (0x080 + node, bytes([0x30, 0x81, 0x11, 1, 2, 3, 4, 5]), EV_EMCY,
+         lambda io: io.emcy[-1][:3] == (2, 0x8130, 0x11)),
+        (0x080 + node, b"\x30\x81", EV_BAD_FRAME, lambda io: len(io.emcy) == 1),
+    ]
+    from drivers.canbus import open_buses
+    buses, inject, spare = open_buses(cfg.bus), open_buses(cfg.bus), open_buses(cfg.bus)
+    try:
+        io_can = CyclicIO(buses, cfg.bus, period_s=cfg.cycle.period_s)
+        io_rec = CyclicIO(spare, cfg.bus, period_s=cfg.cycle.period_s)
+        for cob, data, want, check in frames:
+            inject[0].send(can.Message(arbitration_id=cob, data=data, is_extended_id=False))
+            time.sleep(0.005)
+            assert io_can.poll() == want, (hex(cob), data)
+            assert check(io_can), (hex(cob), data)
+            kind, i = io_rec._rx[cob]
+            buf = bytearray(5) + data + bytearray(3)          # the record path: data at an offset
+            assert io_rec._decode_event(kind, i, buf, 5, len(data), time.monotonic()) == want
+            assert check(io_rec), (hex(cob), data)
+    finally:
+        for b in buses + inject + spare:
+            b.shutdown()
