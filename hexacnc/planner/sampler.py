@@ -210,9 +210,10 @@ class PlanSampler:
             nbk = need
         return A, J
 
-    def _duration(self, tgt: float, A: float, J: float) -> float:
+    def _rate_input(self, position: float, tgt: float, A: float, J: float) -> InputParameter:
+        """Ruckig input for moving the rate from its current state (f, f') to ``tgt`` at rest."""
         inp = self._inp
-        inp.current_position = [0.0]
+        inp.current_position = [position]
         inp.current_velocity = [self.f]
         inp.current_acceleration = [self.fd]
         inp.target_velocity = [tgt]
@@ -220,6 +221,10 @@ class PlanSampler:
         inp.max_velocity = [MAX_OVERRIDE + 1.0]
         inp.max_acceleration = [A]
         inp.max_jerk = [J]
+        return inp
+
+    def _duration(self, tgt: float, A: float, J: float) -> float:
+        inp = self._rate_input(0.0, tgt, A, J)
         try:
             res = self._otg_offline.calculate(inp, self._traj)
         except RuckigError:
@@ -277,14 +282,7 @@ class PlanSampler:
                         if A2 >= self._lim[0] and J2 >= self._lim[1]:
                             self._lim = (A2, J2)
                 A, J = self._lim
-                inp.current_position = [self.k * self.plan.dt]
-                inp.current_velocity = [self.f]
-                inp.current_acceleration = [self.fd]
-                inp.target_velocity = [tgt]
-                inp.target_acceleration = [0.0]
-                inp.max_velocity = [MAX_OVERRIDE + 1.0]
-                inp.max_acceleration = [A]
-                inp.max_jerk = [J]
+                self._rate_input(self.k * self.plan.dt, tgt, A, J)
                 try:
                     res = otg.update(inp, o)
                 except RuckigError:
