@@ -35,16 +35,37 @@ def cfg():
     return base.replace(cycle=cycle)
 
 
-@pytest.fixture(scope="module")
-def machine(cfg):
-    """(daemon, server) for the module; torn down (drives disabled, processes joined) after it."""
-    d = tempfile.mkdtemp(prefix="hxe", dir="/tmp")
-    daemon = core.Daemon(cfg, realtime=False)
-    srv = SocketServer(daemon, cfg, os.path.join(d, "e2e.sock")).start()
+def running_machine(cfg, realtime: bool = False, name: str = "e2e"):
+    """Generator for a module fixture: yields (daemon, server) on a fresh socket; tears both down
+    (drives disabled, processes joined) after it."""
+    d = tempfile.mkdtemp(prefix="hx" + name[:3], dir="/tmp")
+    daemon = core.Daemon(cfg, realtime=realtime)
+    srv = SocketServer(daemon, cfg, os.path.join(d, name + ".sock")).start()
     yield daemon, srv
     srv.close()
     daemon.close()
     shutil.rmtree(d, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def machine(cfg):
+    """(daemon, server) for the module; torn down (drives disabled, processes joined) after it."""
+    yield from running_machine(cfg)
+
+
+def wait_standstill(client, timeout_s: float, interval_s: float = 0.1, polls: int = 1) -> dict:
+    """Poll status until the commanded pose is the same ``polls`` polls in a row (``interval_s``
+    apart); returns that status.  Fails the test if it still moves after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    last, still = client.call("status")["pose_cmd"], 0
+    while True:
+        time.sleep(interval_s)
+        st = client.call("status")
+        still = still + 1 if st["pose_cmd"] == last else 0
+        if still >= polls:
+            return st
+        assert time.monotonic() < deadline, f"still moving {timeout_s} s after the command"
+        last = st["pose_cmd"]
 
 
 @pytest.fixture

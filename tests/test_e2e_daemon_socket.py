@@ -23,6 +23,7 @@ core = pytest.importorskip("hexacnc.daemon.core", reason="the daemon (hexacnc.da
 
 
 from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtures)
+from e2e_fixtures import wait_standstill  # noqa: E402
 
 
 def _finite6(v):
@@ -84,14 +85,7 @@ def test_pause_resume_stop_over_the_socket(cfg, machine, client):
     time.sleep(0.2)
     client.call("pause")
     # decelerates along the path to rest (after the rows already queued to the loop)
-    p1, t_rest = client.call("status")["pose_cmd"], time.monotonic() + 3.0
-    while True:
-        time.sleep(0.1)
-        p2 = client.call("status")["pose_cmd"]
-        if p2 == p1:
-            break
-        assert time.monotonic() < t_rest, "still moving 3 s after pause"
-        p1 = p2
+    p1 = wait_standstill(client, timeout_s=3.0)["pose_cmd"]
     time.sleep(0.2)
     st = client.call("status")
     assert st["state"] == "paused"

@@ -31,6 +31,7 @@ from hexacnc import sag as sagmod              # noqa: E402
 
 
 from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtures)
+from e2e_fixtures import wait_standstill  # noqa: E402
 
 
 def programmed_end_platform_pose(cfg, text: str) -> np.ndarray:
@@ -232,14 +233,7 @@ def test_pause_and_resume_a_program_over_the_socket_still_ends_on_its_end_pose(c
         assert time.monotonic() < deadline
         time.sleep(0.02)
     # the pause decelerates along the path to rest (after the rows already queued to the loop)
-    p1, t_rest = client.call("status")["pose_cmd"], time.monotonic() + 3.0
-    while True:
-        time.sleep(0.1)
-        p2 = client.call("status")["pose_cmd"]
-        if p2 == p1:
-            break
-        assert time.monotonic() < t_rest, "still moving 3 s after pause"
-        p1 = p2
+    p1 = wait_standstill(client, timeout_s=3.0)["pose_cmd"]
     time.sleep(0.3)
     st = client.call("status")
     assert st["pose_cmd"] == p1 and st["state"] == "paused"
@@ -270,13 +264,8 @@ def test_feed_hold_acts_on_the_rows_the_drives_get_next_not_after_the_queue(cfg,
             assert time.monotonic() - t0 < 20.0
             time.sleep(0.005)
     at_pause = np.asarray(client.call("pause")["pose_cmd"])
-    last, still = None, 0
-    while still < 5:                        # standstill: the same commanded pose 5 polls in a row
-        assert time.monotonic() - t0 < 30.0
-        time.sleep(0.01)
-        st = client.call("status")
-        still = still + 1 if st["pose_cmd"] == last else 0
-        last = st["pose_cmd"]
+    # standstill: the same commanded pose 5 polls in a row, within 30 s of the program's start
+    st = wait_standstill(client, timeout_s=30.0 - (time.monotonic() - t0), interval_s=0.01, polls=5)
     assert st["state"] == "paused"
     travel_mm = abs(st["pose_cmd"][0] - at_pause[0])
     lead_s = core.REWIND_LEAD_S + core.FEED_CHUNK_ROWS * cfg.cycle.period_s

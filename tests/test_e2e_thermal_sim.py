@@ -18,7 +18,7 @@ from hexacnc.config import load_config
 from hexacnc.kinematics import Hexapod
 from hexacnc.pose import matrix_from_euler
 
-from e2e_fixtures import client, core  # noqa: F401  (shared fixtures; cfg and machine are overridden below)
+from e2e_fixtures import client, running_machine  # noqa: F401  (shared fixtures; cfg and machine are overridden below)
 
 SCALE = 1800.0
 RATE_MM_S = 0.0035      # the most the 0.5 ms cycle's acceleration guard allows (3.9 um/s)
@@ -39,17 +39,7 @@ def machine(cfg):
     """As the shared fixture, but the hot loop and the feeder with SCHED_FIFO when permitted: this test
     moves for seconds while the accelerated plant and the coupled drives load the 2-core machine,
     and a starved feeder would end it with a dead-setpoint-source stop."""
-    import os
-    import shutil
-    import tempfile
-    from hexacnc.daemon.server import SocketServer
-    d = tempfile.mkdtemp(prefix="hxt", dir="/tmp")
-    daemon = core.Daemon(cfg, realtime=True)
-    srv = SocketServer(daemon, cfg, os.path.join(d, "thermal.sock")).start()
-    yield daemon, srv
-    srv.close()
-    daemon.close()
-    shutil.rmtree(d, ignore_errors=True)
+    yield from running_machine(cfg, realtime=True, name="thermal")
 
 
 def _expected_cmd(cfg, hx, st):
