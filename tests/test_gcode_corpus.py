@@ -119,6 +119,9 @@ def test_impeller_with_its_kinematics_m_codes_as_no_ops_is_refused_for_a_joint_l
     with pytest.raises(GcodeError) as eg:
         program_from_config(text, "impeller", base)
     assert (eg.value.line, eg.value.code) == (4, "unsupported")
+    # a built-in code cannot be declared a no-op through the API either
+    with pytest.raises(GcodeError, match="noop_m_codes"):
+        parse_program("G0 X1\nM3\n", "api", noop_m_codes=[428, 3])
 
 
 def test_impeller_without_its_user_m_codes_is_inverse_time_five_axis():

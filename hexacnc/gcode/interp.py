@@ -109,7 +109,8 @@ class Interpreter(FlowMixin, MotionMixin):
     def __init__(self, text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,
                  tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                  block_delete: bool = True, max_lines: int = 20_000_000,
-                 max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None):
+                 max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None,
+                 noop_m_codes=()):
         if not isinstance(text, str):
             raise GcodeError(f"program text must be str, got {type(text).__name__}", None, None, "syntax")
         self.name = name
@@ -143,7 +144,12 @@ class Interpreter(FlowMixin, MotionMixin):
                     raise GcodeError(f"tool table entry {k!r}: {v!r} is invalid", None, None, "tool")
                 self.tools[t] = length
         self.block_delete = bool(block_delete)
-        self.noop_m: frozenset = frozenset()     #: user/remap M-codes accepted as no-ops
+        noop = [int(m) for m in noop_m_codes]
+        bad = [m for m in noop if not 100 <= m <= 9999 or m in _M_GROUP]
+        if bad:
+            raise GcodeError(f"noop_m_codes {bad}: only user and remap M-codes (100..9999) can be no-ops",
+                             None, None, "value")
+        self.noop_m: frozenset = frozenset(noop)    #: user/remap M-codes accepted as no-ops
         self.max_lines = int(max_lines)
         self.max_blocks = int(max_blocks)
         self.max_depth = int(max_call_depth)
@@ -703,14 +709,13 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     the platform frame (G43 shifts the controlled point along it).
     ``block_delete``: skip lines starting with '/'.  ``g28_pose``/``g30_pose``:
     the stored G28/G30 positions (#5161.., #5181..; machine tool-tip poses, mm
-    and deg; default zeros as in LinuxCNC).  ``noop_m_codes``: user/remap M-codes (>= 100) accepted
+    and deg; default zeros as in LinuxCNC).  ``noop_m_codes``: user/remap M-codes (100..9999) accepted
     as no-ops, each occurrence noted in ``Program.messages``.  Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
-                     max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose)
-    it.noop_m = frozenset(int(m) for m in noop_m_codes if int(m) >= 100)
+                     max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose, noop_m_codes=noop_m_codes)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()
