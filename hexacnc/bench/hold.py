@@ -75,8 +75,9 @@ def main(args: argparse.Namespace) -> int:
     # the run (stated in the output); every strut limit stays as configured
     cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, max_overruns_in_row=1000, following_error_mm=25.0))
     speeds = [float(v) for v in str(args.speeds).split(",") if v.strip()]
-    off = np.asarray(machine_defaults(cfg)["work_offsets"][1], dtype=float)
-    home_tip_z = -1140.0
+    md = machine_defaults(cfg)
+    off = np.asarray(md["work_offsets"][1], dtype=float)
+    home_tip_z = float(md["start_pose"][2]) + 10.0      # the lines run 10 mm above the home tool tip
     tmp = tempfile.mkdtemp(prefix="hxhold", dir="/tmp")
     load0 = os.getloadavg()
     daemon = core.Daemon(cfg, realtime=not args.no_realtime)
