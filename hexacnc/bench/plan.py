@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import os
 import time
 from pathlib import Path
@@ -48,15 +49,28 @@ def _tip(cfg, P):
     return out
 
 
-def topp_path_blocks(cfg):
-    """A five-axis path in the default workspace: lines with rotations, helical arcs, one exact stop."""
+def _feeds(feed_mm_s, n: int) -> list:
+    """Per-move feeds (mm/s): a scalar for all, or a sequence cycled over the moves."""
+    if feed_mm_s is None:
+        return [FEED_LIFTED] * n
+    if np.ndim(feed_mm_s) == 0:
+        return [float(feed_mm_s)] * n
+    f = [float(v) for v in feed_mm_s]
+    return [f[i % len(f)] for i in range(n)]
+
+
+def topp_path_blocks(cfg, feed_mm_s=None):
+    """A five-axis path in the default workspace: lines with rotations, helical arcs, one exact stop.
+
+    ``feed_mm_s``: None (a feed far above what the struts allow: only strut limits bind), a number, or
+    one per move (cycled)."""
     from ..gcode.blocks import Block
     home = np.asarray(cfg.home_pose, dtype=float)
     offs = [[0, 0, 0, 0, 0, 0], [100, 0, 0, 0, 0, 0], [100, 100, -30, 8, 0, 0], [-100, 100, -30, 8, -6, 10],
             [-100, -100, 20, -5, -6, 10], [60, -100, 20, -5, 5, -10], [60, 40, -60, 0, 5, -10],
             [-40, 40, 0, 0, 0, 0], [-40, -40, 0, 0, 0, 0], [0, 0, 0, 0, 0, 0]]
     tips = [_tip(cfg, home + np.asarray(o, dtype=float)) for o in offs]
-    F = 1e6     # feed far above what the struts allow: only strut limits bind
+    F = _feeds(feed_mm_s, len(tips) - 1)
     blocks = []
     line = 1
     for i in range(len(tips) - 1):
@@ -65,23 +79,25 @@ def topp_path_blocks(cfg):
             # a helical arc in XY around the midpoint (half turn plus the Z change)
             ctr = 0.5 * (a[:3] + b[:3])
             ctr[2] = a[2]
-            blocks.append(Block("arc", line, a, b, feed_mm_s=F, center=ctr, normal=np.array([0, 0, 1.0]),
+            blocks.append(Block("arc", line, a, b, feed_mm_s=F[i], center=ctr, normal=np.array([0, 0, 1.0]),
                                 blend_tolerance_mm=0.5))
         else:
-            blocks.append(Block("line", line, a, b, feed_mm_s=F, blend_tolerance_mm=0.5, exact_stop=(i == 3)))
+            blocks.append(Block("line", line, a, b, feed_mm_s=F[i], blend_tolerance_mm=0.5, exact_stop=(i == 3)))
         line += 1
     return blocks
 
 
-def smooth_path_blocks(cfg):
-    """A gentler five-axis path: long moves meeting at shallow angles (< 20 deg), large helical arcs."""
+def smooth_path_blocks(cfg, feed_mm_s=None):
+    """A gentler five-axis path: long moves meeting at shallow angles (< 20 deg), large helical arcs.
+
+    ``feed_mm_s`` as in :func:`topp_path_blocks`."""
     from ..gcode.blocks import Block
     home = np.asarray(cfg.home_pose, dtype=float)
     offs = [[-120, -60, 0, 0, 0, 0], [0, -80, 10, 4, 0, 5], [120, -60, 20, 8, 3, 10], [130, 60, 20, 8, 3, 10],
             [20, 110, 0, 2, -3, 0], [-100, 100, -20, -4, -6, -8]]
     tips = [_tip(cfg, home + np.asarray(o, dtype=float)) for o in offs]
-    F = 1e6
-    blocks = [Block("line", i + 1, tips[i], tips[i + 1], feed_mm_s=F, blend_tolerance_mm=0.5)
+    F = _feeds(feed_mm_s, len(tips))
+    blocks = [Block("line", i + 1, tips[i], tips[i + 1], feed_mm_s=F[i], blend_tolerance_mm=0.5)
               for i in range(len(tips) - 1)]
     # close with a large helical arc back towards the start, then a line home
     a = tips[-1]
@@ -92,13 +108,34 @@ def smooth_path_blocks(cfg):
     r0 = np.linalg.norm((a[:3] - ctr)[:2])
     d = (b2[:3] - ctr)[:2]
     b2[:2] = ctr[:2] + d / np.linalg.norm(d) * r0
-    blocks.append(Block("arc", len(blocks) + 1, a, b2, feed_mm_s=F, center=ctr, normal=np.array([0, 0, 1.0]),
+    blocks.append(Block("arc", len(blocks) + 1, a, b2, feed_mm_s=F[-1], center=ctr, normal=np.array([0, 0, 1.0]),
                         blend_tolerance_mm=0.5))
     return blocks
 
 
+#: the "stops" bench path: (length mm, direction) of each exact-stop move, tool-tip translations
+STOP_MOVES = ((2.0, (1, 0, 0)), (40.0, (0, 1, 0)), (5.0, (0, 0, -1)), (25.0, (-1, -1, 0)), (3.0, (1, 0, 1)),
+              (12.0, (0, -1, -1)), (8.0, (-1, 1, 1)), (30.0, (1, 0, 0)), (4.0, (0, 1, -1)), (18.0, (-1, -1, 1)))
+
+
+def stops_path_blocks(cfg, feed_mm_s=None, moves=STOP_MOVES):
+    """Short exact-stop (G61) line moves of 2-40 mm in different directions, rest to rest, from the
+    home tool tip (translations only).  ``feed_mm_s`` as in :func:`topp_path_blocks`."""
+    from ..gcode.blocks import Block
+    tip = _tip(cfg, np.asarray(cfg.home_pose, dtype=float))
+    F = _feeds(feed_mm_s, len(moves))
+    blocks = []
+    for i, (length, direction) in enumerate(moves):
+        u = np.asarray(direction, dtype=float)
+        nxt = tip.copy()
+        nxt[:3] += float(length) * u / np.linalg.norm(u)
+        blocks.append(Block("line", i + 1, tip, nxt, feed_mm_s=F[i], blend_tolerance_mm=0.5, exact_stop=True))
+        tip = nxt
+    return blocks
+
+
 def bench_topp(cfg, gridpoints: int, corpus: Path | None = None,
-               corpus_files=("tort.ngc", "arcspiral.ngc", "3D_Chips.ngc")) -> dict:
+               corpus_files=("tort.ngc", "arcspiral.ngc", "3D_Chips.ngc"), programmed_feeds: bool = True) -> dict:
     out = {"corners": _bench_topp(cfg, gridpoints, topp_path_blocks(cfg),
                                   "9 moves (lines with A/B/C, helical arc), right-angle corners, G64 P0.5, "
                                   "one exact stop"),
@@ -106,6 +143,29 @@ def bench_topp(cfg, gridpoints: int, corpus: Path | None = None,
                                  "6 moves with A/B/C meeting at shallow angles, large helical arc, G64 P0.5")}
     if corpus is not None:
         out["corpus"] = bench_topp_corpus(cfg, gridpoints, corpus, corpus_files)
+    out["stops"] = _bench_topp(cfg, gridpoints, stops_path_blocks(cfg),
+                               f"{len(STOP_MOVES)} exact-stop (G61) tool-tip translations of 2-40 mm in different "
+                               "directions, rest to rest, feeds lifted")
+    if programmed_feeds:
+        fm = BENCH_FEEDS_MM_MIN
+        pf = {"note": "the same comparison with the programs' own feeds kept: F words (mm/min), rapids at "
+                      "[planner] rapid_feed_mm_min, G93 inverse time; dwell times zeroed (the stops remain); the "
+                      "angular-velocity limit lifted for both as in the lifted comparison. TOPP-RA gets the "
+                      "planner's feed bound |d tip/ds| s_dot <= F (tip xyz speed; deg/s on rotary-only moves) "
+                      "through a 7th pseudo-coordinate q7 = scaled path parameter whose velocity limit "
+                      "F/|d tip/ds| varies along the path (toppra JointVelocityConstraintVarying, evaluated on "
+                      "every piece overlapping each grid cell) and whose acceleration limit "
+                      f"({PSEUDO_ACC_LIFTED:g}) never binds. Bench paths corners/smooth: F "
+                      + "/".join(f"{f:g}" for f in fm) + " mm/min cycled over their moves",
+              "corners": _bench_topp(cfg, gridpoints, topp_path_blocks(cfg, [f / 60.0 for f in fm]),
+                                     "corners, F " + "/".join(f"{f:g}" for f in fm) + " mm/min cycled per move",
+                                     programmed_feeds=True),
+              "smooth": _bench_topp(cfg, gridpoints, smooth_path_blocks(cfg, [f / 60.0 for f in fm]),
+                                    "smooth, F " + "/".join(f"{f:g}" for f in fm) + " mm/min cycled per move",
+                                    programmed_feeds=True)}
+        if corpus is not None:
+            pf.update(bench_topp_corpus(cfg, gridpoints, corpus, corpus_files, programmed_feeds=True))
+        out["programmed_feeds"] = pf
     return out
 
 
@@ -124,11 +184,18 @@ def _lift_feeds(blocks):
     return out
 
 
-def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files) -> dict:
-    """TOPP-RA against hexacnc on corpus programs (bench placement, feeds lifted, dwells zeroed)."""
+def _zero_dwells(blocks):
+    """The same blocks with dwell times zeroed (still stops); feeds as programmed."""
+    return [dataclasses.replace(b, seconds=0.0) if b.seconds else b for b in blocks]
+
+
+def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files, programmed_feeds: bool = False) -> dict:
+    """TOPP-RA against hexacnc on corpus programs (bench placement, dwells zeroed, feeds lifted unless
+    ``programmed_feeds``)."""
     res = {"placement": "G54 origin = home tool-tip position minus the program's bounding-box centre; no scaling",
-           "feeds": "lifted for both (only strut velocity/acceleration bind; hexacnc also its jerk limit); "
-                    "dwell times zeroed (the stops remain)"}
+           "feeds": ("as programmed (F, rapids at [planner] rapid_feed_mm_min, G93) for both; " if programmed_feeds
+                     else "lifted for both (only strut velocity/acceleration bind; hexacnc also its jerk limit); ")
+           + "dwell times zeroed (the stops remain)"}
     for name in files:
         f = corpus / name
         if not f.is_file():
@@ -136,7 +203,8 @@ def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files) -> dict:
             continue
         try:
             prog, wo = _place(f.read_text(encoding="utf-8", errors="replace"), name, cfg)
-            r = _bench_topp(cfg, gridpoints, _lift_feeds(prog.blocks), f"{name} (corpus)")
+            blocks = _zero_dwells(prog.blocks) if programmed_feeds else _lift_feeds(prog.blocks)
+            r = _bench_topp(cfg, gridpoints, blocks, f"{name} (corpus)", programmed_feeds=programmed_feeds)
         except HexacncError as exc:
             res[name] = {"planned": False, "reason": str(exc)}
             continue
@@ -151,54 +219,265 @@ FEED_LIFTED = 1e6
 #: TOPP-RA grid step (path units) on long sections, and the cap on its grid points per section
 TOPPRA_STEP = 0.25
 TOPPRA_MAX_GRID = 40_000
+#: acceleration bound of the path pseudo-coordinate that carries the feed limit to TOPP-RA (never binds)
+PSEUDO_ACC_LIFTED = 1e12
+#: programmed feeds of the two bench paths in the programmed-feeds comparison (mm/min, cycled per move)
+BENCH_FEEDS_MM_MIN = (6000.0, 3000.0, 60000.0)
 
 
-def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
+def _lifted_config(cfg, programmed_feeds: bool):
+    """The angular-velocity limit lifted; also the rapid feed unless the program's feeds are kept."""
+    if programmed_feeds:
+        pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6)
+    else:
+        pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6, rapid_feed_mm_min=1e9)
+    return cfg.replace(planner=pc)
+
+
+def _rest_points(plan) -> list:
+    """Path positions (mm) where hexacnc's plan is at rest: programmed stops, stopping events, both ends."""
+    path = plan.path
+    rest = {float(v) for v in np.asarray(plan.grid_s)[np.asarray(plan.grid_x) <= 0.0]}
+    return sorted({0.0, path.total} | {float(path.s0[m] + path.slen[m]) for m in path.stops_after} | rest)
+
+
+def _sections(stops) -> list:
+    return [(a, b) for a, b in zip(stops[:-1], stops[1:]) if b - a >= 1e-9]
+
+
+def feed_speed_limit(path, s: np.ndarray, half_cell: float) -> np.ndarray:
+    """The planner's feed bound on the path speed (s-units/s) at ``s`` (mm): ``feed / |d tip/ds|``.
+
+    ``|d tip/ds|`` is the planner's measure (tip xyz speed per s-unit; for rotary-only stretches the
+    angular speed in deg), by the same central difference.  Every piece overlapping
+    ``[s - half_cell, s + half_cell]`` is taken (clamped into the piece), so a lower feed on a piece
+    between two grid points is not missed.
+    """
+    from ..planner.plan import FD_STEP
+    s = np.asarray(s, dtype=float)
+    lo = path.piece_at(s - half_cell)
+    hi = path.piece_at(s + half_cell)
+    out = np.full(s.shape, np.inf)
+    for k in range(int(np.max(hi - lo)) + 1 if s.size else 0):
+        p = np.minimum(lo + k, hi)
+        sc = np.clip(s, path.s0[p], path.s0[p] + path.slen[p])
+        tm, tp = path.tips(p, [sc - FD_STEP, sc + FD_STEP])
+        dtip = (tp - tm) / (2 * FD_STEP)
+        xyz = np.linalg.norm(dtip[:, :3], axis=1)
+        ang = np.linalg.norm(np.degrees(dtip[:, 3:]), axis=1)
+        meas = np.where(xyz > 1e-6, xyz, np.maximum(ang, 1e-12))
+        out = np.minimum(out, path.feed[p] / meas)
+    return out
+
+
+@dataclasses.dataclass
+class _Section:
+    a: float                    #: start (mm of path)
+    b: float                    #: end
+    grid: np.ndarray            #: TOPP-RA grid, scaled path parameter in [0, 1]
+    sd: np.ndarray              #: TOPP-RA path speed at the grid (scaled units / s)
+    duration_s: float
+    feed_sd: np.ndarray | None  #: feed bound on the scaled path speed at the grid (programmed feeds only)
+
+
+def _toppra_section(plan, cfg, a: float, b: float, gridpoints: int, feeds: bool) -> _Section:
+    """TOPP-RA on the stop-to-stop section [a, b] of the plan's path: strut v/a limits, and with
+    ``feeds`` the feed bound through a 7th pseudo-coordinate ``q7 = (s - a) / (b - a)`` whose velocity
+    limit varies along the path (``JointVelocityConstraintVarying``) and whose acceleration never binds."""
     import toppra as ta
     import toppra.algorithm as algo
     import toppra.constraint as constraint
     from ..planner import path as P
+    path, hx = plan.path, plan.hexapod
+    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
+    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
+    # dense samples of L(s) on the section (2 samples per 0.05 mm at least)
+    n = max(200, int((b - a) / 0.05))
+    s = np.linspace(a, b, n + 1)
+    s_in = s.copy()
+    s_in[-1] = b - 1e-9
+    s_in[0] = a + 1e-9
+    X = path.platform(path.piece_at(s_in), s_in)
+    L = P.strut_lengths(X, hx.plat, hx.base)
+    # path parameter scaled to [0, 1]: TOPP-RA's LP tolerances fail on fine grids in mm (uncontrollable)
+    sig = (s - a) / (b - a)
+    ng = int(min(TOPPRA_MAX_GRID, max(gridpoints, (b - a) / TOPPRA_STEP)))
+    grid = np.linspace(0.0, 1.0, ng + 1)
+    vl = np.stack([-vmax, vmax], axis=1)
+    al = np.stack([-amax, amax], axis=1)
+    feed_sd = None
+    if feeds:
+        spl = ta.SplineInterpolator(sig, np.column_stack([L, sig]))
+        sg = np.clip(a + grid * (b - a), a, b)
+        feed_sd = np.minimum(feed_speed_limit(path, sg, 0.5 * (b - a) / ng) / (b - a), 1e12)
+        vlim = np.empty((ng + 1, 7, 2))
+        vlim[:, :6, :] = vl[None]
+        vlim[:, 6, 0] = -feed_sd
+        vlim[:, 6, 1] = feed_sd
+        cons = [constraint.JointVelocityConstraintVarying(lambda x: vlim[min(ng, max(0, int(round(x * ng))))]),
+                constraint.JointAccelerationConstraint(np.vstack([al, [[-PSEUDO_ACC_LIFTED, PSEUDO_ACC_LIFTED]]]))]
+    else:
+        spl = ta.SplineInterpolator(sig, L)
+        cons = [constraint.JointVelocityConstraint(vl), constraint.JointAccelerationConstraint(al)]
+    inst = algo.TOPPRA(cons, spl, gridpoints=grid, parametrizer="ParametrizeConstAccel")
+    traj = inst.compute_trajectory(0, 0)
+    if traj is None:
+        raise HexacncError(f"TOPP-RA found no parameterisation of section [{a:.3f}, {b:.3f}]")
+    return _Section(a, b, np.asarray(inst.problem_data.gridpoints, dtype=float),
+                    np.asarray(inst.problem_data.sd_vec, dtype=float), float(traj.duration), feed_sd)
+
+
+def toppra_utilisation(plan, cfg, sections) -> dict:
+    """Peak strut velocity, acceleration and jerk of TOPP-RA's trajectory as fractions of the limits.
+
+    Each section's profile (constant path acceleration between grid points, as TOPP-RA's
+    ``ParametrizeConstAccel``) is sampled at the cycle period (times clamped to the section's end),
+    padded with three samples at rest on both sides, mapped through the exact inverse kinematics
+    of the executed path, and differentiated by finite differences at the cycle period.
+    """
+    from ..planner import path as P
+    path, hx = plan.path, plan.hexapod
+    dt = float(cfg.cycle.period_s)
+    lim = [np.asarray(x, dtype=float) for x in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+                                                   cfg.max_jerk_mm_s3)]
+    peak = np.zeros(3)
+    for sec in sections:
+        h = np.diff(sec.grid)
+        v0, v1 = sec.sd[:-1], sec.sd[1:]
+        dtau = 2.0 * h / np.maximum(v0 + v1, 1e-300)
+        ts = np.concatenate([[0.0], np.cumsum(dtau)])
+        u = (v1 * v1 - v0 * v0) / (2.0 * h)
+        T = ts[-1]
+        t = np.minimum(np.arange(int(np.ceil(T / dt)) + 1) * dt, T)
+        i = np.clip(np.searchsorted(ts, t, side="right") - 1, 0, h.shape[0] - 1)
+        tau = t - ts[i]
+        sig = np.clip(sec.grid[i] + v0[i] * tau + 0.5 * u[i] * tau * tau, sec.grid[i], sec.grid[i + 1])
+        s = np.clip(sec.a + sig * (sec.b - sec.a), sec.a + 1e-9, sec.b - 1e-9)
+        L = P.strut_lengths(path.platform(path.piece_at(s), s), hx.plat, hx.base)
+        L = np.vstack([np.repeat(L[:1], 3, axis=0), L, np.repeat(L[-1:], 3, axis=0)])
+        for k in range(3):
+            L = np.diff(L, axis=0) / dt
+            peak[k] = max(peak[k], float(np.max(np.abs(L) / lim[k][None])))
+    return {"velocity": float(peak[0]), "acceleration": float(peak[1]), "jerk": float(peak[2])}
+
+
+def rest_to_rest_time(d_mm: float, v_max: float, a_max: float, j_max: float) -> float:
+    """Minimum time (s) of any 1-DOF profile moving ``|d_mm|`` from rest to rest under
+    ``|v| <= v_max``, ``|a| <= a_max``, ``|j| <= j_max``: Ruckig's time-optimal duration
+    (offline ``calculate``; constructed with one argument, never the cloud ``max_waypoints``).
+    ``j_max = inf``: the closed-form bang-bang time (:func:`double_s_time`)."""
+    d = abs(float(d_mm))
+    if d == 0.0:
+        return 0.0
+    if not math.isfinite(j_max):
+        return double_s_time(d, v_max, a_max, j_max)
+    from ruckig import InputParameter, Result, Ruckig, Trajectory
+    otg = Ruckig(1)
+    inp = InputParameter(1)
+    inp.current_position, inp.current_velocity, inp.current_acceleration = [0.0], [0.0], [0.0]
+    inp.target_position, inp.target_velocity, inp.target_acceleration = [d], [0.0], [0.0]
+    inp.max_velocity, inp.max_acceleration, inp.max_jerk = [float(v_max)], [float(a_max)], [float(j_max)]
+    traj = Trajectory(1)
+    res = otg.calculate(inp, traj)
+    if res not in (Result.Working, Result.Finished):
+        raise HexacncError(f"Ruckig could not time a rest-to-rest move of {d} mm: {res}")
+    return float(traj.duration)
+
+
+def double_s_time(d_mm: float, v_max: float, a_max: float, j_max: float) -> float:
+    """Closed-form minimum rest-to-rest time (s) over ``|d_mm|`` under v/a/j limits (``j_max`` may be inf)."""
+    d, v, a, j = abs(float(d_mm)), float(v_max), float(a_max), float(j_max)
+    if d == 0.0:
+        return 0.0
+    if not math.isfinite(j):
+        return d / v + v / a if d >= v * v / a else 2.0 * math.sqrt(d / a)
+    # time to reach speed w from rest (and the distance covered is w * t / 2 by symmetry)
+    ta = (lambda w: w / a + a / j if w * j >= a * a else 2.0 * math.sqrt(w / j))
+    if d >= v * ta(v):
+        return d / v + ta(v)
+    # v_max not reached: peak speed w with d = w * ta(w)
+    if a * a / j * (a / j) * 2.0 <= d:
+        # a_max reached: d = w^2 / a + w a / j
+        w = 0.5 * (-a * a / j + math.sqrt((a * a / j) ** 2 + 4.0 * a * d))
+        return 2.0 * ta(w)
+    return 4.0 * (d / (2.0 * j)) ** (1.0 / 3.0)
+
+
+def jerk_floor(plan, cfg, stops=None, max_moves: int = 20) -> dict:
+    """A lower bound on the duration of every jerk-limited plan that rests where this plan rests.
+
+    Per rest-to-rest section and strut i the strut must move by the net ``|dL_i|`` from rest to rest
+    under its v/a/j limits: at least :func:`rest_to_rest_time`; the section takes at least the
+    maximum over struts; the sum over sections bounds the whole path (stop holds and dwells not
+    counted).  The same with ``j_max = inf`` bounds every plan under v/a limits only (TOPP-RA's problem).
+    """
+    from ..planner import path as P
+    path, hx = plan.path, plan.hexapod
+    stops = _rest_points(plan) if stops is None else stops
+    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
+    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
+    jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
+    secs = _sections(stops)
+    if not secs:
+        return {"jerk_floor_s": 0.0, "bang_bang_floor_s": 0.0, "rest_to_rest_sections": 0}
+    ends = np.array(secs, dtype=float)
+    sa, sb = ends[:, 0], ends[:, 1]
+    La = P.strut_lengths(path.platform(path.piece_at(sa), sa), hx.plat, hx.base)
+    Lb = P.strut_lengths(path.platform(path.piece_at(np.maximum(sb - 1e-9, sa)), sb), hx.plat, hx.base)
+    dL = np.abs(Lb - La)
+    moves = []
+    fl = bb = 0.0
+    for k in range(dL.shape[0]):
+        tj = max(rest_to_rest_time(dL[k, i], vmax[i], amax[i], jmax[i]) for i in range(6))
+        tb = max(double_s_time(dL[k, i], vmax[i], amax[i], math.inf) for i in range(6))
+        fl += tj
+        bb += tb
+        moves.append({"s_from_mm": round(float(sa[k]), 4), "s_to_mm": round(float(sb[k]), 4),
+                      "max_abs_dL_mm": round(float(dL[k].max()), 6), "jerk_floor_s": round(tj, 6),
+                      "bang_bang_floor_s": round(tb, 6)})
+    out = {"jerk_floor_s": fl, "bang_bang_floor_s": bb, "rest_to_rest_sections": len(moves)}
+    if len(moves) <= max_moves:
+        out["moves"] = moves
+    return out
+
+
+def _bench_topp(cfg, gridpoints: int, blocks, label: str, programmed_feeds: bool = False) -> dict:
     from ..planner import plan_program
 
-    pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6, rapid_feed_mm_min=1e9)
-    cfg = cfg.replace(planner=pc)
+    cfg = _lifted_config(cfg, programmed_feeds)
     t0 = time.perf_counter()
     plan = plan_program(blocks, cfg)
     t_plan = time.perf_counter() - t0
-    hx = plan.hexapod
-    path = plan.path
     # sections between stops, on the executed (blended) path
     # (every point where hexacnc's plan is at rest: programmed stops and stopping events alike)
-    rest = {float(v) for v in np.asarray(plan.grid_s)[np.asarray(plan.grid_x) <= 0.0]}
-    stops = sorted({0.0, path.total} | {float(path.s0[m] + path.slen[m]) for m in path.stops_after} | rest)
-    vl = np.stack([-cfg.max_velocity_mm_s, cfg.max_velocity_mm_s], axis=1)
-    al = np.stack([-cfg.max_acceleration_mm_s2, cfg.max_acceleration_mm_s2], axis=1)
-    total = 0.0
-    sections = []
+    stops = _rest_points(plan)
     t1 = time.perf_counter()
-    for a, b in zip(stops[:-1], stops[1:]):
-        if b - a < 1e-9:
-            continue
-        # dense samples of L(s) on the section (2 samples per 0.05 mm at least)
-        n = max(200, int((b - a) / 0.05))
-        s = np.linspace(a, b, n + 1)
-        s_in = s.copy()
-        s_in[-1] = b - 1e-9
-        s_in[0] = a + 1e-9
-        X = path.platform(path.piece_at(s_in), s_in)
-        L = P.strut_lengths(X, hx.plat, hx.base)
-        # path parameter scaled to [0, 1]: TOPP-RA's LP tolerances fail on fine grids in mm (uncontrollable)
-        spl = ta.SplineInterpolator((s - a) / (b - a), L)
-        ng = int(min(TOPPRA_MAX_GRID, max(gridpoints, (b - a) / TOPPRA_STEP)))
-        inst = algo.TOPPRA([constraint.JointVelocityConstraint(vl), constraint.JointAccelerationConstraint(al)],
-                           spl, gridpoints=np.linspace(0.0, 1.0, ng + 1),
-                           parametrizer="ParametrizeConstAccel")
-        traj = inst.compute_trajectory(0, 0)
-        if traj is None:
-            raise HexacncError(f"TOPP-RA found no parameterisation of section [{a:.3f}, {b:.3f}]")
-        sections.append({"s_from": round(a, 4), "s_to": round(b, 4), "toppra_s": round(float(traj.duration), 6)})
-        total += float(traj.duration)
+    secs = [_toppra_section(plan, cfg, a, b, gridpoints, programmed_feeds) for a, b in _sections(stops)]
     t_topp = time.perf_counter() - t1
+    total = float(sum(sec.duration_s for sec in secs))
+    tu = toppra_utilisation(plan, cfg, secs)
+    fl = jerk_floor(plan, cfg, stops)
+    floor = _floor_report(fl, total, plan.duration_s)
+    tu_note = ("TOPP-RA's trajectory (constant path acceleration between its grid points) sampled at the cycle "
+               f"period ({float(cfg.cycle.period_s) * 1e3:g} ms), strut lengths by exact inverse kinematics of "
+               "the executed path, finite differences at the cycle period, peak |v|, |a|, |jerk| over the "
+               "limits; hexacnc_utilisation is the same measurement of hexacnc's table")
+    if programmed_feeds:
+        return {
+            "path": label,
+            "hexacnc_duration_s": round(plan.duration_s, 6),
+            "toppra_duration_s": round(total, 6),
+            "ratio": round(plan.duration_s / total, 6),
+            "within_5_percent": bool(plan.duration_s <= 1.05 * total),
+            "hexacnc_utilisation": {k: round(v, 6) for k, v in plan.utilisation.items()},
+            "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
+            "toppra_utilisation": {k: round(v, 6) for k, v in tu.items()},
+            "toppra_utilisation_note": tu_note,
+            "hexacnc_planning_s": round(t_plan, 4),
+            "toppra_planning_s": round(t_topp, 4),
+            "feed_bound": _feed_bound(plan, secs),
+            "jerk_floor": floor,
+        }
     from ..planner.topp import interval_times
     gs = np.asarray(plan.grid_s)
     raw_s = float(np.sum(interval_times(np.maximum(np.diff(gs), 0.0), np.asarray(plan.grid_x))))
@@ -213,7 +492,8 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
         "hexacnc_planning_s": round(t_plan, 4),
         "toppra_planning_s": round(t_topp, 4),
-        "sections": sections,
+        "sections": [{"s_from": round(sec.a, 4), "s_to": round(sec.b, 4), "toppra_s": round(sec.duration_s, 6)}
+                     for sec in secs],
         "note": "TOPP-RA: strut velocity+acceleration only (no jerk limit, no standstill at stops); "
                 "hexacnc: also jerk-limited, stops held for the smoothing window",
         "jerk_filter_s": round(float(plan.filter_s), 6),
@@ -237,7 +517,63 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str) -> dict:
         "gap_reason": "jerk limiting by a moving average of width jerk_filter_s = 2 max(a_max/j_max): every "
                       "stop, slowdown and curvature-bound stretch costs time a jerk-free profile does not pay; "
                       "a jerk-aware (third-order) pass that only pays where the jerk limit binds is not implemented",
+        "toppra_utilisation": {k: round(v, 6) for k, v in tu.items()},
+        "toppra_utilisation_note": tu_note,
+        "jerk_floor": floor,
     }
+
+
+def _floor_report(fl: dict, toppra_s: float, hexacnc_s: float) -> dict:
+    jf, bb = fl["jerk_floor_s"], fl["bang_bang_floor_s"]
+    out = {"jerk_floor_s": round(jf, 6), "bang_bang_floor_s": round(bb, 6),
+           "toppra_duration_s": round(toppra_s, 6), "hexacnc_duration_s": round(hexacnc_s, 6),
+           "floor_over_toppra": round(jf / toppra_s, 6) if toppra_s > 0 else None,
+           "hexacnc_over_floor": round(hexacnc_s / jf, 6) if jf > 0 else None,
+           "bang_bang_floor_le_toppra": bool(bb <= toppra_s * (1 + 1e-9)),
+           "floor_excludes_5_percent": bool(jf > 1.05 * toppra_s),
+           "rest_to_rest_sections": fl["rest_to_rest_sections"],
+           "note": "lower bound on every plan that rests where hexacnc's plan rests (programmed stops and "
+                   "stopping events): per rest-to-rest section the max over struts of the minimum time to move "
+                   "that strut by its net |dL| from rest to rest under |v|<=v_max, |a|<=a_max, |j|<=j_max "
+                   "(Ruckig 1-DOF time-optimal, offline), summed over sections; stop holds and dwells not "
+                   "counted. bang_bang_floor_s: the same with j_max infinite (closed form), a lower bound for "
+                   "TOPP-RA's problem. floor_excludes_5_percent: jerk_floor_s > 1.05 x TOPP-RA, i.e. no "
+                   "jerk-limited plan of this path can be within 5 % of TOPP-RA. Only net displacements are "
+                   "used, so the bound is weak on sections with many moves between stops"}
+    if "moves" in fl:
+        out["moves"] = fl["moves"]
+    return out
+
+
+def _feed_bound(plan, secs) -> dict:
+    """Where TOPP-RA's profile runs at the feed bound (within 0.1 %), by path length, overall and per line."""
+    path = plan.path
+    tot = bound = 0.0
+    per_line: dict[int, list] = {}
+    for sec in secs:
+        if sec.feed_sd is None:
+            continue
+        n = sec.grid.shape[0]
+        w = np.full(n, (sec.b - sec.a) / max(n - 1, 1))
+        w[0] = w[-1] = 0.5 * w[0]
+        at = sec.sd >= 0.999 * sec.feed_sd
+        s = np.clip(sec.a + sec.grid * (sec.b - sec.a), sec.a + 1e-9, sec.b - 1e-9)
+        lines = path.line[path.piece_at(s)]
+        tot += float(w.sum())
+        bound += float(w[at].sum())
+        for ln in np.unique(lines):
+            m = lines == ln
+            acc = per_line.setdefault(int(ln), [0.0, 0.0])
+            acc[0] += float(w[m].sum())
+            acc[1] += float(w[m & at].sum())
+    out = {"share": round(bound / tot, 4) if tot > 0 else None,
+           "note": "share of the path length (TOPP-RA grid points weighted by spacing) where TOPP-RA's path "
+                   "speed is within 0.1 % of the feed bound; elsewhere the strut velocity/acceleration limits "
+                   "(or the stops) bind"}
+    if len(per_line) <= 20:
+        out["share_per_line"] = {str(k): round(v[1] / v[0], 4) if v[0] > 0 else None
+                                 for k, v in sorted(per_line.items())}
+    return out
 
 
 def topp_decomposition(plan, cfg) -> dict:
