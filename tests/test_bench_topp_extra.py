@@ -146,3 +146,28 @@ def test_feed_speed_limit_reads_rotary_only_feeds_in_degrees(cfg):
     plan = plan_program([Block("line", 1, a, b, feed_mm_s=5.0, feed_deg_s=5.0)], cfg)
     s = np.linspace(0.0, plan.path.total, 7)
     assert np.allclose(bench.feed_speed_limit(plan.path, s, 0.01), 5.0, rtol=1e-6)
+
+
+def test_piece_grid_resolves_short_blends_the_uniform_grid_steps_over(cfg_free):
+    """A zigzag with G64 P0.01 (blends far shorter than TOPP-RA's 0.25 mm grid step): on the uniform
+    grid TOPP-RA's profile exceeds the strut acceleration limit at the blends, on the piece grid it
+    does not (beyond its constant-acceleration cells), and it is not faster there."""
+    pytest.importorskip("toppra")
+    cfg = cfg_free
+    tip = _home_tip(cfg)
+    blocks = []
+    for i in range(6):
+        nxt = tip.copy()
+        nxt[:3] += [12.0, 12.0 if i % 2 == 0 else -12.0, 0.0]
+        blocks.append(Block("line", i + 1, tip, nxt, feed_mm_s=bench.FEED_LIFTED, blend_tolerance_mm=0.01))
+        tip = nxt
+    plan = plan_program(blocks, cfg)
+    assert np.min(plan.path.slen) < 0.25        # the blends
+    (a, b), = bench._sections(bench._rest_points(plan))
+    uni = bench._toppra_section(plan, cfg, a, b, 200, False)
+    fine = bench._toppra_section(plan, cfg, a, b, 200, False, piece_points=bench.TOPPRA_PIECE_POINTS)
+    s_ends = plan.path.s0[1:]
+    assert np.all(np.min(np.abs(a + fine.grid[:, None] * (b - a) - s_ends[None]), axis=0) < 1e-9)
+    assert bench.toppra_utilisation(plan, cfg, [uni])["acceleration"] > 1.5
+    assert bench.toppra_utilisation(plan, cfg, [fine])["acceleration"] < 1.05
+    assert fine.duration_s > uni.duration_s
