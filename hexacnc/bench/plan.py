@@ -6,7 +6,14 @@
     strut velocity and acceleration limits.  Feed and angular-velocity limits are lifted for both
     so that only the strut limits bind.  hexacnc also honours the jerk limit and stands still for
     the smoothing window at every stop; TOPP-RA does not (its profile has unbounded jerk).
-    Reported: both durations, their ratio, hexacnc's measured peak utilisation.
+    Reported: both durations, their ratio, hexacnc's measured peak utilisation; TOPP-RA's own peak
+    strut velocity/acceleration/jerk (its profile sampled at the cycle period through the exact
+    inverse kinematics: ``toppra_utilisation``); TOPP-RA again on a grid that resolves every path
+    piece (``toppra_piece_grid``); a rest-to-rest lower bound for every jerk-limited plan
+    (``jerk_floor``: Ruckig 1-DOF times of each strut's net displacement between stops), shown on a
+    dedicated path of exact-stop moves (``stops``).  ``programmed_feeds``: the same comparison with the
+    programs' own feeds kept (F, rapids, G93); TOPP-RA gets the planner's feed bound through a
+    pseudo-coordinate with a varying velocity limit.
 (b) ``corpus``: every program of the G-code corpus is interpreted and placed in the workspace
     with a work offset chosen by the bench (G54 origin such that the centre of the program's
     bounding box lands on the tool tip at the home pose; no scaling), then planned.  Reported per
