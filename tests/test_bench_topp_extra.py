@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from hexacnc.bench import plan as bench
+from hexacnc.bench import jerkfloor, toppra_peer
 from hexacnc.config import load_config
 from hexacnc.gcode.blocks import Block
 from hexacnc.kinematics import Hexapod
@@ -56,11 +56,11 @@ def _closed_form(d, v, a, j):
 @pytest.mark.parametrize("vaj", [(500.0, 5000.0, 2e5), (50.0, 5000.0, 2e5), (300.0, 800.0, 1e4)])
 def test_ruckig_rest_to_rest_time_is_the_double_s_time(d, vaj):
     v, a, j = vaj
-    t = bench.rest_to_rest_time(d, v, a, j)
+    t = jerkfloor.rest_to_rest_time(d, v, a, j)
     assert t == pytest.approx(_closed_form(d, v, a, j), abs=1e-6)
-    assert bench.double_s_time(d, v, a, j) == pytest.approx(t, abs=1e-6)
+    assert jerkfloor.double_s_time(d, v, a, j) == pytest.approx(t, abs=1e-6)
     # without a jerk limit: bang-bang, never slower
-    bb = bench.rest_to_rest_time(d, v, a, math.inf)
+    bb = jerkfloor.rest_to_rest_time(d, v, a, math.inf)
     assert bb == pytest.approx(d / v + v / a if d >= v * v / a else 2.0 * math.sqrt(d / a), rel=1e-12)
     assert bb < t
 
@@ -78,8 +78,8 @@ def test_floor_of_a_strut_aligned_move_is_that_struts_double_s_time(cfg_free):
     a = _home_tip(cfg)
     b = a.copy()
     b[:3] += d * u
-    plan = plan_program([Block("line", 1, a, b, feed_mm_s=bench.FEED_LIFTED, exact_stop=True)], cfg)
-    fl = bench.jerk_floor(plan, cfg)
+    plan = plan_program([Block("line", 1, a, b, feed_mm_s=toppra_peer.FEED_LIFTED, exact_stop=True)], cfg)
+    fl = jerkfloor.jerk_floor(plan, cfg)
     assert fl["rest_to_rest_sections"] == 1
     assert fl["moves"][0]["max_abs_dL_mm"] == pytest.approx(d, abs=1e-6)
     v, am, j = cfg.max_velocity_mm_s[0], cfg.max_acceleration_mm_s2[0], cfg.max_jerk_mm_s3[0]
@@ -92,8 +92,8 @@ def test_stops_path_floor_toppra_and_the_peers_jerk(cfg):
     """On rest-to-rest moves: bang-bang floor <= TOPP-RA, jerk floor <= hexacnc; the peer's profile,
     sampled at the cycle period through the exact kinematics, exceeds the jerk limit many times."""
     pytest.importorskip("toppra")
-    moves = bench.STOP_MOVES[:4]
-    r = bench._bench_topp(cfg, 500, bench.stops_path_blocks(cfg, moves=moves), "stops")
+    moves = toppra_peer.STOP_MOVES[:4]
+    r = toppra_peer._bench_topp(cfg, 500, toppra_peer.stops_path_blocks(cfg, moves=moves), "stops")
     fl = r["jerk_floor"]
     for k in ("jerk_floor_s", "bang_bang_floor_s", "toppra_duration_s", "hexacnc_duration_s", "floor_over_toppra",
               "hexacnc_over_floor", "bang_bang_floor_le_toppra", "floor_excludes_5_percent", "note", "moves"):
@@ -115,7 +115,7 @@ def test_programmed_feed_binds_toppra_like_the_planner(cfg):
     a = _home_tip(cfg)
     b = a.copy()
     b[:3] += [30.0, 0.0, 0.0]
-    r = bench._bench_topp(cfg, 500, [Block("line", 1, a, b, feed_mm_s=10.0)], "slow", programmed_feeds=True)
+    r = toppra_peer._bench_topp(cfg, 500, [Block("line", 1, a, b, feed_mm_s=10.0)], "slow", programmed_feeds=True)
     for k in ("hexacnc_duration_s", "toppra_duration_s", "ratio", "within_5_percent", "toppra_utilisation",
               "feed_bound", "jerk_floor", "hexacnc_utilisation", "utilisation_ok"):
         assert k in r, k
@@ -129,12 +129,12 @@ def test_programmed_feed_binds_toppra_like_the_planner(cfg):
 def test_lifted_feed_leaves_the_strut_problem_unchanged(cfg_free):
     """The feed pseudo-coordinate with a lifted feed gives TOPP-RA's strut-only duration."""
     pytest.importorskip("toppra")
-    blocks = bench.stops_path_blocks(cfg_free, moves=bench.STOP_MOVES[:2])
+    blocks = toppra_peer.stops_path_blocks(cfg_free, moves=toppra_peer.STOP_MOVES[:2])
     plan = plan_program(blocks, cfg_free)
-    secs = bench._sections(bench._rest_points(plan))
+    secs = jerkfloor._sections(jerkfloor._rest_points(plan))
     for a, b in secs:
-        s6 = bench._toppra_section(plan, cfg_free, a, b, 500, False)
-        s7 = bench._toppra_section(plan, cfg_free, a, b, 500, True)
+        s6 = toppra_peer._toppra_section(plan, cfg_free, a, b, 500, False)
+        s7 = toppra_peer._toppra_section(plan, cfg_free, a, b, 500, True)
         assert s7.duration_s == pytest.approx(s6.duration_s, rel=1e-9)
 
 
@@ -145,7 +145,7 @@ def test_feed_speed_limit_reads_rotary_only_feeds_in_degrees(cfg):
     b[3] += 10.0
     plan = plan_program([Block("line", 1, a, b, feed_mm_s=5.0, feed_deg_s=5.0)], cfg)
     s = np.linspace(0.0, plan.path.total, 7)
-    assert np.allclose(bench.feed_speed_limit(plan.path, s, 0.01), 5.0, rtol=1e-6)
+    assert np.allclose(toppra_peer.feed_speed_limit(plan.path, s, 0.01), 5.0, rtol=1e-6)
 
 
 def test_piece_grid_resolves_short_blends_the_uniform_grid_steps_over(cfg_free):
@@ -159,15 +159,15 @@ def test_piece_grid_resolves_short_blends_the_uniform_grid_steps_over(cfg_free):
     for i in range(6):
         nxt = tip.copy()
         nxt[:3] += [12.0, 12.0 if i % 2 == 0 else -12.0, 0.0]
-        blocks.append(Block("line", i + 1, tip, nxt, feed_mm_s=bench.FEED_LIFTED, blend_tolerance_mm=0.01))
+        blocks.append(Block("line", i + 1, tip, nxt, feed_mm_s=toppra_peer.FEED_LIFTED, blend_tolerance_mm=0.01))
         tip = nxt
     plan = plan_program(blocks, cfg)
     assert np.min(plan.path.slen) < 0.25        # the blends
-    (a, b), = bench._sections(bench._rest_points(plan))
-    uni = bench._toppra_section(plan, cfg, a, b, 200, False)
-    fine = bench._toppra_section(plan, cfg, a, b, 200, False, piece_points=bench.TOPPRA_PIECE_POINTS)
+    (a, b), = jerkfloor._sections(jerkfloor._rest_points(plan))
+    uni = toppra_peer._toppra_section(plan, cfg, a, b, 200, False)
+    fine = toppra_peer._toppra_section(plan, cfg, a, b, 200, False, piece_points=toppra_peer.TOPPRA_PIECE_POINTS)
     s_ends = plan.path.s0[1:]
     assert np.all(np.min(np.abs(a + fine.grid[:, None] * (b - a) - s_ends[None]), axis=0) < 1e-9)
-    assert bench.toppra_utilisation(plan, cfg, [uni])["acceleration"] > 1.5
-    assert bench.toppra_utilisation(plan, cfg, [fine])["acceleration"] < 1.05
+    assert toppra_peer.toppra_utilisation(plan, cfg, [uni])["acceleration"] > 1.5
+    assert toppra_peer.toppra_utilisation(plan, cfg, [fine])["acceleration"] < 1.05
     assert fine.duration_s > uni.duration_s

@@ -288,7 +288,7 @@ def test_sampler_is_continuous_across_chunks_and_periods(cfg):
 def test_pause_on_a_plan_at_the_strut_limits(cfg, seed):
     """Pause while the nominal plan uses ~99 % velocity / ~93 % acceleration: still within limits, on
     the path, and at rest within half a second."""
-    from hexacnc.bench.plan import topp_path_blocks
+    from hexacnc.bench.toppra_peer import topp_path_blocks
     plan = plan_program(topp_path_blocks(cfg), cfg)
     assert plan.utilisation["velocity"] > 0.9
     tp = np.random.default_rng(seed).uniform(0.3, plan.duration_s - 0.5)

@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from hexacnc.bench import plan as bench
+from hexacnc.bench import toppra_peer
 from hexacnc.config import load_config
 from hexacnc.gcode.blocks import Block
 from hexacnc.planner import plan_program
@@ -77,7 +77,7 @@ def test_topp_pass_against_toppra_and_the_jerk_cost(cfg_free):
     is never faster than that jerk-free optimum; each added requirement (planning shares, constant-speed
     jerk bound, the jerk filter) can only lengthen it."""
     pytest.importorskip("toppra")
-    res = bench._bench_topp(cfg_free, 1000, bench.topp_path_blocks(cfg_free), "corners")
+    res = toppra_peer._bench_topp(cfg_free, 1000, toppra_peer.topp_path_blocks(cfg_free), "corners")
     dec = res["topp_decomposition_s"]
     ref = res["toppra_duration_s"]
     assert dec["va_full"] == pytest.approx(ref, rel=0.02)
@@ -95,7 +95,7 @@ def test_corpus_comparison_keys_and_lifted_feeds(cfg, tmp_path):
     pytest.importorskip("toppra")
     (tmp_path / "tiny.ngc").write_text("G21 G90 G64 P0.2\nG1 X0 Y0 Z0 F600\nG1 X20 Y0\nG4 P0.5\n"
                                        "G2 X40 Y0 I10 J0\nG1 X40 Y15 A3\nM2\n")
-    out = bench.bench_topp_corpus(cfg, 500, tmp_path, ("tiny.ngc", "missing.ngc"))
+    out = toppra_peer.bench_topp_corpus(cfg, 500, tmp_path, ("tiny.ngc", "missing.ngc"))
     r = out["tiny.ngc"]
     assert "skipped" in out["missing.ngc"]
     for k in ("hexacnc_duration_s", "toppra_duration_s", "ratio", "within_5_percent", "hexacnc_utilisation",
@@ -104,6 +104,6 @@ def test_corpus_comparison_keys_and_lifted_feeds(cfg, tmp_path):
     assert r["utilisation_ok"] and r["toppra_duration_s"] > 0
     # feeds lifted: far faster than at F600 (10 mm/s over ~75 mm would take 7.5 s)
     assert r["hexacnc_duration_s"] < 3.0
-    lifted = bench._lift_feeds([Block("line", 1, np.zeros(6), np.ones(6), feed_mm_s=5.0),
+    lifted = toppra_peer._lift_feeds([Block("line", 1, np.zeros(6), np.ones(6), feed_mm_s=5.0),
                                 Block("dwell", 2, seconds=2.0)])
-    assert lifted[0].feed_mm_s == bench.FEED_LIFTED and lifted[1].seconds == 0.0
+    assert lifted[0].feed_mm_s == toppra_peer.FEED_LIFTED and lifted[1].seconds == 0.0
