@@ -12,9 +12,12 @@ Method (see docs/planner.md):
    inverse kinematics; a forward-backward pass on ``s_dot^2`` over the whole
    program (TOPP) under feed, rapid, angular-velocity, strut velocity and
    acceleration limits (and a curvature-jerk bound).
-4. The profile ``s(t)`` sampled at the cycle period and smoothed by a moving
-   average of width ``T = 2 max(A/J)`` (bounded path jerk; stops are holds of at
-   least ``T`` so the smoothed motion really stops there).
+4. The profile ``s(t)`` sampled at the cycle period, rest-to-rest section by
+   section, and smoothed by a moving average of width ``T = 2 max(A/J)``
+   (bounded path jerk; the smoothed motion really rests at every stop).  A
+   section whose speed only rises and then falls (a move between exact stops)
+   gets its peak cut to a plateau of ``1.1 max(A/J)`` and a filter of that width:
+   its acceleration never reverses inside the window.
 5. The struts of the resulting table are measured (finite differences at the
    cycle period); where velocity, acceleration or jerk utilisation exceeds its
    target the speed limit is lowered locally and steps 3-5 repeat.  The reported
@@ -45,6 +48,10 @@ ETA = 0.95
 ETA_V = 1.0
 #: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
 FILTER_JERK_SHARE = 1.0
+#: a rest-to-rest section whose speed only rises and then falls (one peak, cut to a plateau of
+#: at least the filter width) is smoothed by a filter NARROW_MARGIN max(A/J) wide instead of
+#: 2 max(A/J): its acceleration never reverses within the window, so the path jerk stays A/T
+NARROW_MARGIN = 1.1
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.9     # 0.9: 3D_Chips 1.5 % shorter than at 0.8; the verification keeps the total jerk <= ETA
 #: share of the jerk limit an acceleration step at a junction may take
@@ -428,6 +435,11 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         if idx.size == 0:
             return (*res, 0)
         s = s_f[idx]
+        # a sample that arrives at a stop lies on the next piece's first grid point, but its rates come
+        # from the piece it arrives on: model it at that piece's end point
+        arrive = ((gg >= 2) & (s == sg[gg]) & (sg[np.maximum(gg - 1, 0)] == s)
+                  & (s_f[np.maximum(idx - 1, 0)] < s))
+        gg = np.where(arrive, gg - 2, gg)
         hh = sg[gg + 1] - sg[gg]
         w = np.where(hh > 0, (s - sg[gg]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
         L0, dL = bounds.L, bounds.dL
@@ -515,6 +527,91 @@ def _sample_profile(sg, h, x, holds_s, dt):
     return s, TH, total
 
 
+def _unimodal(x: np.ndarray) -> bool:
+    """True if ``x`` (s_dot^2 along a section) never falls and then rises again."""
+    d = np.diff(x)
+    tol = 1e-9 * max(float(np.max(x)), 1e-300)
+    fall = np.nonzero(d < -tol)[0]
+    return fall.size == 0 or not np.any(d[fall[0]:] > tol)
+
+
+def _plateau_cap(sg: np.ndarray, x: np.ndarray, T: float) -> float:
+    """Largest speed cap ``c`` (s-units/s) under which a section's profile ``x`` (s_dot^2 on the grid
+    ``sg``, linear in s between points) stays at its peak for at least ``T`` seconds: the length of
+    the grid intervals whose both ends reach ``c^2`` (where ``min(x, c^2)`` is flat) divided by ``c``
+    is at least ``T``.  0 if the section does not move."""
+    h = np.diff(sg)
+    vp = math.sqrt(max(float(np.max(x)), 0.0))
+    if vp <= 0.0:
+        return 0.0
+
+    def span(c: float) -> float:
+        # capped grid values are min(x, c^2), linear in between: flat only over whole intervals
+        return float(np.sum(h[(x[:-1] >= c * c) & (x[1:] >= c * c)]))
+
+    if span(vp) >= T * vp:
+        return vp
+    lo, hi = 0.0, vp
+    for _ in range(50):
+        c = 0.5 * (lo + hi)
+        if span(c) >= T * c:
+            lo = c
+        else:
+            hi = c
+    return lo
+
+
+def _filtered_table(sg, h, x, stop_idx, holds_s, dt, nf, n_narrow, wide):
+    """The smoothed table ``s(t)`` (one row per cycle), built section by section.
+
+    Every rest-to-rest section (between consecutive ``stop_idx``) is sampled from rest and
+    smoothed on its own: by the moving average of ``nf`` samples, or, if it has one speed
+    peak and is not in ``wide``, by one of ``n_narrow`` samples after its peak was capped to a
+    plateau of at least that width.  Between sections the motion rests for the hold's
+    rows beyond the filter width (at least 2 rows).  Returns (table, {stop grid: (first,
+    last) standstill row}, [(first, last) row of each section], narrow flags).
+    """
+    parts = []
+    rest = {}
+    rows = []
+    narrow = []
+    n_out = 0
+    if holds_s[0] > 0.0:                    # events before the first move: rest at the start
+        r = max(2, int(round(holds_s[0] / dt)))
+        rest[0] = (0, r - 1)
+        parts.append(np.full(r, sg[0]))
+        n_out = r
+    for k in range(stop_idx.shape[0] - 1):
+        a, b = int(stop_idx[k]), int(stop_idx[k + 1])
+        xs = x[a:b + 1]
+        zero = np.zeros(b - a + 1)
+        try:
+            s_raw = _sample_profile(sg[a:b + 1], h[a:b], xs, zero, dt)[0]
+            n = nf
+            if n_narrow < nf and k not in wide and b > a and _unimodal(xs):
+                cap = _plateau_cap(sg[a:b + 1], xs, (n_narrow + 1) * dt)
+                if cap > 0.0:
+                    xs = np.minimum(xs, cap * cap)
+                    s_raw = _sample_profile(sg[a:b + 1], h[a:b], xs, zero, dt)[0]
+                    n = n_narrow
+        except FloatingPointError as exc:
+            j = int(str(exc).rsplit(" ", 1)[-1])
+            raise FloatingPointError(f"zero speed over a path interval at grid point {a + j}") from exc
+        f = _box_filter(s_raw, n)
+        if n_out:
+            f = f[1:]                       # its first row is the previous rest row
+        rows.append((n_out, n_out + f.shape[0] - 1))
+        narrow.append(n != nf)
+        parts.append(f)
+        n_out += f.shape[0]
+        if k + 1 < stop_idx.shape[0] - 1 or holds_s[b] > 0.0:
+            r = max(2, int(round(holds_s[b] / dt)) - nf)
+            rest[b] = (n_out - 1, n_out - 1 + r)
+            parts.append(np.full(r, f[-1]))
+            n_out += r
+    return np.concatenate(parts), rest, rows, narrow
+
+
 def _box_filter(s_raw: np.ndarray, n: int) -> np.ndarray:
     """Moving average of n samples over s_raw padded with its first and last value (length + n)."""
     if n <= 1:
@@ -545,6 +642,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     T_f = float(np.max(2.0 * amax / jmax)) / FILTER_JERK_SHARE
     nf = max(1, int(math.ceil(T_f / dt)))
     hold_min = nf * dt + 2 * dt      # the smoothed motion rests for at least two cycles at a stop
+    n_narrow = max(1, int(math.ceil(float(np.max(amax / jmax)) * NARROW_MARGIN / dt)))
 
     if path.n == 0:
         # no motion: a standstill at the start pose (if any) for dwells
@@ -674,6 +772,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
     del c, e, dd
     changed: list = []             # grid ranges whose limit changed since the last pass
+    wide: set = set()              # sections that must use the full filter width
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
     exact = False
@@ -685,12 +784,12 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         elif changed:
             x = topp.solve_ranges(xl, changed)
         try:
-            s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
+            s_f, rest_rows, sec_rows, sec_narrow = _filtered_table(sg, h, x, stop_idx, holds_s, dt, nf, n_narrow,
+                                                                    wide)
         except FloatingPointError as exc:
             k = int(str(exc).rsplit(" ", 1)[-1])
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
                 path.line[pidx[k]]), limit="speed") from exc
-        s_f = _box_filter(s_raw, nf)
         # model passes only decide where to slow down: a sample whose bound is within its violation
         # threshold cannot violate (model <= bound), so only the others are evaluated
         uv, ua, uj, va, ajr, vjr, n_detail = _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds, s_f, dt, vmax,
@@ -710,6 +809,14 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                       path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
                       "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
         changed = []
+        # a narrow-filtered section that violates is smoothed by the full filter from now on
+        switched = [k for k, (r0, r1) in enumerate(sec_rows) if sec_narrow[k] and bad[r0:r1 + 1].any()]
+        if switched:
+            wide.update(switched)
+            for k in switched:
+                bad[sec_rows[k][0]:sec_rows[k][1] + 1] = False
+            if not bad.any():
+                continue
         if not bad.any():
             if exact:
                 break
@@ -755,8 +862,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     pause_idx = []
     for g, hd in sorted(holds.items()):
         # the smoothed table stands still once the filter window lies inside the raw hold
-        c0 = min(Nt - 1, int(math.ceil(TH[g] / dt - 1e-9)) + nf)
-        c1 = min(Nt - 1, max(c0, int(math.floor((TH[g] + holds_s[g]) / dt + 1e-9)) - 1))
+        c0, c1 = rest_rows[g]
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
         for blk in hd.kinds:
@@ -773,7 +879,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     for m, blk in events:
         if blk.kind not in P.STOP_EVENTS:
             g = int(last[m]) if m >= 0 else 0
-            j = min(Nt - 1, int((TH[g]) / dt) + nf // 2)
+            j = min(Nt - 1, int(np.searchsorted(s_f, sg[g], side="left")))
             ev_out.append((j * dt, int(blk.line), blk.kind, getattr(blk, "coolant", None)))
             flag_tab[j] |= FLAG_EVENT
     flag_tab[-1] |= FLAG_END
