@@ -43,8 +43,14 @@ from .toppvec import WavefrontTopp, accel_coefficients
 ETA = 0.95
 #: fraction of the velocity limit the nominal plan may use
 ETA_V = 1.0
-#: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
-FILTER_JERK_SHARE = 1.0
+#: share of the jerk limit a full acceleration change through the smoothing filter may take: the moving
+#: average's width is ``w = max(a_max / j_max) / FILTER_JERK_SHARE`` (a one-sided change of the path
+#: acceleration by A then gives path jerk A / w; reversals are kept out of every window by plateaus)
+FILTER_JERK_SHARE = 0.9
+#: share of the jerk limit the acceleration cap leaves to the filter and curvature terms together
+RHO_CAP = 1.0
+#: bisection steps of the peak caps (level resolution 2^-n of the peak's height above its valleys)
+CAP_BISECT = 14
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.9     # 0.9: 3D_Chips 1.5 % shorter than at 0.8; the verification keeps the total jerk <= ETA
 #: share of the jerk limit an acceleration step at a junction may take
@@ -298,6 +304,99 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
     return out
 
 
+def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
+    """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
+    reaches the struts through the moving average of width ``w`` as jerk ``|L'_i| du / w``, on top of
+    ``3 |L''_i| s_dot |u| + |L'''_i| s_dot^3``.  With du <= |u| (reversals are kept out of the window)
+    their sum stays within ``RHO_CAP ETA j_i`` at speeds up to ``sqrt(x)`` where
+    ``|u| <= (RHO_CAP ETA j_i - |L'''_i| s_dot^3) / (|L'_i| / w + 3 |L''_i| s_dot)``, at least 5 % of it."""
+    v = np.sqrt(np.maximum(x, 0.0))[:, None]
+    J = RHO_CAP * ETA * jmax[None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        num = np.maximum(J - np.abs(Lppp) * (v * v * v), 0.05 * J)
+        den = np.abs(Lp) / w + 3.0 * np.abs(Lpp) * v
+        cap = np.where(den > 1e-300, num / np.maximum(den, 1e-300), np.inf).min(axis=1)
+    return np.minimum(cap, 1e12)
+
+
+def _with_accel_cap(c, e, d, ecap):
+    """The acceleration bounds with one more row ``-ecap <= u <= ecap`` and the speed limit (N,) at which
+    some strut's bound leaves that range (``c_i + d_i x <= ecap`` and ``e_i + d_i x >= -ecap``)."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ad = np.abs(d)
+        ok = ad > 1e-15
+        xcap = np.where(ok, (e + ecap[:, None]) / np.where(ok, ad, 1.0), np.inf).min(axis=1)
+    N = ecap.shape[0]
+    return (np.concatenate([c, -ecap[:, None]], axis=1), np.concatenate([e, ecap[:, None]], axis=1),
+            np.concatenate([d, np.zeros((N, 1))], axis=1), xcap)
+
+
+def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
+    """Speed caps (x units, per grid point; inf where none) that give every speed peak of the profile x
+    a plateau of at least ``w`` seconds, so that a moving average of width ``w`` never holds an
+    acceleration reversal; and the hill number of each grid point.
+
+    A hill runs from one local minimum of x to the next; its cap is the highest level L (bisection)
+    whose time above, from the first grid point at or above L on the way up to the last one on the way
+    down, is at least w; a hill too short for that is flattened to its higher valley.
+    """
+    N = x.shape[0]
+    if N < 3:
+        return np.full(N, np.inf), np.zeros(N, dtype=np.int64)
+    v = np.sqrt(np.maximum(x, 0.0))
+    vs = v[:-1] + v[1:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        D = np.where((h > 0) & (vs > 0), 2.0 * h / np.where(vs > 0, vs, 1.0), 0.0)
+    TH = np.concatenate([[0.0], np.cumsum(D)])
+    dv = np.diff(v)
+    tol = 1e-12 * (1.0 + np.abs(v[1:]))
+    sgn = np.where(dv > tol, 1, np.where(dv < -tol, -1, 0))
+    # direction of each interval, flat ones taking the previous direction (leading flats: rising)
+    last = np.maximum.accumulate(np.where(sgn != 0, np.arange(N - 1), -1))
+    cs = np.where(last >= 0, sgn[np.maximum(last, 0)], 1)
+    # a hill starts at each grid point where the direction turns from falling to rising
+    start = np.zeros(N, dtype=np.int64)
+    start[1:-1] = (cs[:-1] < 0) & (cs[1:] > 0)
+    hill = np.cumsum(start)
+    H = int(hill[-1]) + 1
+    hs = np.concatenate([[0], np.nonzero(start)[0]])            # first grid point of each hill
+    he = np.concatenate([hs[1:], [N - 1]])                       # its last (the next hill's first)
+    vpk = np.maximum.reduceat(v, hs)
+    g = np.arange(N)
+    at_pk = v == vpk[hill]
+    pk = np.minimum.reduceat(np.where(at_pk, g, N), hs)          # first and last grid point at the peak
+    pk_last = np.maximum.reduceat(np.where(at_pk, g, -1), hs)
+    scale = float(v.max()) * 1.0001 + 1e-9
+    ri = np.nonzero(g <= pk[hill])[0]                            # rising parts, in order
+    key_r = hill[ri] + v[ri] / scale                             # non-decreasing
+    fi = np.nonzero(g >= pk_last[hill])[0][::-1]                 # falling parts, backwards
+    key_f = (H - 1 - hill[fi]) + v[fi] / scale                   # non-decreasing
+
+    def above(hid, L):
+        a = np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)
+        b = np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)
+        return TH[fi[b]] - TH[ri[a]]
+
+    cap = np.full(H, np.inf)
+    hid = np.nonzero(above(np.arange(H), vpk) < w)[0]      # the others have their plateau already
+    if hid.size:
+        lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
+        hi = vpk[hid]
+        for _ in range(CAP_BISECT):
+            mid = 0.5 * (lo + hi)
+            ok = above(hid, mid) >= w
+            lo = np.where(ok, mid, lo)
+            hi = np.where(ok, hi, mid)
+        cap[hid] = lo
+    return cap[hill] ** 2, hill
+
+
+def _runs(mask: np.ndarray) -> list:
+    """Inclusive (first, last) index pairs of the runs of True in a boolean array."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), (np.nonzero(d == -1)[0] - 1).tolist()))
+
+
 def _path_rates(s_f: np.ndarray, dt: float):
     """s_dot, s_ddot, s_dddot of the table by central differences (zero at the ends)."""
     N = s_f.shape[0]
@@ -542,9 +641,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
     jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
     path, events = P.build_path(blocks, cfg)
-    T_f = float(np.max(2.0 * amax / jmax)) / FILTER_JERK_SHARE
-    nf = max(1, int(math.ceil(T_f / dt)))
+    w_f = float(np.max(amax / jmax)) / FILTER_JERK_SHARE
+    nf = max(1, int(math.ceil(w_f / dt)))
     hold_min = nf * dt + 2 * dt      # the smoothed motion rests for at least two cycles at a stop
+    w_plateau = nf * dt + 2 * dt     # raw plateau at every speed peak (two cycles of rounding margin)
 
     if path.n == 0:
         # no motion: a standstill at the start pose (if any) for dwells
@@ -669,9 +769,23 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_grid_for_lookup = sg
     xw = xlim.copy()
     xw[stop_all] = np.inf
-    xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
+    xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches w/2 either side of its centre
     xlim[stop_all] = 0.0
+    # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
+    # cap only grows as speeds drop, so it stays valid)
+    x0 = WavefrontTopp(h, c, e, dd).solve(xlim)
+    ecap = _accel_cap(Lp, Lpp, Lppp, x0, jmax, nf * dt)
+    del x0
+    c, e, dd, xcap = _with_accel_cap(c, e, dd, ecap)
+    lower = np.nonzero(xcap < xlim)[0]
+    if lower.size:              # curvature alone needs more than the cap: a speed limit, spread like the others
+        xw = np.full(Ng, np.inf)
+        xw[lower] = xcap[lower]
+        xw[stop_all] = np.inf
+        xlim = np.minimum(xlim, _dilate_min(sg, xw, 0.5 * nf * dt))
+        xlim[stop_all] = 0.0
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
+    caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
     del c, e, dd
     changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
@@ -679,11 +793,29 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     exact = False
     exact_iters = 0
     for iters in range(1, 40):
-        xl = xlim * factor
         if iters == 1:
-            x = topp.solve(xl)
+            xc = xlim.copy()
+            x = topp.solve(xc)
         elif changed:
-            x = topp.solve_ranges(xl, changed)
+            for a0, a1 in changed:
+                xc[a0:a1 + 1] = np.minimum(xlim[a0:a1 + 1] * factor[a0:a1 + 1], caps[a0:a1 + 1])
+            x = topp.solve_ranges(xc, changed)
+        # speed peaks: capped (caps only ever lowered, kept across passes) until each has a plateau of w,
+        # so that no filter window holds an acceleration reversal; re-solving moves the ramps by up to a
+        # grid step, so a second round caps what the first left
+        for _round in range(2 if iters == 1 or changed else 0):
+            cap, hill = _cap_peaks(h, x, w_plateau)
+            more = cap < x * (1 - 1e-9)
+            if not more.any():
+                break
+            hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+            hm[hill[more]] = True
+            region = hm[hill]
+            caps[region] = np.minimum(caps[region], cap[region])
+            xc[region] = np.minimum(xc[region], cap[region])
+            if _DEBUG:
+                print(f"   caps round {_round}: {int(hm.sum())} hills, {int(region.sum())} points")
+            x = topp.solve_ranges(xc, _runs(region))
         try:
             s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
         except FloatingPointError as exc:

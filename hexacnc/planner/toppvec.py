@@ -149,7 +149,12 @@ class WavefrontTopp:
         rs = [(max(0, int(a)), min(N - 1, int(b))) for a, b in ranges if b >= a]
         if not rs:
             return self.x.copy()
-        idx = np.unique(np.concatenate([np.arange(a, b + 1) for a, b in rs]))
+        # the union of the ranges, sorted (a difference array: no sort of possibly overlapping ranges)
+        mark = np.zeros(N + 1, dtype=np.int64)
+        ra = np.array(rs, dtype=np.int64)
+        np.add.at(mark, ra[:, 0], 1)
+        np.add.at(mark, ra[:, 1] + 1, -1)
+        idx = np.nonzero(np.cumsum(mark[:-1]) > 0)[0]
         self.xl[idx] = xl_new[idx]
         kch = []
         if idx[-1] == N - 1 and self.K[-1] != self.xl[-1]:
