@@ -51,6 +51,14 @@ FILTER_JERK_SHARE = 0.9
 RHO_CAP = 1.0
 #: bisection steps of the peak caps (level resolution 2^-n of the peak's height above its valleys)
 CAP_BISECT = 14
+#: a jerk-only violation lowers the acceleration cap by the verification's factor f and the speed limit
+#: by f ** CAP_JERK_SPEED (the filter's |L'| du / w hardly changes with speed)
+CAP_JERK_SPEED = 0.75
+#: reach of the spreading, in filter widths (w/2 plus 10 %: at the reach's end the filter's transition
+#: still adds jerk where the curvature term is near its share)
+SPREAD_REACH = 0.55
+#: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
+CAP_ROUNDS = 2
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.9     # 0.9: 3D_Chips 1.5 % shorter than at 0.8; the verification keeps the total jerk <= ETA
 #: share of the jerk limit an acceleration step at a junction may take
@@ -286,21 +294,29 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
     out = x.copy()
     if j.size == 0:
         return out
-    # process in slices to bound memory
-    step = 200_000
+    # every range [lo_j, lo_j + cnt_j) is the union of two power-of-two blocks; the minimum over
+    # the blocks starting at each point is pushed down level by level (the same minima as a
+    # scatter over every point of every range, in O(N log max_span))
+    a = lo[j]
     cj = cnt[j]
-    ends = np.cumsum(cj)
-    start = 0
-    while start < j.size:
-        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + step, side="right"))
-        stop = max(stop, start + 1)
-        jj = j[start:stop]
-        cc = cj[start:stop]
-        rep = np.repeat(jj, cc)
-        off = np.arange(rep.size) - np.repeat(np.cumsum(cc) - cc, cc)
-        k = np.minimum(lo[rep] + off, N - 1)
-        np.minimum.at(out, k, x[rep])
-        start = stop
+    xj = x[j]
+    lev = np.floor(np.log2(cj)).astype(np.int64)
+    top = int(lev.max())
+    tab = [None] * (top + 1)
+    for L in range(top, -1, -1):
+        cur = np.full(N, np.inf) if tab[L] is None else tab[L]
+        m = np.nonzero(lev == L)[0]
+        if m.size:
+            np.minimum.at(cur, a[m], xj[m])
+            np.minimum.at(cur, a[m] + cj[m] - (1 << L), xj[m])
+        if L == 0:
+            np.minimum(out, cur, out=out)
+            break
+        hh = 1 << (L - 1)
+        nxt = cur.copy()
+        np.minimum(nxt[hh:], cur[:-hh], out=nxt[hh:])
+        tab[L - 1] = nxt
+        tab[L] = None
     return out
 
 
@@ -337,17 +353,14 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
     acceleration reversal; and the hill number of each grid point.
 
     A hill runs from one local minimum of x to the next; its cap is the highest level L (bisection)
-    whose time above, from the first grid point at or above L on the way up to the last one on the way
-    down, is at least w; a hill too short for that is flattened to its higher valley.
+    whose plateau, from the first grid point at or above L on the way up to the last one on the way
+    down, lasts at least w at speed L (the capped profile reaches L at those points: it did before).
     """
     N = x.shape[0]
     if N < 3:
         return np.full(N, np.inf), np.zeros(N, dtype=np.int64)
     v = np.sqrt(np.maximum(x, 0.0))
-    vs = v[:-1] + v[1:]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        D = np.where((h > 0) & (vs > 0), 2.0 * h / np.where(vs > 0, vs, 1.0), 0.0)
-    TH = np.concatenate([[0.0], np.cumsum(D)])
+    S = np.concatenate([[0.0], np.cumsum(h)])
     dv = np.diff(v)
     tol = 1e-12 * (1.0 + np.abs(v[1:]))
     sgn = np.where(dv > tol, 1, np.where(dv < -tol, -1, 0))
@@ -372,23 +385,58 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
     fi = np.nonzero(g >= pk_last[hill])[0][::-1]                 # falling parts, backwards
     key_f = (H - 1 - hill[fi]) + v[fi] / scale                   # non-decreasing
 
-    def above(hid, L):
+    def long_enough(hid, L):
+        """The plateau at level L (between the crossing grid points) lasts at least w at speed L."""
         a = np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)
         b = np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)
-        return TH[fi[b]] - TH[ri[a]]
+        return S[fi[b]] - S[ri[a]] >= w * L
 
     cap = np.full(H, np.inf)
-    hid = np.nonzero(above(np.arange(H), vpk) < w)[0]      # the others have their plateau already
+    hid = np.arange(H)
+    hid = hid[(vpk > 0) & ~long_enough(hid, vpk)]           # the others have their plateau already
     if hid.size:
-        lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
-        hi = vpk[hid]
+        v_lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
+        short = ~long_enough(hid, v_lo)
+        # a hill too short for a plateau above its higher valley is flattened to that valley (it joins
+        # its neighbour); between two stops it gets the highest plateau it can hold
+        lo = np.where(short & (v_lo > 0), v_lo, np.where(short, 0.0, v_lo))
+        hi = np.where(short & (v_lo > 0), v_lo, vpk[hid])
         for _ in range(CAP_BISECT):
             mid = 0.5 * (lo + hi)
-            ok = above(hid, mid) >= w
+            ok = long_enough(hid, mid)
             lo = np.where(ok, mid, lo)
             hi = np.where(ok, hi, mid)
-        cap[hid] = lo
+        cap[hid] = np.where(lo > 0, lo, np.inf)        # no plateau possible on the grid: left to the checks
     return cap[hill] ** 2, hill
+
+
+def _cap_round(h, x, w, spans=None, max_spans: int = 64):
+    """One round of peak caps on the whole profile (``spans`` None) or on grid ranges that start and end
+    at a valley.  Returns (mask of the grid points of the hills that need a cap, caps (N,) valid there),
+    or (None, None) when every peak has its plateau."""
+    N = x.shape[0]
+    if spans is not None and len(spans) <= max_spans:
+        region = np.zeros(N, dtype=bool)
+        cap = np.full(N, np.inf)
+        for a0, a1 in spans:
+            if a1 <= a0:
+                continue
+            c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
+            more = c < x[a0:a1 + 1] * (1 - 1e-9)
+            if more.any():
+                hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+                hm[hill[more]] = True
+                sub = hm[hill]
+                region[a0:a1 + 1] |= sub
+                cap[a0:a1 + 1] = np.where(sub, c, cap[a0:a1 + 1])
+        return (region, cap) if region.any() else (None, None)
+    cap, hill = _cap_peaks(h, x, w)
+    more = cap < x * (1 - 1e-9)
+    if not more.any():
+        return None, None
+    hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+    hm[hill[more]] = True
+    return hm[hill], cap
 
 
 def _runs(mask: np.ndarray) -> list:
@@ -769,7 +817,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_grid_for_lookup = sg
     xw = xlim.copy()
     xw[stop_all] = np.inf
-    xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches w/2 either side of its centre
+    xlim = _dilate_min(sg, xw, SPREAD_REACH * nf * dt)     # the window reaches w/2 either side of its centre
     xlim[stop_all] = 0.0
     # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
     # cap only grows as speeds drop, so it stays valid)
@@ -782,11 +830,14 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         xw = np.full(Ng, np.inf)
         xw[lower] = xcap[lower]
         xw[stop_all] = np.inf
-        xlim = np.minimum(xlim, _dilate_min(sg, xw, 0.5 * nf * dt))
+        xlim = np.minimum(xlim, _dilate_min(sg, xw, SPREAD_REACH * nf * dt))
         xlim[stop_all] = 0.0
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
     caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
-    del c, e, dd
+    cfac = np.ones(Ng)                     # the verification's factors on the acceleration cap
+    xcapf = np.full(Ng, np.inf)            # speed limits where a lowered cap leaves no acceleration
+    cap_changed = []
+    del c
     changed: list = []             # grid ranges whose limit changed since the last pass
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
@@ -797,25 +848,36 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             xc = xlim.copy()
             x = topp.solve(xc)
         elif changed:
+            for a0, a1 in cap_changed:
+                sl = slice(a0, a1 + 1)
+                ec = ecap[sl] * cfac[sl]
+                bound = np.zeros(Ng)
+                bound[sl] = ec
+                topp.set_bound(6, np.arange(a0, a1 + 1), bound)
+                # a lower cap can leave no acceleration at the highest speeds: those become a limit
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ad = np.abs(dd[sl, :6])
+                    xcw = np.where(ad > 1e-15, (e[sl, :6] + ec[:, None]) / np.where(ad > 1e-15, ad, 1.0),
+                                   np.inf).min(axis=1)
+                xcapf[sl] = np.minimum(xcapf[sl], xcw)
             for a0, a1 in changed:
-                xc[a0:a1 + 1] = np.minimum(xlim[a0:a1 + 1] * factor[a0:a1 + 1], caps[a0:a1 + 1])
-            x = topp.solve_ranges(xc, changed)
+                xc[a0:a1 + 1] = np.minimum(np.minimum(xlim[a0:a1 + 1] * factor[a0:a1 + 1], xcapf[a0:a1 + 1]),
+                                           caps[a0:a1 + 1])
+            x = topp.solve_ranges(xc, changed, bounds_changed=bool(cap_changed))
         # speed peaks: capped (caps only ever lowered, kept across passes) until each has a plateau of w,
         # so that no filter window holds an acceleration reversal; re-solving moves the ramps by up to a
         # grid step, so a second round caps what the first left
-        for _round in range(2 if iters == 1 or changed else 0):
-            cap, hill = _cap_peaks(h, x, w_plateau)
-            more = cap < x * (1 - 1e-9)
-            if not more.any():
+        spans = None                       # the first round looks at every hill
+        for _round in range(CAP_ROUNDS if iters == 1 or changed else 0):
+            region, cap = _cap_round(h, x, w_plateau, spans)
+            if region is None:
                 break
-            hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
-            hm[hill[more]] = True
-            region = hm[hill]
             caps[region] = np.minimum(caps[region], cap[region])
             xc[region] = np.minimum(xc[region], cap[region])
+            spans = _runs(region)          # whole hills: the next round only looks at those
             if _DEBUG:
-                print(f"   caps round {_round}: {int(hm.sum())} hills, {int(region.sum())} points")
-            x = topp.solve_ranges(xc, _runs(region))
+                print(f"   caps round {_round}: {len(spans)} runs, {int(region.sum())} points")
+            x = topp.solve_ranges(xc, spans)
         try:
             s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
         except FloatingPointError as exc:
@@ -842,6 +904,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                       path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
                       "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
         changed = []
+        cap_changed = []
         if not bad.any():
             if exact:
                 break
@@ -871,6 +934,12 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             g0 = max(0, int(np.searchsorted(s_grid_for_lookup, lo_s, side="left")) - 1)
             g1 = min(Ng, int(np.searchsorted(s_grid_for_lookup, hi_s, side="right")) + 1)
             f = float(np.min(fac[j0:j1 + 1]))
+            if not (viol_v[j0:j1 + 1].any() or viol_a[j0:j1 + 1].any()):
+                # jerk alone: mostly the filter's |L'| du / w, which slower speeds hardly change, so
+                # the acceleration cap is lowered with the speed limit
+                cfac[g0:g1] *= f
+                cap_changed.append((g0, g1 - 1))
+                f = f ** CAP_JERK_SPEED
             factor[g0:g1] *= f
             changed.append((g0, g1 - 1))
     else:
