@@ -326,25 +326,38 @@ def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
     ``3 |L''_i| s_dot |u| + |L'''_i| s_dot^3``.  With du <= |u| (reversals are kept out of the window)
     their sum stays within ``RHO_CAP ETA j_i`` at speeds up to ``sqrt(x)`` where
     ``|u| <= (RHO_CAP ETA j_i - |L'''_i| s_dot^3) / (|L'_i| / w + 3 |L''_i| s_dot)``, at least 5 % of it."""
-    v = np.sqrt(np.maximum(x, 0.0))[:, None]
-    J = RHO_CAP * ETA * jmax[None]
+    v = np.sqrt(np.maximum(x, 0.0))
+    v3 = v * v * v
+    v3x = 3.0 * v
+    cap = np.full(x.shape[0], 1e12)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        num = np.maximum(J - np.abs(Lppp) * (v * v * v), 0.05 * J)
-        den = np.abs(Lp) / w + 3.0 * np.abs(Lpp) * v
-        cap = np.where(den > 1e-300, num / np.maximum(den, 1e-300), np.inf).min(axis=1)
-    return np.minimum(cap, 1e12)
+        for i in range(Lp.shape[1]):                  # column by column: no (N,6) temporaries
+            J = RHO_CAP * ETA * float(jmax[i])
+            num = np.maximum(J - np.abs(Lppp[:, i]) * v3, 0.05 * J)
+            den = np.abs(Lp[:, i]) * (1.0 / w) + np.abs(Lpp[:, i]) * v3x
+            np.minimum(cap, np.where(den > 1e-300, num / np.maximum(den, 1e-300), np.inf), out=cap)
+    return cap
 
 
 def _with_accel_cap(c, e, d, ecap):
     """The acceleration bounds with one more row ``-ecap <= u <= ecap`` and the speed limit (N,) at which
     some strut's bound leaves that range (``c_i + d_i x <= ecap`` and ``e_i + d_i x >= -ecap``)."""
+    N, m = c.shape
+    xcap = np.full(N, np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
-        ad = np.abs(d)
-        ok = ad > 1e-15
-        xcap = np.where(ok, (e + ecap[:, None]) / np.where(ok, ad, 1.0), np.inf).min(axis=1)
-    N = ecap.shape[0]
-    return (np.concatenate([c, -ecap[:, None]], axis=1), np.concatenate([e, ecap[:, None]], axis=1),
-            np.concatenate([d, np.zeros((N, 1))], axis=1), xcap)
+        for i in range(m):
+            ad = np.abs(d[:, i])
+            ok = ad > 1e-15
+            np.minimum(xcap, np.where(ok, (e[:, i] + ecap) / np.where(ok, ad, 1.0), np.inf), out=xcap)
+    c7 = np.empty((N, m + 1))
+    e7 = np.empty((N, m + 1))
+    d7 = np.zeros((N, m + 1))
+    c7[:, :m] = c
+    c7[:, m] = -ecap
+    e7[:, :m] = e
+    e7[:, m] = ecap
+    d7[:, :m] = d
+    return c7, e7, d7, xcap
 
 
 def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
