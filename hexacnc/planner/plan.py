@@ -588,6 +588,11 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         if idx.size == 0:
             return (*res, 0)
         s = s_f[idx]
+        # a sample that arrives at a stop lies on the next piece's first grid point, but its rates come
+        # from the piece it arrives on: model it at that piece's end point
+        arrive = ((gg >= 2) & (s == sg[gg]) & (sg[np.maximum(gg - 1, 0)] == s)
+                  & (s_f[np.maximum(idx - 1, 0)] < s))
+        gg = np.where(arrive, gg - 2, gg)
         hh = sg[gg + 1] - sg[gg]
         w = np.where(hh > 0, (s - sg[gg]) / np.where(hh > 0, hh, 1.0), 0.0)[:, None]
         L0, dL = bounds.L, bounds.dL
