@@ -11,14 +11,18 @@ Method (see docs/planner.md):
 3. Strut derivatives ``L'``, ``L''``, ``L'''`` by central differences of the
    inverse kinematics; a forward-backward pass on ``s_dot^2`` over the whole
    program (TOPP) under feed, rapid, angular-velocity, strut velocity and
-   acceleration limits (and a curvature-jerk bound).
+   acceleration limits, a curvature-jerk bound and a path-acceleration cap that
+   keeps the filter's jerk within the limit).
 4. The profile ``s(t)`` sampled at the cycle period and smoothed by a moving
-   average of width ``T = 2 max(A/J)`` (bounded path jerk; stops are holds of at
-   least ``T`` so the smoothed motion really stops there).
+   average of width ``w = max(A/J) / 0.9``; no window holds an acceleration
+   reversal: slow spots are spread over the window's reach and every speed peak
+   is capped to a plateau of at least ``w`` (stops are holds of at least ``w`` so
+   the smoothed motion really stops there).
 5. The struts of the resulting table are measured (finite differences at the
    cycle period); where velocity, acceleration or jerk utilisation exceeds its
-   target the speed limit is lowered locally and steps 3-5 repeat.  The reported
-   peak utilisations are these measurements.
+   target the speed limit (at jerk-only violations also the acceleration cap) is
+   lowered locally and steps 3-5 repeat.  The reported peak utilisations are
+   these measurements.
 
 Acceleration and jerk are planned to at most ``ETA`` (0.95) of the limits: the
 rest is the headroom the sampler uses for jerk-limited override, pause and stop
