@@ -155,3 +155,34 @@ def test_acceleration_cap_keeps_the_jerk_terms_within_the_share():
     assert room.any()
     assert np.all(total[room] <= budget * (1 + 1e-9))
     assert np.all(np.any(np.isclose(total[room], budget), axis=1))   # the tightest strut uses it all
+
+
+def test_table_rests_exactly_at_every_exact_stop():
+    """Rows whose filter window lies inside a stop's hold sit exactly on the stop (the model pass then
+    reads them on the right piece); the table never steps back."""
+    from hexacnc.config import load_config
+    from hexacnc.gcode.blocks import Block
+    from hexacnc.planner import plan_program
+    from hexacnc.pose import matrix_from_euler
+    cfg = load_config(None)
+    P = np.asarray(cfg.home_pose, dtype=float)
+    tip = P.copy()
+    tip[:3] = P[:3] + matrix_from_euler(*np.radians(P[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
+    blocks = []
+    for i, (length, d) in enumerate([(2.0, (1, 0, 0)), (40.0, (0, 1, 0)), (5.0, (0, 0, -1)), (3.0, (1, 0, 1)),
+                                     (12.0, (0, -1, -1))]):
+        u = np.asarray(d, dtype=float)
+        nxt = tip.copy()
+        nxt[:3] += length * u / np.linalg.norm(u)
+        blocks.append(Block("line", i + 1, tip, nxt, feed_mm_s=1e4, exact_stop=True))
+        tip = nxt
+    plan = plan_program(blocks, cfg)
+    s = plan.s_tab
+    assert np.all(np.diff(s) >= 0.0)
+    ends = np.cumsum([0.0] + [np.linalg.norm(b.end[:3] - b.start[:3]) for b in blocks])   # s = tool-tip path
+    stops = plan.grid_s[plan.grid_stops]
+    for e in ends[1:-1]:
+        at = stops[np.argmin(np.abs(stops - e))]
+        assert abs(at - e) < 1e-9
+        assert np.count_nonzero(s == at) >= 2, e
+    assert max(plan.utilisation.values()) <= 1.0

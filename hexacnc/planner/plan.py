@@ -832,6 +832,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             pause_grid.append(g)
         holds_s[g] = hold_min + extra + (2 * dt if extra > 0 else 0.0)
     holds_s[0] = max(holds_s[0], 0.0)
+    rest_grid = [int(g) for g in np.nonzero(holds_s > 0)[0]]
 
 
     # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
@@ -907,6 +908,16 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
                 path.line[pidx[k]]), limit="speed") from exc
         s_f = _box_filter(s_raw, nf)
+        # rows whose window lies inside a stop's hold rest exactly at the stop (the running sum of the
+        # filter leaves them an ulp off, which put them on the arriving piece in the model pass)
+        for g in rest_grid:
+            c0 = int(math.ceil(TH[g] / dt - 1e-9)) + nf
+            c1 = min(s_f.shape[0] - 1, int(math.floor((TH[g] + holds_s[g]) / dt + 1e-9)) - 1)
+            if c1 >= c0:
+                s_f[c0:c1 + 1] = sg[g]
+                # the rows around stay on their side of the stop (the same rounding, either way)
+                np.minimum(s_f[max(0, c0 - nf):c0], sg[g], out=s_f[max(0, c0 - nf):c0])
+                np.maximum(s_f[c1 + 1:c1 + 1 + nf], sg[g], out=s_f[c1 + 1:c1 + 1 + nf])
         # model passes only decide where to slow down: a sample whose bound is within its violation
         # threshold cannot violate (model <= bound), so only the others are evaluated
         uv, ua, uj, va, ajr, vjr, n_detail = _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds, s_f, dt, vmax,
