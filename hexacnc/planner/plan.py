@@ -539,6 +539,20 @@ def _near_junctions(sg: np.ndarray, s_f: np.ndarray, sd: np.ndarray) -> np.ndarr
     return near[np.abs(sd[near]) > 0]
 
 
+def _on_short_pieces(path, s_f: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Moving table samples on pieces shorter than the central differences' stencil (4 FD_STEP): the
+    grid derivatives do not resolve such a piece (a tiny blend's polynomial evaluated beyond its
+    ends), so its interval bounds need not bound it: indices, may repeat."""
+    short = np.nonzero(path.slen < 4 * FD_STEP)[0]
+    if short.size == 0 or s_f.shape[0] < 2:
+        return np.zeros(0, dtype=np.int64)
+    a = np.searchsorted(s_f, path.s0[short], side="left")
+    b = np.searchsorted(s_f, path.s0[short] + path.slen[short], side="right")
+    cnt = np.maximum(b - a, 0)
+    idx = np.repeat(a, cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    return idx[np.abs(sd[idx]) > 0]
+
+
 def _screen_intervals(sg, s_f, sd, sdd, sddd, bounds: "_Bounds", thr):
     """Samples whose interval bound exceeds a threshold of ``thr`` = (v, a, j), found grid interval by
     grid interval: the bound of interval g with the largest |s_dot|, |s_ddot|, |s_dddot| of its
@@ -575,7 +589,8 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     """Utilisation per sample: interval bounds everywhere; where a bound exceeds ``screen`` the model
     (``exact=False``: interpolated grid derivatives) or the exact inverse kinematics (``exact=True``:
     finite differences at dt, also at every moving sample within 4 cycles of a piece junction, whose
-    stencil spans the curvature step) replaces it.
+    stencil spans the curvature step, and on every piece shorter than 4 FD_STEP, which the grid
+    derivatives do not resolve) replaces it.
 
     ``screen``: one number, or (velocity, acceleration, jerk) thresholds.
     Returns uv, ua, uj, va, ajr, vjr (per sample; va, ajr, vjr None unless exact) and the number of
@@ -615,6 +630,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     res = list(bounds.at(g, sd, sdd, sddd, extras=True))      # governor ratios for the final table
     need = (res[0] > screen) | (res[1] > screen) | (res[2] > screen)
     need[_near_junctions(sg, s_f, sd)] = True
+    need[_on_short_pieces(path, s_f, sd)] = True
     idx = np.nonzero(need)[0]
     if idx.size == 0:
         return (*res, 0)
