@@ -193,7 +193,7 @@ def test_incremental_passes_give_the_plan_of_full_passes(cfg, seed, monkeypatch)
     fast = PL.plan_program(blocks, cfg)
     assert fast.iterations >= 3                       # several passes, so incremental ones happened
     from hexacnc.planner.toppvec import WavefrontTopp
-    monkeypatch.setattr(WavefrontTopp, "solve_ranges", lambda self, xlim, ranges: self.solve(xlim))
+    monkeypatch.setattr(WavefrontTopp, "solve_ranges", lambda self, xlim, ranges, **kw: self.solve(xlim))
     monkeypatch.setattr(PL, "MODEL_SCREEN", (0.0, 0.0, 0.0))
     full = PL.plan_program(blocks, cfg)
     assert full.iterations == fast.iterations

@@ -11,17 +11,18 @@ Method (see docs/planner.md):
 3. Strut derivatives ``L'``, ``L''``, ``L'''`` by central differences of the
    inverse kinematics; a forward-backward pass on ``s_dot^2`` over the whole
    program (TOPP) under feed, rapid, angular-velocity, strut velocity and
-   acceleration limits (and a curvature-jerk bound).
-4. The profile ``s(t)`` sampled at the cycle period, rest-to-rest section by
-   section, and smoothed by a moving average of width ``T = 2 max(A/J)``
-   (bounded path jerk; the smoothed motion really rests at every stop).  A
-   section whose speed only rises and then falls (a move between exact stops)
-   gets its peak cut to a plateau of ``1.1 max(A/J)`` and a filter of that width:
-   its acceleration never reverses inside the window.
+   acceleration limits, a curvature-jerk bound and a path-acceleration cap that
+   keeps the filter's jerk within the limit).
+4. The profile ``s(t)`` sampled at the cycle period and smoothed by a moving
+   average of width ``w = max(A/J) / 0.9``; no window holds an acceleration
+   reversal: slow spots are spread over the window's reach and every speed peak
+   is capped to a plateau of at least ``w`` (stops are holds of at least ``w`` so
+   the smoothed motion really stops there).
 5. The struts of the resulting table are measured (finite differences at the
    cycle period); where velocity, acceleration or jerk utilisation exceeds its
-   target the speed limit is lowered locally and steps 3-5 repeat.  The reported
-   peak utilisations are these measurements.
+   target the speed limit (at jerk-only violations also the acceleration cap) is
+   lowered locally and steps 3-5 repeat.  The reported peak utilisations are
+   these measurements.
 
 Acceleration and jerk are planned to at most ``ETA`` (0.95) of the limits: the
 rest is the headroom the sampler uses for jerk-limited override, pause and stop
@@ -46,12 +47,22 @@ from .toppvec import WavefrontTopp, accel_coefficients
 ETA = 0.95
 #: fraction of the velocity limit the nominal plan may use
 ETA_V = 1.0
-#: share of the jerk limit the smoothing filter's path jerk may take (sets the filter width)
-FILTER_JERK_SHARE = 1.0
-#: a rest-to-rest section whose speed only rises and then falls (one peak, cut to a plateau of
-#: at least the filter width) is smoothed by a filter NARROW_MARGIN max(A/J) wide instead of
-#: 2 max(A/J): its acceleration never reverses within the window, so the path jerk stays A/T
-NARROW_MARGIN = 1.1
+#: share of the jerk limit a full acceleration change through the smoothing filter may take: the moving
+#: average's width is ``w = max(a_max / j_max) / FILTER_JERK_SHARE`` (a one-sided change of the path
+#: acceleration by A then gives path jerk A / w; reversals are kept out of every window by plateaus)
+FILTER_JERK_SHARE = 0.9
+#: share of the jerk limit the acceleration cap leaves to the filter and curvature terms together
+RHO_CAP = 1.0
+#: bisection steps of the peak caps (level resolution 2^-n of the peak's height above its valleys)
+CAP_BISECT = 14
+#: a jerk-only violation lowers the acceleration cap by the verification's factor f and the speed limit
+#: by f ** CAP_JERK_SPEED (the filter's |L'| du / w hardly changes with speed)
+CAP_JERK_SPEED = 0.75
+#: reach of the spreading, in filter widths (w/2 plus 10 %: at the reach's end the filter's transition
+#: still adds jerk where the curvature term is near its share)
+SPREAD_REACH = 0.55
+#: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
+CAP_ROUNDS = 2
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
 RHO_J = 0.9     # 0.9: 3D_Chips 1.5 % shorter than at 0.8; the verification keeps the total jerk <= ETA
 #: share of the jerk limit an acceleration step at a junction may take
@@ -287,22 +298,168 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
     out = x.copy()
     if j.size == 0:
         return out
-    # process in slices to bound memory
-    step = 200_000
+    # every range [lo_j, lo_j + cnt_j) is the union of two power-of-two blocks; the minimum over
+    # the blocks starting at each point is pushed down level by level (the same minima as a
+    # scatter over every point of every range, in O(N log max_span))
+    a = lo[j]
     cj = cnt[j]
-    ends = np.cumsum(cj)
-    start = 0
-    while start < j.size:
-        stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + step, side="right"))
-        stop = max(stop, start + 1)
-        jj = j[start:stop]
-        cc = cj[start:stop]
-        rep = np.repeat(jj, cc)
-        off = np.arange(rep.size) - np.repeat(np.cumsum(cc) - cc, cc)
-        k = np.minimum(lo[rep] + off, N - 1)
-        np.minimum.at(out, k, x[rep])
-        start = stop
+    xj = x[j]
+    lev = np.floor(np.log2(cj)).astype(np.int64)
+    top = int(lev.max())
+    tab = [None] * (top + 1)
+    for L in range(top, -1, -1):
+        cur = np.full(N, np.inf) if tab[L] is None else tab[L]
+        m = np.nonzero(lev == L)[0]
+        if m.size:
+            np.minimum.at(cur, a[m], xj[m])
+            np.minimum.at(cur, a[m] + cj[m] - (1 << L), xj[m])
+        if L == 0:
+            np.minimum(out, cur, out=out)
+            break
+        hh = 1 << (L - 1)
+        nxt = cur.copy()
+        np.minimum(nxt[hh:], cur[:-hh], out=nxt[hh:])
+        tab[L - 1] = nxt
+        tab[L] = None
     return out
+
+
+def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
+    """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
+    reaches the struts through the moving average of width ``w`` as jerk ``|L'_i| du / w``, on top of
+    ``3 |L''_i| s_dot |u| + |L'''_i| s_dot^3``.  With du <= |u| (reversals are kept out of the window)
+    their sum stays within ``RHO_CAP ETA j_i`` at speeds up to ``sqrt(x)`` where
+    ``|u| <= (RHO_CAP ETA j_i - |L'''_i| s_dot^3) / (|L'_i| / w + 3 |L''_i| s_dot)``, at least 5 % of it."""
+    v = np.sqrt(np.maximum(x, 0.0))
+    v3 = v * v * v
+    v3x = 3.0 * v
+    cap = np.full(x.shape[0], 1e12)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for i in range(Lp.shape[1]):                  # column by column: no (N,6) temporaries
+            J = RHO_CAP * ETA * float(jmax[i])
+            num = np.maximum(J - np.abs(Lppp[:, i]) * v3, 0.05 * J)
+            den = np.abs(Lp[:, i]) * (1.0 / w) + np.abs(Lpp[:, i]) * v3x
+            np.minimum(cap, np.where(den > 1e-300, num / np.maximum(den, 1e-300), np.inf), out=cap)
+    return cap
+
+
+def _with_accel_cap(c, e, d, ecap):
+    """The acceleration bounds with one more row ``-ecap <= u <= ecap`` and the speed limit (N,) at which
+    some strut's bound leaves that range (``c_i + d_i x <= ecap`` and ``e_i + d_i x >= -ecap``)."""
+    N, m = c.shape
+    xcap = np.full(N, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(m):
+            ad = np.abs(d[:, i])
+            ok = ad > 1e-15
+            np.minimum(xcap, np.where(ok, (e[:, i] + ecap) / np.where(ok, ad, 1.0), np.inf), out=xcap)
+    c7 = np.empty((N, m + 1))
+    e7 = np.empty((N, m + 1))
+    d7 = np.zeros((N, m + 1))
+    c7[:, :m] = c
+    c7[:, m] = -ecap
+    e7[:, :m] = e
+    e7[:, m] = ecap
+    d7[:, :m] = d
+    return c7, e7, d7, xcap
+
+
+def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
+    """Speed caps (x units, per grid point; inf where none) that give every speed peak of the profile x
+    a plateau of at least ``w`` seconds, so that a moving average of width ``w`` never holds an
+    acceleration reversal; and the hill number of each grid point.
+
+    A hill runs from one local minimum of x to the next; its cap is the highest level L (bisection)
+    whose plateau, from the first grid point at or above L on the way up to the last one on the way
+    down, lasts at least w at speed L (the capped profile reaches L at those points: it did before).
+    """
+    N = x.shape[0]
+    if N < 3:
+        return np.full(N, np.inf), np.zeros(N, dtype=np.int64)
+    v = np.sqrt(np.maximum(x, 0.0))
+    S = np.concatenate([[0.0], np.cumsum(h)])
+    dv = np.diff(v)
+    tol = 1e-12 * (1.0 + np.abs(v[1:]))
+    sgn = np.where(dv > tol, 1, np.where(dv < -tol, -1, 0))
+    # direction of each interval, flat ones taking the previous direction (leading flats: rising)
+    last = np.maximum.accumulate(np.where(sgn != 0, np.arange(N - 1), -1))
+    cs = np.where(last >= 0, sgn[np.maximum(last, 0)], 1)
+    # a hill starts at each grid point where the direction turns from falling to rising
+    start = np.zeros(N, dtype=np.int64)
+    start[1:-1] = (cs[:-1] < 0) & (cs[1:] > 0)
+    hill = np.cumsum(start)
+    H = int(hill[-1]) + 1
+    hs = np.concatenate([[0], np.nonzero(start)[0]])            # first grid point of each hill
+    he = np.concatenate([hs[1:], [N - 1]])                       # its last (the next hill's first)
+    vpk = np.maximum.reduceat(v, hs)
+    g = np.arange(N)
+    at_pk = v == vpk[hill]
+    pk = np.minimum.reduceat(np.where(at_pk, g, N), hs)          # first and last grid point at the peak
+    pk_last = np.maximum.reduceat(np.where(at_pk, g, -1), hs)
+    scale = float(v.max()) * 1.0001 + 1e-9
+    ri = np.nonzero(g <= pk[hill])[0]                            # rising parts, in order
+    key_r = hill[ri] + v[ri] / scale                             # non-decreasing
+    fi = np.nonzero(g >= pk_last[hill])[0][::-1]                 # falling parts, backwards
+    key_f = (H - 1 - hill[fi]) + v[fi] / scale                   # non-decreasing
+
+    def long_enough(hid, L):
+        """The plateau at level L (between the crossing grid points) lasts at least w at speed L."""
+        a = np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)
+        b = np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)
+        return S[fi[b]] - S[ri[a]] >= w * L
+
+    cap = np.full(H, np.inf)
+    hid = np.arange(H)
+    hid = hid[(vpk > 0) & ~long_enough(hid, vpk)]           # the others have their plateau already
+    if hid.size:
+        v_lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
+        short = ~long_enough(hid, v_lo)
+        # a hill too short for a plateau above its higher valley is flattened to that valley (it joins
+        # its neighbour); between two stops it gets the highest plateau it can hold
+        lo = np.where(short & (v_lo > 0), v_lo, np.where(short, 0.0, v_lo))
+        hi = np.where(short & (v_lo > 0), v_lo, vpk[hid])
+        for _ in range(CAP_BISECT):
+            mid = 0.5 * (lo + hi)
+            ok = long_enough(hid, mid)
+            lo = np.where(ok, mid, lo)
+            hi = np.where(ok, hi, mid)
+        cap[hid] = np.where(lo > 0, lo, np.inf)        # no plateau possible on the grid: left to the checks
+    return cap[hill] ** 2, hill
+
+
+def _cap_round(h, x, w, spans=None, max_spans: int = 64):
+    """One round of peak caps on the whole profile (``spans`` None) or on grid ranges that start and end
+    at a valley.  Returns (mask of the grid points of the hills that need a cap, caps (N,) valid there),
+    or (None, None) when every peak has its plateau."""
+    N = x.shape[0]
+    if spans is not None and len(spans) <= max_spans:
+        region = np.zeros(N, dtype=bool)
+        cap = np.full(N, np.inf)
+        for a0, a1 in spans:
+            if a1 <= a0:
+                continue
+            c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
+            more = c < x[a0:a1 + 1] * (1 - 1e-9)
+            if more.any():
+                hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+                hm[hill[more]] = True
+                sub = hm[hill]
+                region[a0:a1 + 1] |= sub
+                cap[a0:a1 + 1] = np.where(sub, c, cap[a0:a1 + 1])
+        return (region, cap) if region.any() else (None, None)
+    cap, hill = _cap_peaks(h, x, w)
+    more = cap < x * (1 - 1e-9)
+    if not more.any():
+        return None, None
+    hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+    hm[hill[more]] = True
+    return hm[hill], cap
+
+
+def _runs(mask: np.ndarray) -> list:
+    """Inclusive (first, last) index pairs of the runs of True in a boolean array."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), (np.nonzero(d == -1)[0] - 1).tolist()))
 
 
 def _path_rates(s_f: np.ndarray, dt: float):
@@ -382,6 +539,20 @@ def _near_junctions(sg: np.ndarray, s_f: np.ndarray, sd: np.ndarray) -> np.ndarr
     return near[np.abs(sd[near]) > 0]
 
 
+def _on_short_pieces(path, s_f: np.ndarray, sd: np.ndarray) -> np.ndarray:
+    """Moving table samples on pieces shorter than the central differences' stencil (4 FD_STEP): the
+    grid derivatives do not resolve such a piece (a tiny blend's polynomial evaluated beyond its
+    ends), so its interval bounds need not bound it: indices, may repeat."""
+    short = np.nonzero(path.slen < 4 * FD_STEP)[0]
+    if short.size == 0 or s_f.shape[0] < 2:
+        return np.zeros(0, dtype=np.int64)
+    a = np.searchsorted(s_f, path.s0[short], side="left")
+    b = np.searchsorted(s_f, path.s0[short] + path.slen[short], side="right")
+    cnt = np.maximum(b - a, 0)
+    idx = np.repeat(a, cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    return idx[np.abs(sd[idx]) > 0]
+
+
 def _screen_intervals(sg, s_f, sd, sdd, sddd, bounds: "_Bounds", thr):
     """Samples whose interval bound exceeds a threshold of ``thr`` = (v, a, j), found grid interval by
     grid interval: the bound of interval g with the largest |s_dot|, |s_ddot|, |s_dddot| of its
@@ -418,7 +589,8 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     """Utilisation per sample: interval bounds everywhere; where a bound exceeds ``screen`` the model
     (``exact=False``: interpolated grid derivatives) or the exact inverse kinematics (``exact=True``:
     finite differences at dt, also at every moving sample within 4 cycles of a piece junction, whose
-    stencil spans the curvature step) replaces it.
+    stencil spans the curvature step, and on every piece shorter than 4 FD_STEP, which the grid
+    derivatives do not resolve) replaces it.
 
     ``screen``: one number, or (velocity, acceleration, jerk) thresholds.
     Returns uv, ua, uj, va, ajr, vjr (per sample; va, ajr, vjr None unless exact) and the number of
@@ -458,6 +630,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
     res = list(bounds.at(g, sd, sdd, sddd, extras=True))      # governor ratios for the final table
     need = (res[0] > screen) | (res[1] > screen) | (res[2] > screen)
     need[_near_junctions(sg, s_f, sd)] = True
+    need[_on_short_pieces(path, s_f, sd)] = True
     idx = np.nonzero(need)[0]
     if idx.size == 0:
         return (*res, 0)
@@ -527,91 +700,6 @@ def _sample_profile(sg, h, x, holds_s, dt):
     return s, TH, total
 
 
-def _unimodal(x: np.ndarray) -> bool:
-    """True if ``x`` (s_dot^2 along a section) never falls and then rises again."""
-    d = np.diff(x)
-    tol = 1e-9 * max(float(np.max(x)), 1e-300)
-    fall = np.nonzero(d < -tol)[0]
-    return fall.size == 0 or not np.any(d[fall[0]:] > tol)
-
-
-def _plateau_cap(sg: np.ndarray, x: np.ndarray, T: float) -> float:
-    """Largest speed cap ``c`` (s-units/s) under which a section's profile ``x`` (s_dot^2 on the grid
-    ``sg``, linear in s between points) stays at its peak for at least ``T`` seconds: the length of
-    the grid intervals whose both ends reach ``c^2`` (where ``min(x, c^2)`` is flat) divided by ``c``
-    is at least ``T``.  0 if the section does not move."""
-    h = np.diff(sg)
-    vp = math.sqrt(max(float(np.max(x)), 0.0))
-    if vp <= 0.0:
-        return 0.0
-
-    def span(c: float) -> float:
-        # capped grid values are min(x, c^2), linear in between: flat only over whole intervals
-        return float(np.sum(h[(x[:-1] >= c * c) & (x[1:] >= c * c)]))
-
-    if span(vp) >= T * vp:
-        return vp
-    lo, hi = 0.0, vp
-    for _ in range(50):
-        c = 0.5 * (lo + hi)
-        if span(c) >= T * c:
-            lo = c
-        else:
-            hi = c
-    return lo
-
-
-def _filtered_table(sg, h, x, stop_idx, holds_s, dt, nf, n_narrow, wide):
-    """The smoothed table ``s(t)`` (one row per cycle), built section by section.
-
-    Every rest-to-rest section (between consecutive ``stop_idx``) is sampled from rest and
-    smoothed on its own: by the moving average of ``nf`` samples, or, if it has one speed
-    peak and is not in ``wide``, by one of ``n_narrow`` samples after its peak was capped to a
-    plateau of at least that width.  Between sections the motion rests for the hold's
-    rows beyond the filter width (at least 2 rows).  Returns (table, {stop grid: (first,
-    last) standstill row}, [(first, last) row of each section], narrow flags).
-    """
-    parts = []
-    rest = {}
-    rows = []
-    narrow = []
-    n_out = 0
-    if holds_s[0] > 0.0:                    # events before the first move: rest at the start
-        r = max(2, int(round(holds_s[0] / dt)))
-        rest[0] = (0, r - 1)
-        parts.append(np.full(r, sg[0]))
-        n_out = r
-    for k in range(stop_idx.shape[0] - 1):
-        a, b = int(stop_idx[k]), int(stop_idx[k + 1])
-        xs = x[a:b + 1]
-        zero = np.zeros(b - a + 1)
-        try:
-            s_raw = _sample_profile(sg[a:b + 1], h[a:b], xs, zero, dt)[0]
-            n = nf
-            if n_narrow < nf and k not in wide and b > a and _unimodal(xs):
-                cap = _plateau_cap(sg[a:b + 1], xs, (n_narrow + 1) * dt)
-                if cap > 0.0:
-                    xs = np.minimum(xs, cap * cap)
-                    s_raw = _sample_profile(sg[a:b + 1], h[a:b], xs, zero, dt)[0]
-                    n = n_narrow
-        except FloatingPointError as exc:
-            j = int(str(exc).rsplit(" ", 1)[-1])
-            raise FloatingPointError(f"zero speed over a path interval at grid point {a + j}") from exc
-        f = _box_filter(s_raw, n)
-        if n_out:
-            f = f[1:]                       # its first row is the previous rest row
-        rows.append((n_out, n_out + f.shape[0] - 1))
-        narrow.append(n != nf)
-        parts.append(f)
-        n_out += f.shape[0]
-        if k + 1 < stop_idx.shape[0] - 1 or holds_s[b] > 0.0:
-            r = max(2, int(round(holds_s[b] / dt)) - nf)
-            rest[b] = (n_out - 1, n_out - 1 + r)
-            parts.append(np.full(r, f[-1]))
-            n_out += r
-    return np.concatenate(parts), rest, rows, narrow
-
-
 def _box_filter(s_raw: np.ndarray, n: int) -> np.ndarray:
     """Moving average of n samples over s_raw padded with its first and last value (length + n)."""
     if n <= 1:
@@ -639,10 +727,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
     jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
     path, events = P.build_path(blocks, cfg)
-    T_f = float(np.max(2.0 * amax / jmax)) / FILTER_JERK_SHARE
-    nf = max(1, int(math.ceil(T_f / dt)))
+    w_f = float(np.max(amax / jmax)) / FILTER_JERK_SHARE
+    nf = max(1, int(math.ceil(w_f / dt)))
     hold_min = nf * dt + 2 * dt      # the smoothed motion rests for at least two cycles at a stop
-    n_narrow = max(1, int(math.ceil(float(np.max(amax / jmax)) * NARROW_MARGIN / dt)))
+    w_plateau = nf * dt + 2 * dt     # raw plateau at every speed peak (two cycles of rounding margin)
 
     if path.n == 0:
         # no motion: a standstill at the start pose (if any) for dwells
@@ -760,6 +848,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             pause_grid.append(g)
         holds_s[g] = hold_min + extra + (2 * dt if extra > 0 else 0.0)
     holds_s[0] = max(holds_s[0], 0.0)
+    rest_grid = [int(g) for g in np.nonzero(holds_s > 0)[0]]
 
 
     # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
@@ -767,29 +856,84 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_grid_for_lookup = sg
     xw = xlim.copy()
     xw[stop_all] = np.inf
-    xlim = _dilate_min(sg, xw, 0.5 * nf * dt)     # the window reaches T/2 either side of its centre
+    xlim = _dilate_min(sg, xw, SPREAD_REACH * nf * dt)     # the window reaches w/2 either side of its centre
     xlim[stop_all] = 0.0
+    # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
+    # cap only grows as speeds drop, so it stays valid)
+    x0 = WavefrontTopp(h, c, e, dd).solve(xlim)
+    ecap = _accel_cap(Lp, Lpp, Lppp, x0, jmax, nf * dt)
+    del x0
+    c, e, dd, xcap = _with_accel_cap(c, e, dd, ecap)
+    lower = np.nonzero(xcap < xlim)[0]
+    if lower.size:              # curvature alone needs more than the cap: a speed limit, spread like the others
+        xw = np.full(Ng, np.inf)
+        xw[lower] = xcap[lower]
+        xw[stop_all] = np.inf
+        xlim = np.minimum(xlim, _dilate_min(sg, xw, SPREAD_REACH * nf * dt))
+        xlim[stop_all] = 0.0
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
-    del c, e, dd
+    caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
+    cfac = np.ones(Ng)                     # the verification's factors on the acceleration cap
+    xcapf = np.full(Ng, np.inf)            # speed limits where a lowered cap leaves no acceleration
+    cap_changed = []
+    del c
     changed: list = []             # grid ranges whose limit changed since the last pass
-    wide: set = set()              # sections that must use the full filter width
     bounds = _Bounds(Lp, Lpp, Lppp, vmax, amax, jmax)
     iters = 0
     exact = False
     exact_iters = 0
     for iters in range(1, 40):
-        xl = xlim * factor
         if iters == 1:
-            x = topp.solve(xl)
+            xc = xlim.copy()
+            x = topp.solve(xc)
         elif changed:
-            x = topp.solve_ranges(xl, changed)
+            for a0, a1 in cap_changed:
+                sl = slice(a0, a1 + 1)
+                ec = ecap[sl] * cfac[sl]
+                bound = np.zeros(Ng)
+                bound[sl] = ec
+                topp.set_bound(6, np.arange(a0, a1 + 1), bound)
+                # a lower cap can leave no acceleration at the highest speeds: those become a limit
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ad = np.abs(dd[sl, :6])
+                    xcw = np.where(ad > 1e-15, (e[sl, :6] + ec[:, None]) / np.where(ad > 1e-15, ad, 1.0),
+                                   np.inf).min(axis=1)
+                xcapf[sl] = np.minimum(xcapf[sl], xcw)
+            for a0, a1 in changed:
+                xc[a0:a1 + 1] = np.minimum(np.minimum(xlim[a0:a1 + 1] * factor[a0:a1 + 1], xcapf[a0:a1 + 1]),
+                                           caps[a0:a1 + 1])
+            x = topp.solve_ranges(xc, changed, bounds_changed=bool(cap_changed))
+        # speed peaks: capped (caps only ever lowered, kept across passes) until each has a plateau of w,
+        # so that no filter window holds an acceleration reversal; re-solving moves the ramps by up to a
+        # grid step, so a second round caps what the first left
+        spans = None                       # the first round looks at every hill
+        for _round in range(CAP_ROUNDS if iters == 1 or changed else 0):
+            region, cap = _cap_round(h, x, w_plateau, spans)
+            if region is None:
+                break
+            caps[region] = np.minimum(caps[region], cap[region])
+            xc[region] = np.minimum(xc[region], cap[region])
+            spans = _runs(region)          # whole hills: the next round only looks at those
+            if _DEBUG:
+                print(f"   caps round {_round}: {len(spans)} runs, {int(region.sum())} points")
+            x = topp.solve_ranges(xc, spans)
         try:
-            s_f, rest_rows, sec_rows, sec_narrow = _filtered_table(sg, h, x, stop_idx, holds_s, dt, nf, n_narrow,
-                                                                    wide)
+            s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
         except FloatingPointError as exc:
             k = int(str(exc).rsplit(" ", 1)[-1])
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
                 path.line[pidx[k]]), limit="speed") from exc
+        s_f = _box_filter(s_raw, nf)
+        # rows whose window lies inside a stop's hold rest exactly at the stop (the running sum of the
+        # filter leaves them an ulp off, which put them on the arriving piece in the model pass)
+        for g in rest_grid:
+            c0 = int(math.ceil(TH[g] / dt - 1e-9)) + nf
+            c1 = min(s_f.shape[0] - 1, int(math.floor((TH[g] + holds_s[g]) / dt + 1e-9)) - 1)
+            if c1 >= c0:
+                s_f[c0:c1 + 1] = sg[g]
+                # the rows around stay on their side of the stop (the same rounding, either way)
+                np.minimum(s_f[max(0, c0 - nf):c0], sg[g], out=s_f[max(0, c0 - nf):c0])
+                np.maximum(s_f[c1 + 1:c1 + 1 + nf], sg[g], out=s_f[c1 + 1:c1 + 1 + nf])
         # model passes only decide where to slow down: a sample whose bound is within its violation
         # threshold cannot violate (model <= bound), so only the others are evaluated
         uv, ua, uj, va, ajr, vjr, n_detail = _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds, s_f, dt, vmax,
@@ -809,14 +953,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                       path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
                       "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
         changed = []
-        # a narrow-filtered section that violates is smoothed by the full filter from now on
-        switched = [k for k, (r0, r1) in enumerate(sec_rows) if sec_narrow[k] and bad[r0:r1 + 1].any()]
-        if switched:
-            wide.update(switched)
-            for k in switched:
-                bad[sec_rows[k][0]:sec_rows[k][1] + 1] = False
-            if not bad.any():
-                continue
+        cap_changed = []
         if not bad.any():
             if exact:
                 break
@@ -846,6 +983,12 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             g0 = max(0, int(np.searchsorted(s_grid_for_lookup, lo_s, side="left")) - 1)
             g1 = min(Ng, int(np.searchsorted(s_grid_for_lookup, hi_s, side="right")) + 1)
             f = float(np.min(fac[j0:j1 + 1]))
+            if not (viol_v[j0:j1 + 1].any() or viol_a[j0:j1 + 1].any()):
+                # jerk alone: mostly the filter's |L'| du / w, which slower speeds hardly change, so
+                # the acceleration cap is lowered with the speed limit
+                cfac[g0:g1] *= f
+                cap_changed.append((g0, g1 - 1))
+                f = f ** CAP_JERK_SPEED
             factor[g0:g1] *= f
             changed.append((g0, g1 - 1))
     else:
@@ -862,7 +1005,8 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     pause_idx = []
     for g, hd in sorted(holds.items()):
         # the smoothed table stands still once the filter window lies inside the raw hold
-        c0, c1 = rest_rows[g]
+        c0 = min(Nt - 1, int(math.ceil(TH[g] / dt - 1e-9)) + nf)
+        c1 = min(Nt - 1, max(c0, int(math.floor((TH[g] + holds_s[g]) / dt + 1e-9)) - 1))
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
         for blk in hd.kinds:
@@ -879,7 +1023,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     for m, blk in events:
         if blk.kind not in P.STOP_EVENTS:
             g = int(last[m]) if m >= 0 else 0
-            j = min(Nt - 1, int(np.searchsorted(s_f, sg[g], side="left")))
+            j = min(Nt - 1, int((TH[g]) / dt) + nf // 2)
             ev_out.append((j * dt, int(blk.line), blk.kind, getattr(blk, "coolant", None)))
             flag_tab[j] |= FLAG_EVENT
     flag_tab[-1] |= FLAG_END

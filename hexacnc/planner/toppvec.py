@@ -139,9 +139,17 @@ class WavefrontTopp:
             self._forward(np.arange(N - 1))
         return self.x.copy()
 
-    def solve_ranges(self, xlim: np.ndarray, ranges) -> np.ndarray:
+    def set_bound(self, col: int, idx: np.ndarray, bound: np.ndarray) -> None:
+        """Set row ``col`` of the acceleration bounds, one with ``d = 0``, to ``-bound <= u <= bound`` at the
+        grid points idx; follow with :meth:`solve_ranges` over them with ``bounds_changed=True``."""
+        idx = idx[idx < self.N - 1]
+        self.bnum[idx, col] = self.h2[idx] * -bound[idx]
+        self.e[idx, col] = bound[idx]
+
+    def solve_ranges(self, xlim: np.ndarray, ranges, bounds_changed: bool = False) -> np.ndarray:
         """x after the limits changed on the grid ranges ``[(lo, hi), ...]`` (inclusive); the same
-        result as :meth:`solve` on the new limits."""
+        result as :meth:`solve` on the new limits.  ``bounds_changed``: the acceleration bounds changed
+        there too (:meth:`set_bound`), so the forward equations there are evaluated again as well."""
         if self.K is None:
             return self.solve(xlim)
         N = self.N
@@ -149,7 +157,12 @@ class WavefrontTopp:
         rs = [(max(0, int(a)), min(N - 1, int(b))) for a, b in ranges if b >= a]
         if not rs:
             return self.x.copy()
-        idx = np.unique(np.concatenate([np.arange(a, b + 1) for a, b in rs]))
+        # the union of the ranges, sorted (a difference array: no sort of possibly overlapping ranges)
+        mark = np.zeros(N + 1, dtype=np.int64)
+        ra = np.array(rs, dtype=np.int64)
+        np.add.at(mark, ra[:, 0], 1)
+        np.add.at(mark, ra[:, 1] + 1, -1)
+        idx = np.nonzero(np.cumsum(mark[:-1]) > 0)[0]
         self.xl[idx] = xl_new[idx]
         kch = []
         if idx[-1] == N - 1 and self.K[-1] != self.xl[-1]:
@@ -158,6 +171,8 @@ class WavefrontTopp:
         kch.append(self._backward(idx[idx < N - 1]))
         kch = np.concatenate(kch)
         front = [kch[kch >= 1] - 1]                     # equations x[k+1] = f(x[k], K[k+1])
+        if bounds_changed:
+            front.append(idx)
         x0 = min(self.K[0], self.xl[0])
         if x0 != self.x[0]:
             self.x[0] = x0
