@@ -6,7 +6,6 @@ that need TOPP-RA (``toppra``, a bench extra) skip cleanly where it is not insta
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
@@ -19,23 +18,17 @@ from hexacnc.kinematics import Hexapod
 from hexacnc.planner import plan_program
 from hexacnc.pose import matrix_from_euler
 
+from test_planner_motion import tip_of
+from test_planner_topp import cfg_free  # noqa: F401  (fixture: feed and angular-velocity limits lifted)
+
 
 @pytest.fixture(scope="module")
 def cfg():
     return load_config(None)
 
 
-@pytest.fixture(scope="module")
-def cfg_free(cfg):
-    pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6, rapid_feed_mm_min=1e9)
-    return cfg.replace(planner=pc)
-
-
 def _home_tip(cfg):
-    home = np.asarray(cfg.home_pose, dtype=float)
-    tip = home.copy()
-    tip[:3] = home[:3] + matrix_from_euler(*np.radians(home[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
-    return tip
+    return tip_of(cfg, cfg.home_pose)
 
 
 def _closed_form(d, v, a, j):

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hexacnc.gcode.blocks import Block
 from hexacnc.planner import plan as PL
 from hexacnc.planner.topp import forward_backward, interval_times
 from hexacnc.planner.toppvec import WavefrontTopp
 
+from test_planner_motion import utilisation
 from test_planner_speed import _topp_problem
 
 
@@ -217,19 +217,11 @@ def test_tiny_blends_are_measured_exactly(seed):
     central differences' stencil, where the interval bounds did not bound (the plan reported 0.89 /
     0.92): measured independently, the table stays within the plan's targets."""
     from hexacnc.config import load_config
-    from hexacnc.kinematics import Hexapod
     from hexacnc.planner import plan_program
     cfg = load_config(None)
     plan = plan_program(_random_moves(cfg, seed), cfg)
     assert np.any(plan.path.slen < 4 * PL.FD_STEP)
-    rows = plan.rows()
-    P = rows[:, :6].copy()
-    P[:, 3:] = np.degrees(P[:, 3:])
-    L = Hexapod(cfg).inverse_batch(P)
-    dt = plan.dt
-    v = np.diff(L, axis=0) / dt
-    a = np.diff(v, axis=0) / dt
-    j = np.diff(a, axis=0) / dt
-    assert np.max(np.abs(v) / cfg.max_velocity_mm_s) <= 1.0
-    assert np.max(np.abs(a) / cfg.max_acceleration_mm_s2) <= PL.ETA + 1e-3
-    assert np.max(np.abs(j) / cfg.max_jerk_mm_s3) <= PL.ETA + 1e-3
+    v, a, j = utilisation(cfg, plan.rows(), plan.dt)
+    assert v <= 1.0
+    assert a <= PL.ETA + 1e-3
+    assert j <= PL.ETA + 1e-3

@@ -1,7 +1,7 @@
 """Planner: moves between exact stops and a blended corner, measured independently.
 
 Utilisation is measured independently: the nominal rows through ``Hexapod.inverse_batch`` and
-finite differences at the cycle period (as in test_planner_motion).
+finite differences at the cycle period (test_planner_motion.utilisation).
 """
 from __future__ import annotations
 
@@ -10,10 +10,11 @@ import pytest
 
 from hexacnc.config import load_config
 from hexacnc.gcode.blocks import Block
-from hexacnc.kinematics import Hexapod
 from hexacnc.planner import plan as PP
 from hexacnc.planner import plan_program
 from hexacnc.pose import matrix_from_euler
+
+from test_planner_motion import tip_of, utilisation
 
 
 @pytest.fixture(scope="module")
@@ -22,10 +23,7 @@ def cfg():
 
 
 def tip_home(cfg):
-    P = np.asarray(cfg.home_pose, dtype=float)
-    out = P.copy()
-    out[:3] = P[:3] + matrix_from_euler(*np.radians(P[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
-    return out
+    return tip_of(cfg, cfg.home_pose)
 
 
 def exact_stop_moves(cfg, moves, feed_mm_s=1e4):
@@ -41,26 +39,13 @@ def exact_stop_moves(cfg, moves, feed_mm_s=1e4):
     return blocks
 
 
-def measured(cfg, plan):
-    rows = plan.rows()
-    P = rows[:, :6].copy()
-    P[:, 3:] = np.degrees(P[:, 3:])
-    L = Hexapod(cfg).inverse_batch(P)
-    dt = plan.dt
-    v = np.diff(L, axis=0) / dt
-    a = np.diff(v, axis=0) / dt
-    j = np.diff(a, axis=0) / dt
-    return (float(np.max(np.abs(v) / cfg.max_velocity_mm_s)), float(np.max(np.abs(a) / cfg.max_acceleration_mm_s2)),
-            float(np.max(np.abs(j) / cfg.max_jerk_mm_s3)))
-
-
 MOVES = [(2.0, (1, 0, 0)), (30.0, (0, 1, 0)), (5.0, (0, 0, -1)), (20.0, (-1, -1, 0)), (0.5, (1, 0, 1))]
 
 
 def test_exact_stop_moves_stay_within_limits_and_rest_at_every_stop(cfg):
     blocks = exact_stop_moves(cfg, MOVES)
     plan = plan_program(blocks, cfg)
-    v, a, j = measured(cfg, plan)
+    v, a, j = utilisation(cfg, plan.rows(), plan.dt)
     assert v <= 1.0 and a <= PP.ETA + 1e-3 and j <= PP.ETA + 1e-3, (v, a, j)
     assert max(plan.utilisation.values()) <= 1.0
     # the motion really rests at every exact stop (at least two rows at the same pose)
@@ -88,5 +73,5 @@ def test_blended_corner_between_exact_stops_stays_within_limits(cfg):
     blocks = [Block("line", 1, p0, p1, feed_mm_s=1e4, blend_tolerance_mm=0.2),
               Block("line", 2, p1, p2, feed_mm_s=1e4, blend_tolerance_mm=0.2)]
     plan = plan_program(blocks, cfg)
-    v, a, j = measured(cfg, plan)
+    v, a, j = utilisation(cfg, plan.rows(), plan.dt)
     assert v <= 1.0 and a <= PP.ETA + 1e-3 and j <= PP.ETA + 1e-3, (v, a, j)
