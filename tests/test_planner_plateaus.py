@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from hexacnc.planner import plan as PL
+from hexacnc.planner import profile as PF
+from hexacnc.planner import verify as VF
 from hexacnc.planner.topp import forward_backward, interval_times
 from hexacnc.planner.toppvec import WavefrontTopp
 
@@ -41,7 +42,7 @@ def test_spreading_equals_the_pointwise_scatter(seed):
     x[rng.uniform(size=N) < 0.03] = 0.0
     T = float(rng.choice([0.001, 0.014, 0.05]))
     span = int(rng.choice([3, 40, 4000]))
-    assert np.array_equal(PL._dilate_min(sg, x, T, max_span=span), _dilate_reference(sg, x, T, span))
+    assert np.array_equal(PF._dilate_min(sg, x, T, max_span=span), _dilate_reference(sg, x, T, span))
 
 
 def _plateaus(h, x, tol=1e-6):
@@ -91,14 +92,14 @@ def test_capped_peaks_have_a_plateau_of_the_filter_width(seed):
     assert (_plateaus(h, x) < w).sum() > 20              # sharp peaks to begin with
     xc = xlim.copy()
     for _ in range(2):
-        cap, hill = PL._cap_peaks(h, x, w)
+        cap, hill = PF._cap_peaks(h, x, w)
         assert cap.shape == x.shape and hill.shape == x.shape
         assert np.all(np.diff(hill) >= 0) and np.all(cap > 0)
         xc = np.minimum(xc, cap)
         x = forward_backward(h, xc, c, e, d)
     assert _plateaus(h, x).min() >= w * (1 - 1e-9)
     # a profile whose peaks all have their plateau gets no cap
-    cap, _ = PL._cap_peaks(h, x, w)
+    cap, _ = PF._cap_peaks(h, x, w)
     assert np.all(cap >= x * (1 - 1e-9))
 
 
@@ -106,7 +107,7 @@ def test_a_short_move_between_two_stops_keeps_moving():
     """A hill too short for a plateau of w at any useful speed still gets a positive cap (or none)."""
     h = np.full(6, 0.01)
     x = np.array([0.0, 400.0, 900.0, 1000.0, 900.0, 400.0, 0.0])
-    cap, hill = PL._cap_peaks(h, x, 0.05)
+    cap, hill = PF._cap_peaks(h, x, 0.05)
     assert np.all(cap[1:-1] > 0)
     assert np.all(cap[1:-1] < 1000.0)                    # capped: 0.05 s at 31.6 mm/s would need 1.6 mm
 
@@ -116,7 +117,7 @@ def test_acceleration_cap_row_and_its_incremental_update(seed):
     h, c, e, d, xlim, rng = _topp_problem(seed)
     n = xlim.shape[0]
     ecap = rng.uniform(50.0, 400.0, n)
-    c7, e7, d7, xcap = PL._with_accel_cap(c, e, d, ecap)
+    c7, e7, d7, xcap = PF._with_accel_cap(c, e, d, ecap)
     xl = np.minimum(xlim, xcap)
     w = WavefrontTopp(h, c7, e7, d7)
     x = w.solve(xl)
@@ -148,10 +149,10 @@ def test_acceleration_cap_keeps_the_jerk_terms_within_the_share():
     jmax = np.full(6, 2e5)
     x = rng.uniform(0, 4e4, n)
     w = 0.028
-    cap = PL._accel_cap(Lp, Lpp, Lppp, x, jmax, w)
+    cap = PF._accel_cap(Lp, Lpp, Lppp, x, jmax, w)
     v = np.sqrt(x)[:, None]
     total = np.abs(Lp) * cap[:, None] / w + 3 * np.abs(Lpp) * v * cap[:, None] + np.abs(Lppp) * v ** 3
-    budget = PL.RHO_CAP * PL.ETA * jmax[None]
+    budget = PF.RHO_CAP * PF.ETA * jmax[None]
     room = np.all(np.abs(Lppp) * v ** 3 <= 0.95 * budget, axis=1)     # the floor (5 %) does not apply
     assert room.any()
     assert np.all(total[room] <= budget * (1 + 1e-9))
@@ -220,8 +221,8 @@ def test_tiny_blends_are_measured_exactly(seed):
     from hexacnc.planner import plan_program
     cfg = load_config(None)
     plan = plan_program(_random_moves(cfg, seed), cfg)
-    assert np.any(plan.path.slen < 4 * PL.FD_STEP)
+    assert np.any(plan.path.slen < 4 * VF.FD_STEP)
     v, a, j = utilisation(cfg, plan.rows(), plan.dt)
     assert v <= 1.0
-    assert a <= PL.ETA + 1e-3
-    assert j <= PL.ETA + 1e-3
+    assert a <= PF.ETA + 1e-3
+    assert j <= PF.ETA + 1e-3

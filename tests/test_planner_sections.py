@@ -10,8 +10,8 @@ import pytest
 
 from hexacnc.config import load_config
 from hexacnc.gcode.blocks import Block
-from hexacnc.planner import plan as PP
 from hexacnc.planner import plan_program
+from hexacnc.planner import profile as PF
 from hexacnc.pose import matrix_from_euler
 
 from test_planner_motion import tip_of, utilisation
@@ -46,7 +46,7 @@ def test_exact_stop_moves_stay_within_limits_and_rest_at_every_stop(cfg):
     blocks = exact_stop_moves(cfg, MOVES)
     plan = plan_program(blocks, cfg)
     v, a, j = utilisation(cfg, plan.rows(), plan.dt)
-    assert v <= 1.0 and a <= PP.ETA + 1e-3 and j <= PP.ETA + 1e-3, (v, a, j)
+    assert v <= 1.0 and a <= PF.ETA + 1e-3 and j <= PF.ETA + 1e-3, (v, a, j)
     assert max(plan.utilisation.values()) <= 1.0
     # the motion really rests at every exact stop (at least two rows at the same pose)
     rows = plan.rows()
@@ -74,4 +74,4 @@ def test_blended_corner_between_exact_stops_stays_within_limits(cfg):
               Block("line", 2, p1, p2, feed_mm_s=1e4, blend_tolerance_mm=0.2)]
     plan = plan_program(blocks, cfg)
     v, a, j = utilisation(cfg, plan.rows(), plan.dt)
-    assert v <= 1.0 and a <= PP.ETA + 1e-3 and j <= PP.ETA + 1e-3, (v, a, j)
+    assert v <= 1.0 and a <= PF.ETA + 1e-3 and j <= PF.ETA + 1e-3, (v, a, j)

@@ -8,7 +8,9 @@ import pytest
 from hexacnc.config import load_config
 from hexacnc.kinematics import Hexapod
 from hexacnc.planner import path as P
+from hexacnc.planner import limits as LI
 from hexacnc.planner import plan as PL
+from hexacnc.planner import verify as VF
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +27,7 @@ def test_condition_bound_is_an_upper_bound_and_exact_where_inconclusive():
     with np.errstate(divide="ignore"):
         exact = sv[:, 0] / sv[:, -1]
     for limit in (10.0, 1e3, 1e6):
-        c = PL.condition_numbers(J, limit)
+        c = LI.condition_numbers(J, limit)
         passed = c <= limit
         # the verdict is the exact one, and every returned value bounds the true condition number
         assert np.array_equal(passed, exact <= limit)
@@ -35,7 +37,7 @@ def test_condition_bound_is_an_upper_bound_and_exact_where_inconclusive():
         if limit < 1e5:
             assert over.sum() > 10
         assert np.allclose(c[over], exact[over], rtol=1e-6)
-    assert not np.any(PL.condition_numbers(J[50:60], 1e3) <= 1e3)
+    assert not np.any(LI.condition_numbers(J[50:60], 1e3) <= 1e3)
 
 
 def test_grid_offsets_match_per_piece_reference(cfg):
@@ -227,12 +229,12 @@ def test_interval_screen_finds_exactly_the_samples_above_threshold():
     s_f[0] = 0.0
     sd, sdd, sddd = (rng.normal(size=s_f.shape[0]) * k for k in (50.0, 3e3, 1e5))
     Lp, Lpp, Lppp = (rng.normal(size=(sg.shape[0], 6)) * k for k in (1.0, 0.1, 0.01))
-    b = PL._Bounds(Lp, Lpp, Lppp, np.full(6, 300.0), np.full(6, 1e4), np.full(6, 1e6))
+    b = VF._Bounds(Lp, Lpp, Lppp, np.full(6, 300.0), np.full(6, 1e4), np.full(6, 1e6))
     g = np.clip(np.searchsorted(sg, s_f, side="right") - 1, 0, sg.shape[0] - 2)
     uv, ua, uj, _, _, _ = b.at(g, sd, sdd, sddd, extras=False)
     for thr in ((0.1, 0.2, 0.3), (0.5, 0.5, 0.5), (0.0, 0.0, 0.0)):
         want = np.nonzero((uv > thr[0]) | (ua > thr[1]) | (uj > thr[2]))[0]
-        idx, gi, bv, ba, bj = PL._screen_intervals(sg, s_f, sd, sdd, sddd, b, thr)
+        idx, gi, bv, ba, bj = VF._screen_intervals(sg, s_f, sd, sdd, sddd, b, thr)
         assert np.array_equal(idx, want) and np.array_equal(gi, g[want])
         assert np.array_equal(bv, uv[want]) and np.array_equal(ba, ua[want]) and np.array_equal(bj, uj[want])
         assert 0 < want.size
@@ -241,7 +243,7 @@ def test_interval_screen_finds_exactly_the_samples_above_threshold():
 def test_exact_measurement_does_not_depend_on_its_chunking(cfg, monkeypatch):
     blocks = _dynamic_program(cfg, 13, n=60)
     ref = PL.plan_program(blocks, cfg)
-    monkeypatch.setattr(PL, "EXACT_CHUNK", 97)
+    monkeypatch.setattr(VF, "EXACT_CHUNK", 97)
     small = PL.plan_program(blocks, cfg)
     assert small.utilisation == ref.utilisation
     assert ref.gov.keys() == small.gov.keys()

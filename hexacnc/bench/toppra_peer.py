@@ -217,7 +217,7 @@ def feed_speed_limit(path, s: np.ndarray, half_cell) -> np.ndarray:
     ``[s - half_cell, s + half_cell]`` (``half_cell`` a number or one per point) is taken (clamped into the piece), so a lower feed on a piece
     between two grid points is not missed.
     """
-    from ..planner.plan import FD_STEP
+    from ..planner.verify import FD_STEP
     s = np.asarray(s, dtype=float)
     lo = path.piece_at(s - half_cell)
     hi = path.piece_at(s + half_cell)
@@ -494,7 +494,8 @@ def topp_decomposition(plan, cfg) -> dict:
 
     Only strut limits (the bench lifts feeds); the plan's stops are kept.  See the JSON note.
     """
-    from ..planner.plan import ACC_SHARE, ETA, RHO_J, RHO_STEP, _dilate_min
+    from ..planner.plan import ACC_SHARE, RHO_J, RHO_STEP
+    from ..planner.profile import ETA, _dilate_min
     from ..planner.topp import accel_coefficients, forward_backward, interval_times
     h = np.asarray(plan.grid_h)
     Lp, Lpp, Lppp = (np.asarray(a) for a in (plan.grid_L1, plan.grid_L2, plan.grid_L3))

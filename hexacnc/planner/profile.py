@@ -1,0 +1,241 @@
+"""Speed profile and jerk filter: the spreading of speed limits, the path-acceleration cap, the plateaus
+at speed peaks, the raw profile s(t) at the cycle period and its moving average (steps 3-4 of the method
+in :mod:`hexacnc.planner.plan`).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .topp import interval_times
+
+#: fraction of the acceleration and jerk limits the nominal plan may use
+ETA = 0.95
+#: share of the jerk limit the acceleration cap leaves to the filter and curvature terms together
+RHO_CAP = 1.0
+#: bisection steps of the peak caps (level resolution 2^-n of the peak's height above its valleys)
+CAP_BISECT = 14
+
+
+def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+    """Spread every speed limit over the distance travelled at that speed in the filter window.
+
+    The moving average of width T gives, at position s_j, the mean raw speed of the
+    positions passed within T.  If the raw speed is at most sqrt(x_j) for all
+    positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
+    that mean is at most sqrt(x_j):
+    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.
+    """
+    N = x.shape[0]
+    fin = np.isfinite(x)
+    r = np.where(fin, np.sqrt(np.maximum(x, 0.0)) * T, 0.0)
+    lo = np.searchsorted(sg, sg - r, side="left")
+    hi = np.searchsorted(sg, sg + r, side="right") - 1
+    cnt = np.minimum(hi - lo + 1, max_span)
+    # only limits lower than some point in their reach matter
+    j = np.nonzero(fin & (cnt > 1))[0]
+    out = x.copy()
+    if j.size == 0:
+        return out
+    # every range [lo_j, lo_j + cnt_j) is the union of two power-of-two blocks; the minimum over
+    # the blocks starting at each point is pushed down level by level (the same minima as a
+    # scatter over every point of every range, in O(N log max_span))
+    a = lo[j]
+    cj = cnt[j]
+    xj = x[j]
+    lev = np.floor(np.log2(cj)).astype(np.int64)
+    top = int(lev.max())
+    tab = [None] * (top + 1)
+    for L in range(top, -1, -1):
+        cur = np.full(N, np.inf) if tab[L] is None else tab[L]
+        m = np.nonzero(lev == L)[0]
+        if m.size:
+            np.minimum.at(cur, a[m], xj[m])
+            np.minimum.at(cur, a[m] + cj[m] - (1 << L), xj[m])
+        if L == 0:
+            np.minimum(out, cur, out=out)
+            break
+        hh = 1 << (L - 1)
+        nxt = cur.copy()
+        np.minimum(nxt[hh:], cur[:-hh], out=nxt[hh:])
+        tab[L - 1] = nxt
+        tab[L] = None
+    return out
+
+
+def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
+    """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
+    reaches the struts through the moving average of width ``w`` as jerk ``|L'_i| du / w``, on top of
+    ``3 |L''_i| s_dot |u| + |L'''_i| s_dot^3``.  With du <= |u| (reversals are kept out of the window)
+    their sum stays within ``RHO_CAP ETA j_i`` at speeds up to ``sqrt(x)`` where
+    ``|u| <= (RHO_CAP ETA j_i - |L'''_i| s_dot^3) / (|L'_i| / w + 3 |L''_i| s_dot)``, at least 5 % of it."""
+    v = np.sqrt(np.maximum(x, 0.0))
+    v3 = v * v * v
+    v3x = 3.0 * v
+    cap = np.full(x.shape[0], 1e12)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for i in range(Lp.shape[1]):                  # column by column: no (N,6) temporaries
+            J = RHO_CAP * ETA * float(jmax[i])
+            num = np.maximum(J - np.abs(Lppp[:, i]) * v3, 0.05 * J)
+            den = np.abs(Lp[:, i]) * (1.0 / w) + np.abs(Lpp[:, i]) * v3x
+            np.minimum(cap, np.where(den > 1e-300, num / np.maximum(den, 1e-300), np.inf), out=cap)
+    return cap
+
+
+def _with_accel_cap(c, e, d, ecap):
+    """The acceleration bounds with one more row ``-ecap <= u <= ecap`` and the speed limit (N,) at which
+    some strut's bound leaves that range (``c_i + d_i x <= ecap`` and ``e_i + d_i x >= -ecap``)."""
+    N, m = c.shape
+    xcap = np.full(N, np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(m):
+            ad = np.abs(d[:, i])
+            ok = ad > 1e-15
+            np.minimum(xcap, np.where(ok, (e[:, i] + ecap) / np.where(ok, ad, 1.0), np.inf), out=xcap)
+    c7 = np.empty((N, m + 1))
+    e7 = np.empty((N, m + 1))
+    d7 = np.zeros((N, m + 1))
+    c7[:, :m] = c
+    c7[:, m] = -ecap
+    e7[:, :m] = e
+    e7[:, m] = ecap
+    d7[:, :m] = d
+    return c7, e7, d7, xcap
+
+
+def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
+    """Speed caps (x units, per grid point; inf where none) that give every speed peak of the profile x
+    a plateau of at least ``w`` seconds, so that a moving average of width ``w`` never holds an
+    acceleration reversal; and the hill number of each grid point.
+
+    A hill runs from one local minimum of x to the next; its cap is the highest level L (bisection)
+    whose plateau, from the first grid point at or above L on the way up to the last one on the way
+    down, lasts at least w at speed L (the capped profile reaches L at those points: it did before).
+    """
+    N = x.shape[0]
+    if N < 3:
+        return np.full(N, np.inf), np.zeros(N, dtype=np.int64)
+    v = np.sqrt(np.maximum(x, 0.0))
+    S = np.concatenate([[0.0], np.cumsum(h)])
+    dv = np.diff(v)
+    tol = 1e-12 * (1.0 + np.abs(v[1:]))
+    sgn = np.where(dv > tol, 1, np.where(dv < -tol, -1, 0))
+    # direction of each interval, flat ones taking the previous direction (leading flats: rising)
+    last = np.maximum.accumulate(np.where(sgn != 0, np.arange(N - 1), -1))
+    cs = np.where(last >= 0, sgn[np.maximum(last, 0)], 1)
+    # a hill starts at each grid point where the direction turns from falling to rising
+    start = np.zeros(N, dtype=np.int64)
+    start[1:-1] = (cs[:-1] < 0) & (cs[1:] > 0)
+    hill = np.cumsum(start)
+    H = int(hill[-1]) + 1
+    hs = np.concatenate([[0], np.nonzero(start)[0]])            # first grid point of each hill
+    he = np.concatenate([hs[1:], [N - 1]])                       # its last (the next hill's first)
+    vpk = np.maximum.reduceat(v, hs)
+    g = np.arange(N)
+    at_pk = v == vpk[hill]
+    pk = np.minimum.reduceat(np.where(at_pk, g, N), hs)          # first and last grid point at the peak
+    pk_last = np.maximum.reduceat(np.where(at_pk, g, -1), hs)
+    scale = float(v.max()) * 1.0001 + 1e-9
+    ri = np.nonzero(g <= pk[hill])[0]                            # rising parts, in order
+    key_r = hill[ri] + v[ri] / scale                             # non-decreasing
+    fi = np.nonzero(g >= pk_last[hill])[0][::-1]                 # falling parts, backwards
+    key_f = (H - 1 - hill[fi]) + v[fi] / scale                   # non-decreasing
+
+    def long_enough(hid, L):
+        """The plateau at level L (between the crossing grid points) lasts at least w at speed L."""
+        a = np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)
+        b = np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)
+        return S[fi[b]] - S[ri[a]] >= w * L
+
+    cap = np.full(H, np.inf)
+    hid = np.arange(H)
+    hid = hid[(vpk > 0) & ~long_enough(hid, vpk)]           # the others have their plateau already
+    if hid.size:
+        v_lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
+        short = ~long_enough(hid, v_lo)
+        # a hill too short for a plateau above its higher valley is flattened to that valley (it joins
+        # its neighbour); between two stops it gets the highest plateau it can hold
+        lo = np.where(short & (v_lo > 0), v_lo, np.where(short, 0.0, v_lo))
+        hi = np.where(short & (v_lo > 0), v_lo, vpk[hid])
+        for _ in range(CAP_BISECT):
+            mid = 0.5 * (lo + hi)
+            ok = long_enough(hid, mid)
+            lo = np.where(ok, mid, lo)
+            hi = np.where(ok, hi, mid)
+        cap[hid] = np.where(lo > 0, lo, np.inf)        # no plateau possible on the grid: left to the checks
+    return cap[hill] ** 2, hill
+
+
+def _cap_round(h, x, w, spans=None, max_spans: int = 64):
+    """One round of peak caps on the whole profile (``spans`` None) or on grid ranges that start and end
+    at a valley.  Returns (mask of the grid points of the hills that need a cap, caps (N,) valid there),
+    or (None, None) when every peak has its plateau."""
+    N = x.shape[0]
+    if spans is not None and len(spans) <= max_spans:
+        region = np.zeros(N, dtype=bool)
+        cap = np.full(N, np.inf)
+        for a0, a1 in spans:
+            if a1 <= a0:
+                continue
+            c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
+            more = c < x[a0:a1 + 1] * (1 - 1e-9)
+            if more.any():
+                hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+                hm[hill[more]] = True
+                sub = hm[hill]
+                region[a0:a1 + 1] |= sub
+                cap[a0:a1 + 1] = np.where(sub, c, cap[a0:a1 + 1])
+        return (region, cap) if region.any() else (None, None)
+    cap, hill = _cap_peaks(h, x, w)
+    more = cap < x * (1 - 1e-9)
+    if not more.any():
+        return None, None
+    hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+    hm[hill[more]] = True
+    return hm[hill], cap
+
+
+def _runs(mask: np.ndarray) -> list:
+    """Inclusive (first, last) index pairs of the runs of True in a boolean array."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.nonzero(d == 1)[0].tolist(), (np.nonzero(d == -1)[0] - 1).tolist()))
+
+
+def _sample_profile(sg, h, x, holds_s, dt):
+    """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point)."""
+    N = sg.shape[0]
+    D = interval_times(h, x)                       # (N-1,)
+    v = np.sqrt(np.maximum(x, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.where(h > 0, (x[1:] - x[:-1]) / (2 * np.where(h > 0, h, 1.0)), 0.0)
+    H = holds_s
+    step = np.empty(N)
+    step[:-1] = H[:-1] + D
+    step[-1] = H[-1]
+    TH = np.concatenate([[0.0], np.cumsum(step)[:-1]])
+    total = float(TH[-1] + H[-1])
+    nt = int(math.ceil(total / dt)) + 1
+    t = np.arange(nt) * dt
+    g = np.clip(np.searchsorted(TH, t, side="right") - 1, 0, N - 1)
+    tau = t - TH[g] - H[g]
+    s = sg[g].copy()
+    gi = np.minimum(g, N - 2)
+    Dg = np.where(g < N - 1, D[gi], 0.0)
+    mov = (tau > 0) & (g < N - 1)
+    tm = np.minimum(tau, Dg)
+    s[mov] = np.minimum(sg[g[mov]] + v[g[mov]] * tm[mov] + 0.5 * u[gi[mov]] * tm[mov] ** 2, sg[g[mov] + 1])
+    return s, TH, total
+
+
+def _box_filter(s_raw: np.ndarray, n: int) -> np.ndarray:
+    """Moving average of n samples over s_raw padded with its first and last value (length + n)."""
+    if n <= 1:
+        return s_raw.copy()
+    ds = np.diff(np.concatenate([s_raw, np.full(n, s_raw[-1])]))
+    ds = np.concatenate([np.zeros(n - 1), ds])
+    C = np.concatenate([[0.0], np.cumsum(ds)])
+    inc = (C[n:] - C[:-n]) / n
+    out = s_raw[0] + np.concatenate([[0.0], np.cumsum(inc)[: s_raw.shape[0] + n - 1]])
+    out = np.maximum.accumulate(out)
+    return np.minimum(out, s_raw[-1])
