@@ -302,6 +302,9 @@ class PlannerConfig:
     max_angular_velocity_deg_s: float = 90.0
     path_tolerance_mm: float = 0.01
     sample_bound_mm: float = 0.001
+    #: lines up to this tool-tip length (mm) that meet at small turns are smoothed into one C2 curve
+    #: inside the G64 P tolerance (CAM output; see hexacnc/planner/smooth.py); 0 = corner blends only
+    smooth_max_segment_mm: float = 0.0
     work_offset_mm: np.ndarray = field(default_factory=lambda: np.zeros(3))
     #: user/remap M-codes (100..9999) the interpreter accepts as no-ops (noted in the program's
     #: messages), e.g. LinuxCNC's M428/M429 kinematics switches, which a hexapod does not need
@@ -597,6 +600,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
                                               above=0.0),
         path_tolerance_mm=p.getfloat("path_tolerance_mm", pd.path_tolerance_mm, above=0.0),
         sample_bound_mm=p.getfloat("sample_bound_mm", pd.sample_bound_mm, above=0.0),
+        smooth_max_segment_mm=p.getfloat("smooth_max_segment_mm", pd.smooth_max_segment_mm, minval=0.0,
+                                         maxval=1000.0),
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
         noop_m_codes=_noop_m_codes(p),
     )

@@ -69,7 +69,8 @@ def main(args: argparse.Namespace) -> int:
     print(f"  peak strut jerk         {100 * u['jerk']:6.1f} % of limit")
     print(f"  smallest joint-angle margin {s['min_joint_margin_deg']:.3f} deg, "
           f"strut-length margin {s['min_length_margin_mm']:.3f} mm")
-    print(f"  {s['segments']} segments, {s['blends']} blends, {s['stops']} stops, "
+    smoothed = f" ({s['smoothed']} smoothed)" if s.get("smoothed") else ""
+    print(f"  {s['segments']} segments{smoothed}, {s['blends']} blends, {s['stops']} stops, "
           f"path {s['path_length']:.1f}, planned in {s['planning_s']:.2f} s")
     if args.lines:
         for ln, (a, b) in s["lines"].items():

@@ -19,7 +19,8 @@ Conventions
   against the corresponding point of the programmed path (an upper bound of the
   distance to the path).
 
-Piece kinds: 0 line, 1 arc, 2 blend.  Everything is vectorised over arrays of
+Piece kinds: 0 line, 1 arc, 2 blend, 3 spline (a smoothed short line of a CAM run, see
+:mod:`hexacnc.planner.smooth`; a quintic like a blend).  Everything is vectorised over arrays of
 (piece index, s).
 """
 from __future__ import annotations
@@ -32,7 +33,7 @@ import numpy as np
 from ..errors import PlanError
 from ..gcode import blocks as B
 
-LINE, ARC, BLEND = 0, 1, 2
+LINE, ARC, BLEND, SPLINE = 0, 1, 2, 3
 _SQRT3 = math.sqrt(3.0)
 _EPS_LEN = 1e-9
 #: coefficients per piece
@@ -160,7 +161,7 @@ def eval_pieces_multi(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, us: l
             out[m, 0:3] = (c[:, 0:3] + (r * cp)[:, None] * c[:, 3:6] + (r * sp)[:, None] * c[:, 6:9]
                            + (c[:, 15] * uu)[:, None] * c[:, 9:12])
             out[m, 3:6] = c[:, 16:19] + uu[:, None] * c[:, 19:22]
-    m = np.nonzero(kd == BLEND)[0]
+    m = np.nonzero((kd == BLEND) | (kd == SPLINE))[0]
     if m.size:
         # quintic Hermite: coef = [P0, V0, A0, A1, V1, P1] (6 each) in the blend parameter w
         c = coef[idx[m]]
@@ -202,6 +203,10 @@ def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
         D1[m, 0:3] = dr * radial + (r[:, None] * th) * tang + c[:, 15][:, None] * c[:, 9:12]
         D1[m, 3:6] = c[:, 19:22]
         D2[m, 0:3] = 2 * dr * th * tang - (r[:, None] * th * th) * radial
+    m = (kind == BLEND) | (kind == SPLINE)
+    if m.any():
+        from .smooth import quintic_derivs
+        D1[m], D2[m] = quintic_derivs(u[m], coef[m])
     return P, D1, D2
 
 
@@ -519,6 +524,8 @@ def build_path(blocks, cfg) -> tuple[Path, list]:
     axis = np.asarray(cfg.tool.axis_platform, dtype=float)
     tipp = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     stop_after_raw = set(i for i, blk in events if blk.kind in STOP_EVENTS)
+    from .smooth import smooth_runs
+    ra = smooth_runs(ra, stop_after_raw, cfg.planner.smooth_max_segment_mm)
     rk, rc, rl, tool, tol, exact = ra.kind, ra.coef, ra.slen, ra.tool_mm, ra.tolerance, ra.exact_stop
     qp = tipp[None, :] + tool[:, None] * axis[None, :]
     Pe, Te, _ = _raw_at(rk, rc, rl, np.ones(nr))
@@ -635,7 +642,7 @@ def piece_bounds(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         t1[m] = (th * r + dr + h) * sc[m]
         t2[m] = (th * th * r + 2 * th * dr) * sc[m] ** 2
         a1[m] = np.linalg.norm(c[m, 19:22], axis=1) * sc[m]
-    m = k == BLEND
+    m = (k == BLEND) | (k == SPLINE)
     if m.any():
         # Bernstein control points of the quintic: derivative bounds by the convex-hull property
         P0, V0, A0, A1, V1, P1 = (c[m, 6 * i:6 * i + 6] for i in range(6))

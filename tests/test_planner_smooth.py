@@ -1,0 +1,145 @@
+"""CAM smoothing (``[planner] smooth_max_segment_mm``): runs of short lines become one C2 curve.
+
+The tolerance, continuity and utilisation checks are independent of the smoothing code: the
+programmed polyline, finite differences of the pieces and ``Hexapod.inverse_batch`` of the rows.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.errors import ConfigError
+from hexacnc.gcode.blocks import Block
+from hexacnc.planner import path as P
+from hexacnc.planner import plan_program
+from hexacnc.planner.profile import ETA
+
+from test_planner_motion import tip_of, utilisation
+
+TOL = 0.1
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def smoothing(cfg, mm=2.0):
+    return cfg.replace(planner=dataclasses.replace(cfg.planner, smooth_max_segment_mm=mm))
+
+
+def polyline(cfg, pts, feed=1e4, tol=TOL, exact_after=()):
+    """Lines through tool-tip points ``pts`` (n, 3) mm around the home tip, home orientation."""
+    home = tip_of(cfg, cfg.home_pose)
+    P6 = np.repeat(home[None, :], len(pts), axis=0)
+    P6[:, :3] = home[:3] + np.asarray(pts)
+    return [Block("line", i + 1, P6[i], P6[i + 1], feed_mm_s=feed, blend_tolerance_mm=tol,
+                  exact_stop=(i in exact_after)) for i in range(len(pts) - 1)]
+
+
+def cam_arc(n=40, radius=3.0, chord=0.25, seed=0):
+    """Points of an arc of ``radius`` every ``chord`` mm, rounded to 0.001 mm as CAM output is,
+    after a 5 mm lead-in line (which is longer than the smoothing limit)."""
+    dth = chord / radius
+    th = np.arange(n) * dth
+    arc = np.stack([radius * np.sin(th), radius * (1 - np.cos(th)), np.zeros(n)], axis=1)
+    pts = np.vstack([[-5.0, 0.0, 0.0], arc])
+    return np.round(pts, 3)
+
+
+def dist_to_polyline(x, A, B):
+    """Distance (n,) of points x (n, 3) to the polyline of segments A[i] -> B[i]."""
+    AB = B - A
+    t = np.clip(np.einsum("nij,ij->ni", x[:, None, :] - A[None], AB) / np.einsum("ij,ij->i", AB, AB), 0, 1)
+    Q = A[None] + t[..., None] * AB[None]
+    return np.min(np.linalg.norm(x[:, None, :] - Q, axis=2), axis=1)
+
+
+def test_off_by_default(cfg):
+    assert cfg.planner.smooth_max_segment_mm == 0.0
+    path, _ = P.build_path(polyline(cfg, cam_arc()), cfg)
+    assert not np.any(path.kind == P.SPLINE)
+
+
+def test_arc_becomes_c2_and_stays_within_half_the_tolerance(cfg):
+    c = smoothing(cfg)
+    blocks = polyline(c, cam_arc())
+    path, _ = P.build_path(blocks, c)
+    spl = np.nonzero(path.kind == P.SPLINE)[0]
+    assert spl.size == len(blocks) - 1          # every short line of the arc; the lead-in stays a line
+    assert path.kind[0] == P.LINE
+    # C2 at the interior vertices: first and second derivatives of neighbouring pieces agree
+    # (finite differences of the pieces' own evaluation, both sides)
+    e = 1e-4
+    for a, b in zip(spl[:-1], spl[1:]):
+        if b != a + 1:
+            continue
+        s = path.s0[b]
+        left = path.tip(np.array([a] * 3), np.array([s - 2 * e, s - e, s]))[:, :3]
+        right = path.tip(np.array([b] * 3), np.array([s, s + e, s + 2 * e]))[:, :3]
+        np.testing.assert_allclose(left[2], right[0], atol=1e-9)
+        np.testing.assert_allclose((left[2] - left[1]) / e, (right[1] - right[0]) / e, atol=2e-3)
+    # each smoothed piece within TOL/2 of its programmed line at 200 points (same s and nearest)
+    A = np.array([b.start[:3] for b in blocks])
+    B = np.array([b.end[:3] for b in blocks])
+    for k in spl:
+        s = path.s0[k] + np.linspace(0, path.slen[k], 200)
+        x = path.tip(np.full(200, k), s)[:, :3]
+        assert np.max(dist_to_polyline(x, A, B)) <= 0.5 * TOL + 1e-9
+
+
+def test_smoothed_arc_plans_faster_within_limits_and_tolerance(cfg):
+    pts = cam_arc(n=60)
+    plain = plan_program(polyline(cfg, pts), cfg)
+    c = smoothing(cfg)
+    blocks = polyline(c, pts)
+    smooth = plan_program(blocks, c)
+    assert smooth.n_smoothed > 0 and plain.n_smoothed == 0
+    assert smooth.duration_s < 0.9 * plain.duration_s, (plain.duration_s, smooth.duration_s)
+    v, a, j = utilisation(c, smooth.rows(), smooth.dt)
+    assert v <= 1.0 and a <= ETA + 1e-3 and j <= ETA + 1e-3, (v, a, j)
+    # the tool tip of every row stays within G64 P of the programmed polyline
+    rows = smooth.rows()
+    poses = rows[:, :6].copy()
+    poses[:, 3:] = np.degrees(poses[:, 3:])
+    tips = np.array([tip_of(c, p)[:3] for p in poses[::5]])
+    A = np.array([b.start[:3] for b in blocks])
+    B = np.array([b.end[:3] for b in blocks])
+    assert np.max(dist_to_polyline(tips, A, B)) <= TOL + 1e-6
+
+
+def test_sharp_corner_exact_stop_and_long_lines_are_not_smoothed_across(cfg):
+    c = smoothing(cfg)
+    # two short-line runs meeting at a right angle, an exact stop inside the second, a long line at the end
+    run1 = np.stack([np.arange(8) * 0.3, np.zeros(8), np.zeros(8)], axis=1)
+    run2 = run1[-1] + np.stack([np.zeros(8), np.arange(8) * 0.3, np.zeros(8)], axis=1)[1:]
+    pts = np.vstack([run1, run2, run2[-1] + [10.0, 10.0, 0.0]])
+    blocks = polyline(c, pts, exact_after=(10,))
+    path, _ = P.build_path(blocks, c)
+    # raw move i is a piece of kind LINE or SPLINE; blends sit between them
+    moves = np.nonzero(path.kind != P.BLEND)[0]
+    kinds = path.kind[moves]
+    assert kinds[-1] == P.LINE                               # 14 mm line: longer than the limit
+    assert np.all(kinds[:-1] == P.SPLINE)
+    # the right-angle corner (after move 6) is blended, not smoothed through
+    assert path.kind[moves[6] + 1] == P.BLEND
+    # the exact stop after move 10 is a stop of the path
+    assert int(moves[10]) in path.stops_after
+    # the path rests exactly at the programmed stop (a run end keeps its programmed vertex)
+    m = moves[10]
+    end = path.tip(np.array([m]), np.array([path.s0[m] + path.slen[m]]))[0, :3]
+    np.testing.assert_allclose(end, blocks[10].end[:3], atol=1e-9)
+
+
+def test_config_rejects_a_negative_length(tmp_path):
+    from importlib.resources import files
+    text = files("hexacnc").joinpath("data/default.toml").read_text()
+    bad = text.replace("smooth_max_segment_mm = 0.0", "smooth_max_segment_mm = -1.0")
+    assert bad != text
+    f = tmp_path / "m.toml"
+    f.write_text(bad)
+    with pytest.raises(ConfigError, match="smooth_max_segment_mm"):
+        load_config(str(f))
