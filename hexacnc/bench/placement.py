@@ -9,8 +9,7 @@ PLACEMENT_NOTE = "G54 origin = home tool-tip position minus the program's boundi
 
 def _place(text: str, name: str, cfg):
     """Interpret once at G54 = 0 to find the bounding box, then again with the centring work offset."""
-    from ..gcode.factory import program_from_config
-    from ..pose import matrix_from_euler
+    from ..gcode.factory import machine_defaults, program_from_config
     home = np.asarray(cfg.home_pose, dtype=float)
     zero = [0.0, 0.0, 0.0] + [float(v) for v in home[3:]]
     prog = program_from_config(text, name, cfg, work_offsets={1: zero})
@@ -18,7 +17,7 @@ def _place(text: str, name: str, cfg):
     if E.size == 0:
         return prog, [0.0, 0.0, 0.0]
     ctr = 0.5 * (E[:, :3].min(axis=0) + E[:, :3].max(axis=0))
-    tip_home = home[:3] + matrix_from_euler(*np.radians(home[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
+    tip_home = np.asarray(machine_defaults(cfg)["start_pose"][:3])      # the tool tip at the home pose
     off = tip_home - ctr
     wo = [float(v) for v in off] + [float(v) for v in home[3:]]
     return program_from_config(text, name, cfg, work_offsets={1: wo}), wo[:3]

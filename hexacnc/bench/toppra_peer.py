@@ -28,10 +28,11 @@ BENCH_FEEDS_MM_MIN = (6000.0, 3000.0, 60000.0)
 
 
 def _tip(cfg, P):
-    from ..pose import matrix_from_euler
+    """Tool-tip pose (mm, deg) of the platform pose ``P`` (mm, deg): its orientation kept as given."""
+    from ..daemon.program import tool_tip_pose_deg
     P = np.asarray(P, dtype=float)
     out = P.copy()
-    out[:3] = P[:3] + matrix_from_euler(*np.radians(P[3:])) @ np.asarray(cfg.tool.tip_platform_mm)
+    out[:3] = tool_tip_pose_deg(cfg, np.concatenate([P[:3], np.radians(P[3:])]))[:3]
     return out
 
 

@@ -182,8 +182,30 @@ def _quintic(w: np.ndarray, c: np.ndarray) -> np.ndarray:
             + (10 * w3 - 15 * w4 + 6 * w5) * c[..., 30:36])
 
 
+def quintic_derivs(w: np.ndarray, c: np.ndarray):
+    """First and second derivatives in ``w`` of the quintic Hermite pieces ``c`` (n, 36) at w (n,)."""
+    w = w[:, None]
+    w2 = w * w
+    w3 = w2 * w
+    w4 = w3 * w
+    seg = [c[:, 6 * i:6 * i + 6] for i in range(6)]
+    d1 = ((-30 * w2 + 60 * w3 - 30 * w4) * seg[0] + (1 - 18 * w2 + 32 * w3 - 15 * w4) * seg[1]
+          + (w - 4.5 * w2 + 6 * w3 - 2.5 * w4) * seg[2] + (1.5 * w2 - 4 * w3 + 2.5 * w4) * seg[3]
+          + (-12 * w2 + 28 * w3 - 15 * w4) * seg[4] + (30 * w2 - 60 * w3 + 30 * w4) * seg[5])
+    d2 = ((-60 * w + 180 * w2 - 120 * w3) * seg[0] + (-36 * w + 96 * w2 - 60 * w3) * seg[1]
+          + (1 - 9 * w + 18 * w2 - 10 * w3) * seg[2] + (3 * w - 12 * w2 + 10 * w3) * seg[3]
+          + (-24 * w + 84 * w2 - 60 * w3) * seg[4] + (60 * w - 180 * w2 + 120 * w3) * seg[5])
+    return d1, d2
+
+
+def pose_deviation(diff: np.ndarray) -> np.ndarray:
+    """The path-tolerance distance of pose differences ``diff`` (..., 6) mm/rad: the larger of the
+    x, y, z distance (mm) and the a, b, c distance (deg), as G64 P reads them."""
+    return np.maximum(np.linalg.norm(diff[..., :3], axis=-1), np.linalg.norm(np.degrees(diff[..., 3:]), axis=-1))
+
+
 def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
-    """Pose, d/du and d2/du2 (each (N,6), mm / rad) of lines and arcs (analytic)."""
+    """Pose, d/du and d2/du2 (each (N,6), mm / rad) of lines, arcs and quintic pieces (analytic)."""
     n = u.shape[0]
     P = eval_raw(kind, coef, u)
     D1 = np.zeros((n, 6))
@@ -205,7 +227,6 @@ def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
         D2[m, 0:3] = 2 * dr * th * tang - (r[:, None] * th * th) * radial
     m = (kind == BLEND) | (kind == SPLINE)
     if m.any():
-        from .smooth import quintic_derivs
         D1[m], D2[m] = quintic_derivs(u[m], coef[m])
     return P, D1, D2
 
@@ -510,9 +531,7 @@ def _blend_deviation(rk, rc, rl, ia, da, db):
     ir = np.where(onA, ia[rep], ia[rep] + 1)
     u = np.where(onA, 1.0 + s / rl[ir], s / rl[ir])
     ref = eval_pieces(rk, rc, ir, u)
-    dx = np.linalg.norm(Pb[:, :3] - ref[:, :3], axis=1)
-    dang = np.linalg.norm(np.degrees(Pb[:, 3:] - ref[:, 3:]), axis=1)
-    return np.maximum(dx, dang).reshape(n, nw).max(axis=1)
+    return pose_deviation(Pb - ref).reshape(n, nw).max(axis=1)
 
 
 def build_path(blocks, cfg) -> tuple[Path, list]:

@@ -68,22 +68,6 @@ def _third_derivative_gram() -> np.ndarray:
 _G = _third_derivative_gram()
 
 
-def quintic_derivs(w: np.ndarray, c: np.ndarray):
-    """First and second derivatives in ``w`` of the quintic Hermite pieces ``c`` (n, 36) at w (n,)."""
-    w = w[:, None]
-    w2 = w * w
-    w3 = w2 * w
-    w4 = w3 * w
-    seg = [c[:, 6 * i:6 * i + 6] for i in range(6)]
-    d1 = ((-30 * w2 + 60 * w3 - 30 * w4) * seg[0] + (1 - 18 * w2 + 32 * w3 - 15 * w4) * seg[1]
-          + (w - 4.5 * w2 + 6 * w3 - 2.5 * w4) * seg[2] + (1.5 * w2 - 4 * w3 + 2.5 * w4) * seg[3]
-          + (-12 * w2 + 28 * w3 - 15 * w4) * seg[4] + (30 * w2 - 60 * w3 + 30 * w4) * seg[5])
-    d2 = ((-60 * w + 180 * w2 - 120 * w3) * seg[0] + (-36 * w + 96 * w2 - 60 * w3) * seg[1]
-          + (1 - 9 * w + 18 * w2 - 10 * w3) * seg[2] + (3 * w - 12 * w2 + 10 * w3) * seg[3]
-          + (-24 * w + 84 * w2 - 60 * w3) * seg[4] + (60 * w - 180 * w2 + 120 * w3) * seg[5])
-    return d1, d2
-
-
 def _fit_run(V0: np.ndarray, h: np.ndarray, length: float):
     """Smoothing spline through the run's vertices ``V0`` (m+1, 6) with piece lengths ``h`` (m,).
 
@@ -125,12 +109,10 @@ def _pieces(V, T, K, h):
 
 
 def _deviation(qc: np.ndarray, c0: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Max deviation (mm for x, y, z; deg for a, b, c; the larger) of pieces from their lines."""
+    """Max deviation (:func:`~hexacnc.planner.path.pose_deviation`) of pieces from their lines."""
     w = np.linspace(0.0, 1.0, DEV_POINTS)
     Q = P._quintic(w[None, :, None], qc[:, None, :])
-    diff = Q - (c0[:, None, :] + w[None, :, None] * d[:, None, :])
-    return np.maximum(np.linalg.norm(diff[..., :3], axis=2),
-                      np.linalg.norm(np.degrees(diff[..., 3:]), axis=2)).max(axis=1)
+    return P.pose_deviation(Q - (c0[:, None, :] + w[None, :, None] * d[:, None, :])).max(axis=1)
 
 
 def smooth_runs(ra, stop_after_raw: set, max_segment_mm: float):
