@@ -41,8 +41,8 @@ from ..gcode import blocks as B
 from ..kinematics import Hexapod
 from . import path as P
 from .limits import _check_limits
-from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _dilate_min, _runs, _sample_profile,
-                      _with_accel_cap)
+from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
+                      _sample_profile, _with_accel_cap)
 from .toppvec import WavefrontTopp, accel_coefficients
 from .verify import FD_STEP, _Bounds, _measure_fast
 
@@ -298,10 +298,16 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     # ---- TOPP + smoothing + measurement, tightened until within limits ---------------------------
     factor = np.ones(Ng)
     s_grid_for_lookup = sg
-    xw = xlim.copy()
-    xw[stop_all] = np.inf
-    xlim = _dilate_min(sg, xw, SPREAD_REACH * nf * dt)     # the window reaches w/2 either side of its centre
-    xlim[stop_all] = 0.0
+
+    def spread(xw):
+        """Speed limits spread over the filter's reach (the window reaches w/2 either side of its
+        centre); stops spread nothing and stay at rest."""
+        xw[stop_all] = np.inf
+        out = _dilate_min(sg, xw, SPREAD_REACH * nf * dt)
+        out[stop_all] = 0.0
+        return out
+
+    xlim = spread(xlim.copy())
     # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
     # cap only grows as speeds drop, so it stays valid)
     x0 = WavefrontTopp(h, c, e, dd).solve(xlim)
@@ -312,9 +318,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     if lower.size:              # curvature alone needs more than the cap: a speed limit, spread like the others
         xw = np.full(Ng, np.inf)
         xw[lower] = xcap[lower]
-        xw[stop_all] = np.inf
-        xlim = np.minimum(xlim, _dilate_min(sg, xw, SPREAD_REACH * nf * dt))
-        xlim[stop_all] = 0.0
+        xlim = np.minimum(xlim, spread(xw))
     topp = WavefrontTopp(h, c, e, dd)      # same result as topp.forward_backward, numpy wavefronts
     caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
     cfac = np.ones(Ng)                     # the verification's factors on the acceleration cap
@@ -338,11 +342,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                 bound[sl] = ec
                 topp.set_bound(6, np.arange(a0, a1 + 1), bound)
                 # a lower cap can leave no acceleration at the highest speeds: those become a limit
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    ad = np.abs(dd[sl, :6])
-                    xcw = np.where(ad > 1e-15, (e[sl, :6] + ec[:, None]) / np.where(ad > 1e-15, ad, 1.0),
-                                   np.inf).min(axis=1)
-                xcapf[sl] = np.minimum(xcapf[sl], xcw)
+                xcapf[sl] = np.minimum(xcapf[sl], _cap_speed(e[sl, :6], dd[sl, :6], ec))
             for a0, a1 in changed:
                 xc[a0:a1 + 1] = np.minimum(np.minimum(xlim[a0:a1 + 1] * factor[a0:a1 + 1], xcapf[a0:a1 + 1]),
                                            caps[a0:a1 + 1])

@@ -83,16 +83,23 @@ def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
     return cap
 
 
+def _cap_speed(e, d, ecap) -> np.ndarray:
+    """Speed limit (N,) at which some strut's lower acceleration bound ``e_i + d_i x`` (columns of e, d)
+    falls below ``-ecap`` (N,): ``min_i (e_i + ecap) / |d_i|`` over the struts with ``|d_i| > 1e-15``."""
+    xcap = np.full(e.shape[0], np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(e.shape[1]):
+            ad = np.abs(d[:, i])
+            ok = ad > 1e-15
+            np.minimum(xcap, np.where(ok, (e[:, i] + ecap) / np.where(ok, ad, 1.0), np.inf), out=xcap)
+    return xcap
+
+
 def _with_accel_cap(c, e, d, ecap):
     """The acceleration bounds with one more row ``-ecap <= u <= ecap`` and the speed limit (N,) at which
     some strut's bound leaves that range (``c_i + d_i x <= ecap`` and ``e_i + d_i x >= -ecap``)."""
     N, m = c.shape
-    xcap = np.full(N, np.inf)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for i in range(m):
-            ad = np.abs(d[:, i])
-            ok = ad > 1e-15
-            np.minimum(xcap, np.where(ok, (e[:, i] + ecap) / np.where(ok, ad, 1.0), np.inf), out=xcap)
+    xcap = _cap_speed(e, d, ecap)
     c7 = np.empty((N, m + 1))
     e7 = np.empty((N, m + 1))
     d7 = np.zeros((N, m + 1))
@@ -172,28 +179,22 @@ def _cap_round(h, x, w, spans=None, max_spans: int = 64):
     at a valley.  Returns (mask of the grid points of the hills that need a cap, caps (N,) valid there),
     or (None, None) when every peak has its plateau."""
     N = x.shape[0]
-    if spans is not None and len(spans) <= max_spans:
-        region = np.zeros(N, dtype=bool)
-        cap = np.full(N, np.inf)
-        for a0, a1 in spans:
-            if a1 <= a0:
-                continue
-            c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
-            more = c < x[a0:a1 + 1] * (1 - 1e-9)
-            if more.any():
-                hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
-                hm[hill[more]] = True
-                sub = hm[hill]
-                region[a0:a1 + 1] |= sub
-                cap[a0:a1 + 1] = np.where(sub, c, cap[a0:a1 + 1])
-        return (region, cap) if region.any() else (None, None)
-    cap, hill = _cap_peaks(h, x, w)
-    more = cap < x * (1 - 1e-9)
-    if not more.any():
-        return None, None
-    hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
-    hm[hill[more]] = True
-    return hm[hill], cap
+    if spans is None or len(spans) > max_spans:
+        spans = [(0, N - 1)]
+    region = np.zeros(N, dtype=bool)
+    cap = np.full(N, np.inf)
+    for a0, a1 in spans:
+        if a1 <= a0:
+            continue
+        c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
+        more = c < x[a0:a1 + 1] * (1 - 1e-9)
+        if more.any():
+            hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
+            hm[hill[more]] = True
+            sub = hm[hill]
+            region[a0:a1 + 1] |= sub
+            cap[a0:a1 + 1] = np.where(sub, c, cap[a0:a1 + 1])
+    return (region, cap) if region.any() else (None, None)
 
 
 def _runs(mask: np.ndarray) -> list:
