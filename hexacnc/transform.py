@@ -32,16 +32,10 @@ import math
 import numpy as np
 
 from .kinematics import Hexapod
+from .pose import rotation_elements
 
-OK = 0
-LIMIT_LENGTH = 1
-LIMIT_JOINT = 2
-LIMIT_VELOCITY = 3
-LIMIT_ACCELERATION = 4
-LIMIT_SINGULAR = 5
-LIMIT_INPUT = 6
-FK_NOT_CONVERGED = 7
-LIMIT_CALIBRATION = 8
+from .cyclecodes import (FK_NOT_CONVERGED, LIMIT_ACCELERATION, LIMIT_CALIBRATION, LIMIT_INPUT,  # noqa: F401
+                         LIMIT_JOINT, LIMIT_LENGTH, LIMIT_SINGULAR, LIMIT_VELOCITY, OK)
 
 STATUS_TEXT = {
     OK: "ok",
@@ -187,12 +181,7 @@ class CycleTransform:
         if not (x - x == 0.0 and y - y == 0.0 and z - z == 0.0 and a - a == 0.0 and b - b == 0.0
                 and c - c == 0.0):
             return LIMIT_INPUT
-        ca = math.cos(a); sa = math.sin(a)
-        cb = math.cos(b); sb = math.sin(b)
-        cc = math.cos(c); sc = math.sin(c)
-        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa
-        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa
-        r20 = -sb; r21 = cb * sa; r22 = cb * ca
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_elements(a, b, c)
         pc = self.pose_cmd
         pc[0] = x; pc[1] = y; pc[2] = z; pc[3] = a; pc[4] = b; pc[5] = c
         g = self.spindle_growth_mm
@@ -368,12 +357,7 @@ class CycleTransform:
 
     def _lengths_at(self, X, out) -> None:
         x, y, z, a, b, c = X
-        ca = math.cos(a); sa = math.sin(a)
-        cb = math.cos(b); sb = math.sin(b)
-        cc = math.cos(c); sc = math.sin(c)
-        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa
-        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa
-        r20 = -sb; r21 = cb * sa; r22 = cb * ca
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_elements(a, b, c)
         for i in range(6):
             px, py, pz = self._p[i]
             bx, by, bz = self._b[i]

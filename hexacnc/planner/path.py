@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import PlanError
+from ..pose import rotation_elements_batch
 from ..gcode import blocks as B
 
 LINE, ARC, BLEND, SPLINE = 0, 1, 2, 3
@@ -284,13 +285,8 @@ class Path:
         return tip_to_platform(P, self.tool_point[idx])
 
 
-def rot_elems(abc: np.ndarray):
-    """The nine elements of ``Rz(c) Ry(b) Rx(a)`` as (N,) arrays (row-major)."""
-    a, b, c = abc[:, 0], abc[:, 1], abc[:, 2]
-    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    return (cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa,
-            sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa,
-            -sb, cb * sa, cb * ca)
+#: the nine elements of ``Rz(c) Ry(b) Rx(a)`` as (N,) arrays (row-major), from (N,3) radians
+rot_elems = rotation_elements_batch
 
 
 def tip_to_platform(P: np.ndarray, q: np.ndarray, r=None) -> np.ndarray:
