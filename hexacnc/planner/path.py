@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import PlanError
+from ..kinematics import strut_lengths_batch
 from ..pose import rotation_elements_batch
 from ..gcode import blocks as B
 
@@ -302,35 +303,8 @@ def tip_to_platform(P: np.ndarray, q: np.ndarray, r=None) -> np.ndarray:
     return out
 
 
-def strut_lengths(X: np.ndarray, plat: np.ndarray, base: np.ndarray, r=None) -> np.ndarray:
-    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics.
-
-    ``r``: :func:`rot_elems` of ``X[:, 3:]`` if already at hand.  In-place arithmetic in the
-    order ``x + r0 px + r1 py + r2 pz - b`` (the same rounding as the plain expression).
-    """
-    r = rot_elems(X[:, 3:]) if r is None else r
-    N = X.shape[0]
-    L = np.empty((N, 6))
-    t = np.empty(N)
-    acc = np.empty(N)
-    sq = np.empty(N)
-    for i in range(6):
-        px, py, pz = plat[i]
-        for c in range(3):
-            np.multiply(r[3 * c], px, out=acc)
-            np.add(X[:, c], acc, out=acc)
-            np.multiply(r[3 * c + 1], py, out=t)
-            acc += t
-            np.multiply(r[3 * c + 2], pz, out=t)
-            acc += t
-            acc -= base[i, c]
-            if c == 0:
-                np.multiply(acc, acc, out=sq)
-            else:
-                np.multiply(acc, acc, out=t)
-                sq += t
-        np.sqrt(sq, out=L[:, i])
-    return L
+#: strut lengths (N,6) of platform poses (N,6) mm/rad: the kinematics core's batch inverse
+strut_lengths = strut_lengths_batch
 
 
 def platform_struts(P: np.ndarray, q: np.ndarray, plat: np.ndarray, base: np.ndarray):
