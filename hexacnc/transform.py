@@ -229,24 +229,36 @@ class CycleTransform:
         if not self._lu():
             self.fail_index = -1
             return LIMIT_SINGULAR
-        sag = self.sag_mm
         if self.sag_enabled:
-            # wrench about the platform origin: F and (R cog) x F, rotation rows scaled like J
-            Fx, Fy, Fz = self._F
-            cx, cy, cz = self._cog
-            gx = r00 * cx + r01 * cy + r02 * cz
-            gy = r10 * cx + r11 * cy + r12 * cz
-            gz = r20 * cx + r21 * cy + r22 * cz
-            w = self._w
-            w[0] = Fx; w[1] = Fy; w[2] = Fz
-            w[3] = (gy * Fz - gz * Fy) * sc_
-            w[4] = (gz * Fx - gx * Fz) * sc_
-            w[5] = (gx * Fy - gy * Fx) * sc_
-            self._solve_transposed(w, self.force_N)
-            f = self.force_N
-            ik = self._inv_k
-            for i in range(6):
-                sag[i] = f[i] * ik[i]
+            self._sag_generic(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+        return self._guard_generic()
+
+    def _sag_generic(self, r00, r01, r02, r10, r11, r12, r20, r21, r22) -> None:
+        """Strut forces of the carrier's weight (J^T f = wrench, factored J) and the sag they cause."""
+        # wrench about the platform origin: F and (R cog) x F, rotation rows scaled like J
+        sc_ = self._scale
+        Fx, Fy, Fz = self._F
+        cx, cy, cz = self._cog
+        gx = r00 * cx + r01 * cy + r02 * cz
+        gy = r10 * cx + r11 * cy + r12 * cz
+        gz = r20 * cx + r21 * cy + r22 * cz
+        w = self._w
+        w[0] = Fx; w[1] = Fy; w[2] = Fz
+        w[3] = (gy * Fz - gz * Fy) * sc_
+        w[4] = (gz * Fx - gx * Fz) * sc_
+        w[5] = (gx * Fy - gy * Fx) * sc_
+        self._solve_transposed(w, self.force_N)
+        f = self.force_N
+        ik = self._inv_k
+        sag = self.sag_mm
+        for i in range(6):
+            sag[i] = f[i] * ik[i]
+
+    def _guard_generic(self) -> int:
+        """Commands = length - sag - thermal (through the calibrated map), velocity/acceleration guard."""
+        L = self.length_mm
+        lmin = self._lmin; lmax = self._lmax
+        sag = self.sag_mm
         th = self.thermal_mm
         cmd = self.cmd_mm
         prev = self._prev; prev2 = self._prev2
