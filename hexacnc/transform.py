@@ -479,11 +479,6 @@ class CycleTransform:
         return [p[0], p[1], p[2], math.degrees(p[3]), math.degrees(p[4]), math.degrees(p[5])]
 
 
-def transform_from_config(cfg, hexapod: Hexapod | None = None) -> CycleTransform:
-    """Factory used by the daemon."""
-    return CycleTransform(cfg, hexapod)
-
-
 def as_array(values) -> np.ndarray:
     """Copy a preallocated list into a new numpy array (slow path helper)."""
     return np.array(values, dtype=float)

@@ -47,7 +47,7 @@ from scipy.linalg import expm
 
 from ..errors import DataError
 from ..kinematics import Hexapod
-from ..pose import matrix_from_euler, matrices_from_euler, pose_to_rad
+from ..pose import matrices_from_euler, matrix_from_euler, pose_to_rad, rate_matrices
 
 NX = 36
 NU = 24
@@ -358,12 +358,7 @@ def nominal_motion(model: CoupledModel, poses_deg: np.ndarray, dt: float) -> dic
     R = matrices_from_euler(abc)
     cog = R @ model.cog + P[:, :3]
     abcd = np.gradient(abc, dt, axis=0)
-    sa, ca = np.sin(abc[:, 0]), np.cos(abc[:, 0])  # noqa: F841 (a enters through b, c only)
-    sb, cb = np.sin(abc[:, 1]), np.cos(abc[:, 1])
-    sc, cc = np.sin(abc[:, 2]), np.cos(abc[:, 2])
-    w = np.stack([cc * cb * abcd[:, 0] - sc * abcd[:, 1],
-                  sc * cb * abcd[:, 0] + cc * abcd[:, 1],
-                  -sb * abcd[:, 0] + abcd[:, 2]], axis=1)
+    w = np.einsum("nij,nj->ni", rate_matrices(abc), abcd)      # angular velocity, base frame
     acc = np.concatenate([np.gradient(np.gradient(cog, dt, axis=0), dt, axis=0), np.gradient(w, dt, axis=0)], 1)
     return {"L": L, "Ld": Ld, "Ldd": Ldd, "acc_cog": acc, "R": R}
 
