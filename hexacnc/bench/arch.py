@@ -5,6 +5,8 @@ imported or run):
 
 - ``import_cycles``: strongly connected groups of modules in the import graph (module-level and
   function-level imports alike; an import inside ``if TYPE_CHECKING:`` does not count);
+- ``package_cycles``: the same between sub-packages and top-level modules (``hexacnc.daemon`` and
+  ``hexacnc.sim``, say);
 - ``long_functions``: functions (methods, nested functions) longer than ``--max-function-lines``;
 - ``long_modules``: modules longer than ``--max-module-lines``;
 - ``private_cross_package``: ``from a.b import _name`` where ``_name`` is private to another package
@@ -179,6 +181,21 @@ def import_cycles(mods: dict[str, Module]) -> list[list[str]]:
     return sorted(out)
 
 
+def _unit(name: str) -> str:
+    """The layer unit of a module: its sub-package (``hexacnc.daemon``) or itself (``hexacnc.config``)."""
+    parts = name.split(".")
+    return ".".join(parts[:2])
+
+
+def package_cycles(mods: dict[str, Module]) -> list[list[str]]:
+    """Import cycles between sub-packages and top-level modules (e.g. the daemon and the simulator)."""
+    units: dict[str, Module] = {}
+    for n, m in mods.items():
+        u = units.setdefault(_unit(n), Module(_unit(n), m.path, 0))
+        u.imports.extend((_unit(t), ln) for t, ln in m.imports if _unit(t) != _unit(n))
+    return import_cycles(units)
+
+
 def private_cross_package(mods: dict[str, Module]) -> list[dict]:
     out = []
     for name, m in mods.items():
@@ -216,6 +233,7 @@ def measure(root: Path, max_function_lines: int = 100, max_module_lines: int = 6
              for n, m in mods.items() for q, ln, length in m.functions if length > max_function_lines]
     big = [{"module": n, "lines": m.lines} for n, m in mods.items() if m.lines > max_module_lines]
     cycles = import_cycles(mods)
+    pcycles = package_cycles(mods)
     priv = private_cross_package(mods)
     layers = layer_violations(mods)
     return {
@@ -223,11 +241,12 @@ def measure(root: Path, max_function_lines: int = 100, max_module_lines: int = 6
         "lines": sum(m.lines for m in mods.values()),
         "mean_module_lines": round(sum(m.lines for m in mods.values()) / max(len(mods), 1), 1),
         "import_cycles": cycles,
+        "package_cycles": pcycles,
         "long_functions": sorted(funcs, key=lambda f: -f["lines"]),
         "long_modules": sorted(big, key=lambda b: -b["lines"]),
         "private_cross_package": priv,
         "layer_violations": layers,
-        "summary": {"import_cycles": len(cycles), "functions_over_limit": len(funcs),
+        "summary": {"import_cycles": len(cycles), "package_cycles": len(pcycles), "functions_over_limit": len(funcs),
                     "modules_over_limit": len(big), "private_cross_package": len(priv),
                     "layer_violations": len(layers)},
     }
