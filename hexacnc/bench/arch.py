@@ -212,12 +212,10 @@ def layer_violations(mods: dict[str, Module]) -> list[dict]:
     for name, m in mods.items():
         core = name.startswith("hexacnc") and not name.startswith(CORE_EXCLUDE)
         for target, line in m.imports:
-            why = None
-            for src, dst, reason in LAYER_RULES:
+            why = "the core never imports the daemon" if core and _under(target, "hexacnc.daemon") else None
+            for src, dst, reason in LAYER_RULES:      # the more specific rule names the violation
                 if _under(name, src) and _under(target, dst):
                     why = reason
-            if core and _under(target, "hexacnc.daemon"):
-                why = "the core never imports the daemon"
             if why:
                 out.append({"module": name, "line": line, "imports": target, "rule": why})
     return out
