@@ -26,6 +26,9 @@ from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtur
 from e2e_fixtures import wait_standstill  # noqa: E402
 
 
+pytestmark = pytest.mark.e2e
+
+
 def _finite6(v):
     return isinstance(v, list) and len(v) == 6 and all(isinstance(x, float) and math.isfinite(x) for x in v)
 
@@ -133,6 +136,7 @@ def test_garbage_on_the_socket_does_not_disturb_a_running_move(cfg, machine, cli
     assert client.call("wait", timeout_s=30.0)["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_hexacnc_run_serves_status_to_hexacnc_status_processes(tmp_path):
     """Separate processes, as a user runs them: ``hexacnc run`` then ``hexacnc status``."""
     import json
