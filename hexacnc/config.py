@@ -285,9 +285,20 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class DaemonConfig:
-    socket_path: str = "/tmp/hexacnc.sock"
+    #: "" = the default place (hexacnc.daemon.sockpath): $RUNTIME_DIRECTORY under systemd,
+    #: else $XDG_RUNTIME_DIR/hexacnc/, else a 0700 /tmp/hexacnc-UID/ the user owns
+    socket_path: str = ""
     tcp_port: int = 0                          #: 0: no TCP
-    tcp_token: str = ""
+    tcp_token: str = ""                        #: legacy: prefer token_file; >= 128 bits either way
+    token_file: str = ""                       #: TCP token, a file only the daemon's user can read
+    controller_group: str = ""                 #: Unix peers in this group may command motion
+    observer_group: str = ""                   #: Unix peers in this group may only read
+    sensor_group: str = ""                     #: Unix peers in this group may read and send temperatures
+    tcp_role: str = "controller"               #: role of an authenticated TCP client
+    service_user: str = "hexacnc"              #: clients trust sockets owned by this user (and own/root)
+    idle_timeout_s: float = 600.0              #: a connection silent this long (no wait/stream running) is closed
+    max_unauthenticated: int = 16              #: TCP connections before "hello": own pool, never a client slot
+    enable_at_start: bool = True               #: resolved at load: default true only with [bus] simulate
     status_rate_hz: float = 20.0
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
@@ -394,6 +405,11 @@ def _expand_user_vars(path: str) -> str:
             user = str(os.getuid())
         path = path.replace("${USER}", user).replace("$USER", user)
     return os.path.expandvars(path)
+
+
+def _default_socket_path() -> str:
+    from .daemon.sockpath import default_socket_path
+    return default_socket_path()
 
 
 def _freeze(a: np.ndarray) -> np.ndarray:
@@ -579,16 +595,30 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     d = sec("daemon")
     dd = DaemonConfig()
     daemon = DaemonConfig(
-        socket_path=_expand_user_vars(d.getstr("socket_path", dd.socket_path)),
+        socket_path=_expand_user_vars(d.getstr("socket_path", dd.socket_path)) or _default_socket_path(),
         tcp_port=d.getint("tcp_port", dd.tcp_port, minval=0, maxval=65535),
         tcp_token=d.getstr("tcp_token", dd.tcp_token),
         status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),
         log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
         max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
         max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
+        token_file=_expand_user_vars(d.getstr("token_file", dd.token_file)),
+        controller_group=d.getstr("controller_group", dd.controller_group),
+        observer_group=d.getstr("observer_group", dd.observer_group),
+        sensor_group=d.getstr("sensor_group", dd.sensor_group),
+        tcp_role=d.getchoice("tcp_role", ("controller", "sensor", "observer"), dd.tcp_role),
+        service_user=d.getstr("service_user", dd.service_user),
+        idle_timeout_s=d.getfloat("idle_timeout_s", dd.idle_timeout_s, minval=1.0, maxval=86400.0),
+        max_unauthenticated=d.getint("max_unauthenticated", dd.max_unauthenticated, minval=1, maxval=1024),
+        enable_at_start=d.getbool("enable_at_start", bool(bus.simulate)),
     )
-    if daemon.tcp_port and not daemon.tcp_token:
-        raise d.error("tcp_token", "a token is required when tcp_port is set")
+    if daemon.tcp_port and not (daemon.tcp_token or daemon.token_file):
+        raise d.error("token_file", "a token is required when tcp_port is set (token_file, or legacy tcp_token)")
+    if daemon.tcp_token:
+        from .daemon.tcpauth import token_weakness
+        weak = token_weakness(daemon.tcp_token)
+        if weak:
+            raise d.error("tcp_token", f"(value not shown) {weak}")
 
     p = sec("planner")
     pd = PlannerConfig()

@@ -60,7 +60,7 @@ ERROR_CODES: tuple[str, ...] = (
 PROGRAM_CODES = (GCODE, UNSUPPORTED, LIMIT)
 
 #: ops that move the machine or change its motion state: controller only
-MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset"})
+MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset", "enable"})
 
 _NUM = (int, float)
 #: op -> {field: (accepted python types, required)}.  "id" and "op" are checked for all.
@@ -72,6 +72,7 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "resume": {},
     "stop": {},
     "reset": {},
+    "enable": {},
     "wait": {"timeout_s": (_NUM, True)},
     "subscribe": {"rate_hz": (_NUM, False)},
     "unsubscribe": {"sub": ((int,), False)},
