@@ -60,13 +60,17 @@ def add_connection_args(parser: argparse.ArgumentParser) -> None:
 def connect(args: argparse.Namespace, name: str):
     """A :class:`~hexacnc.daemon.protocol.Client` from the connection options, after "hello"."""
     from ..daemon.protocol import Client
+    from ..daemon.sockpath import client_socket_path, connect_checked
     if args.tcp is not None:
         token = args.token or os.environ.get("HEXACNC_TOKEN")
         if not token:
-            token = _load_cfg(args).daemon.tcp_token
+            from ..daemon.tcpauth import client_token
+            token = client_token(_load_cfg(args).daemon)
         return Client.tcp(args.tcp, token, client_name=name)
-    path = args.socket or os.environ.get("HEXACNC_SOCKET") or _load_cfg(args).daemon.socket_path
-    client = Client.unix(path)
+    cfg = None if args.socket or os.environ.get("HEXACNC_SOCKET") else _load_cfg(args)
+    path = args.socket or os.environ.get("HEXACNC_SOCKET") or client_socket_path(cfg)
+    # refuses a socket (or serving process) not owned by this user, root or [daemon] service_user
+    client = Client(connect_checked(path, (cfg or _load_cfg(args)).daemon.service_user))
     client.call("hello", client=name)
     return client
 

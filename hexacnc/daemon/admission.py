@@ -111,6 +111,7 @@ class Admission:
             return
         conn = self._register(s, "unix", f"uid {peer.uid} pid {peer.pid}")
         conn.role = role
+        conn.who = peer.describe()
 
     def _admit_tcp(self, s: socket.socket, peer: str) -> None:
         addr = peer.rsplit(":", 1)[0]

@@ -14,6 +14,7 @@ programs and fakes status.  So:
 """
 from __future__ import annotations
 
+import logging
 import os
 import pwd
 import socket
@@ -22,15 +23,18 @@ import struct
 import tempfile
 from typing import Iterable, Mapping
 
-from ..errors import HexacncError
+from .protocol import ConnectionLost
+
+log = logging.getLogger("hexacnc.daemon.sockpath")
 
 SOCKET_NAME = "hexacnc.sock"
 #: the service's runtime directory (``RuntimeDirectory=hexacnc``)
 SERVICE_DIR = "/run/hexacnc"
 
 
-class SocketTrustError(HexacncError):
-    """A socket path or its directory that could have been planted or swapped by another user."""
+class SocketTrustError(ConnectionLost):
+    """A socket path or its directory that could have been planted or swapped by another user
+    (a :class:`~hexacnc.errors.HexacncError`; clients exit with the connection error code)."""
 
 
 def user_name(uid: int) -> str:
@@ -131,7 +135,11 @@ def prepare_server_dir(path: str, default_dirs: Iterable[str] = ()) -> str:
             raise SocketTrustError(f"socket directory {d}: its parent does not exist") from None
         except FileExistsError:
             pass                      # raced: checked below like any existing directory
-    check_dir(d, server_trusted())
+    try:
+        check_dir(d, server_trusted())
+    except SocketTrustError as exc:
+        log.error("refused socket path %s: %s", path, exc)
+        raise
     return d
 
 
@@ -180,3 +188,37 @@ def check_server_peer(sock: socket.socket, trusted: Iterable[int]) -> None:
 __all__ = ["SocketTrustError", "default_socket_path", "client_socket_candidates", "check_dir",
            "prepare_server_dir", "trusted_uids", "check_client_socket", "check_server_peer", "peer_cred",
            "fallback_dir", "SERVICE_DIR", "SOCKET_NAME"]
+
+
+def client_socket_path(cfg) -> str:
+    """The socket a client uses: ``[daemon] socket_path`` when the config file sets it, else the
+    first existing default place (:func:`client_socket_candidates`), else the first of them."""
+    raw = getattr(cfg, "raw", None) or {}
+    if isinstance(raw.get("daemon"), dict) and raw["daemon"].get("socket_path"):
+        return cfg.daemon.socket_path
+    cands = client_socket_candidates()
+    for c in cands:
+        if os.path.lexists(c):
+            return c
+    return cands[0]
+
+
+def connect_checked(path: str, service_user: str = "", timeout_s: float = 5.0) -> socket.socket:
+    """A connected Unix socket to ``path`` after the ownership checks of :func:`check_client_socket`
+    and :func:`check_server_peer`.  Raises :class:`SocketTrustError`, or ``ConnectionLost`` when
+    nobody serves it."""
+    trusted = trusted_uids(service_user)
+    check_client_socket(path, trusted)
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    s.settimeout(timeout_s)
+    try:
+        s.connect(path)
+        check_server_peer(s, trusted)
+    except SocketTrustError:
+        s.close()
+        raise
+    except OSError as exc:
+        s.close()
+        raise ConnectionLost(f"cannot connect to the daemon at {path}: {exc.strerror or exc}") from exc
+    s.settimeout(None)
+    return s

@@ -49,13 +49,18 @@ _ALNUM = frozenset(string.ascii_letters + string.digits)
 _B64 = frozenset(string.ascii_letters + string.digits + "+/-_=")
 _PRINT = frozenset(chr(c) for c in range(0x21, 0x7F))
 #: (alphabet, bits per character), smallest first
-_CLASSES = ((frozenset(string.digits), math.log2(10)), (_HEX, 4.0), (_B32, 5.0), (_ALNUM, math.log2(62)),
+_CLASSES = ((frozenset(string.digits), math.log2(10)), (_HEX, 4.0),
+            (frozenset(string.ascii_lowercase), math.log2(26)), (frozenset(string.ascii_uppercase), math.log2(26)),
+            (_B32, 5.0), (frozenset(string.ascii_lowercase + string.digits), math.log2(36)),
+            (frozenset(string.ascii_uppercase + string.digits), math.log2(36)), (_ALNUM, math.log2(62)),
             (_B64, 6.0), (_PRINT, math.log2(94)))
 
 
 def token_bits(token: str) -> float:
     """An upper bound of the token's strength: length x bits per character of the smallest usual
-    alphabet (digits, hex, base32, alphanumeric, base64, printable ASCII) holding all its characters."""
+    alphabet (digits, hex, one-case letters, base32, one-case alphanumeric, alphanumeric, base64,
+    printable ASCII) holding all its characters.  A word-like token is still weaker than this
+    bound: the rule refuses what cannot hold 128 bits, it cannot prove randomness."""
     chars = set(token)
     for alphabet, bits in _CLASSES:
         if chars <= alphabet:
@@ -214,3 +219,16 @@ class LogThrottle:
 __all__ = ["MIN_TOKEN_BITS", "PREAUTH_MAX_BYTES", "AUTH_TIMEOUT_S", "token_bits", "token_weakness",
            "load_token_file", "token_matches", "secret_digest", "resolve_token", "config_file_leaks",
            "FailureLimiter", "LogThrottle"]
+
+
+def client_token(dcfg) -> str:
+    """The token a client sends: ``[daemon] token_file`` when readable by this user, else ``tcp_token``."""
+    path = getattr(dcfg, "token_file", "")
+    if path:
+        try:
+            with open(path, encoding="utf-8") as f:
+                return f.read(MAX_TOKEN_FILE_BYTES).strip()
+        except OSError as exc:
+            raise HexacncError(f"[daemon] token_file {path}: cannot read: {exc.strerror or exc} "
+                               f"(pass --token or $HEXACNC_TOKEN)") from None
+    return getattr(dcfg, "tcp_token", "")
