@@ -490,3 +490,33 @@ def test_idle_connections_are_closed_but_not_while_subscribed(base_cfg, sockdir,
         _controller_works(path, d)
         sub.close()
     d.close()
+
+
+def test_a_legacy_tcp_token_in_a_readable_config_file_refuses_the_start(sockdir):
+    base = open(os.path.join(os.path.dirname(__file__), "..", "config", "default.toml")).read()
+    p = os.path.join(sockdir, "m.toml")
+    port = _free_port()
+    with open(p, "w") as f:
+        f.write(base.replace("[daemon]\n", f'[daemon]\ntcp_port = {port}\ntcp_token = "{TOKEN}"\n'))
+    os.chmod(p, 0o644)
+    cfg = load_config(p)
+    d = FakeDaemon()
+    with pytest.raises(Exception, match=r"holds \[daemon\] tcp_token but has mode 0644"):
+        SocketServer(d, cfg, os.path.join(sockdir, "a.sock"))
+    os.chmod(p, 0o600)
+    with SocketServer(d, cfg, os.path.join(sockdir, "a.sock")):
+        with _tcp_operator(port) as c:
+            assert c.call("status")["ok"]
+    d.close()
+
+
+def test_hexacnc_run_refuses_a_world_writable_socket_directory_before_booting(sockdir):
+    bad = os.path.join(sockdir, "open")
+    os.mkdir(bad)
+    os.chmod(bad, 0o777)
+    env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    r = subprocess.run([sys.executable, "-m", "hexacnc", "run", "--socket", os.path.join(bad, "s.sock"),
+                        "--no-realtime", "--duration", "1"], env=env, capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0
+    assert "refused socket path" in r.stderr and "writable by others (mode 0777)" in r.stderr
+    assert "hot loop" not in r.stderr and "daemon ready" not in r.stderr     # no drive was booted
