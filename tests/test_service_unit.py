@@ -94,3 +94,68 @@ def test_systemd_analyze_security_exposure_at_most_3():
         pytest.skip(why)
     print(f"systemd-analyze security --offline=true {UNIT.name}: exposure {exposure}")
     assert exposure <= 3.0
+
+
+def _syscalls(exe: str, group: str, seen: set | None = None) -> set[str]:
+    """The system calls of a systemd syscall group, nested groups expanded."""
+    seen = set() if seen is None else seen
+    if group in seen:
+        return set()
+    seen.add(group)
+    r = subprocess.run([exe, "syscall-filter", "--no-pager", group], capture_output=True, text=True, timeout=60)
+    out: set[str] = set()
+    for line in r.stdout.splitlines()[1:]:
+        w = line.strip()
+        if not w or w.startswith("#"):
+            continue
+        out |= _syscalls(exe, w, seen) if w.startswith("@") else {w}
+    return out
+
+
+#: what the hot loop and the supervisor call to get real time and run (hexacnc.daemon.rt, core)
+RT_SYSCALLS = {"mlockall", "sched_setscheduler", "sched_setaffinity", "sched_getaffinity", "clock_nanosleep",
+               "socket", "bind", "listen", "accept4", "getsockopt", "execve", "clone", "wait4", "mmap",
+               "ftruncate", "openat", "unlinkat"}
+
+
+def test_the_syscall_filter_keeps_what_real_time_needs(svc):
+    exe = shutil.which("systemd-analyze")
+    if exe is None:
+        pytest.skip("systemd-analyze is not installed (apt-get install systemd)")
+    filters = svc["SystemCallFilter"]
+    allowed = set().union(*(_syscalls(exe, g) for g in filters[0].split()))
+    for f in filters[1:]:
+        assert f.startswith("~")
+        for g in f[1:].split():
+            allowed -= _syscalls(exe, g) if g.startswith("@") else {g}
+    missing = RT_SYSCALLS - allowed
+    assert not missing, f"the unit's SystemCallFilter blocks {sorted(missing)}"
+
+
+def test_the_units_capabilities_give_sched_fifo_and_mlockall_to_an_unprivileged_user(svc):
+    """As the unit runs it (another user, only its ambient capabilities, no_new_privs) the hot
+    loop's privilege calls succeed.  Needs root and setpriv; the seccomp filter is checked above."""
+    import os
+    import pwd
+    if os.geteuid() != 0 or shutil.which("setpriv") is None:
+        pytest.skip("needs root and setpriv to start a process as another user with the unit's capabilities")
+    try:
+        pwd.getpwnam("nobody")
+    except KeyError:
+        pytest.skip("no user nobody")
+    caps = ",".join("+" + c.lower().removeprefix("cap_") for c in one(svc, "AmbientCapabilities").split())
+    repo = str(UNIT.parent.parent)
+    probe = ("import sys; sys.path.insert(0, sys.argv[1]); from hexacnc.daemon import rt; "
+             "ok1, m1 = rt.mlockall(); ok2, m2 = rt.sched_fifo(80); print(m1); print(m2); "
+             "sys.exit(0 if ok1 and ok2 else 3)")
+    py = next((p for p in ("/usr/bin/python3", "/usr/local/bin/python3") if os.path.exists(p)), None)
+    if py is None:
+        pytest.skip("no system python3 that user nobody may run")
+    cmd = ["setpriv", "--reuid=nobody", "--regid=nogroup", "--clear-groups", f"--inh-caps=-all,{caps}",
+           f"--ambient-caps=-all,{caps}", f"--bounding-set=-all,{caps}", "--no-new-privs", py, "-c", probe, repo]
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd="/")
+    if r.returncode not in (0, 3):
+        pytest.skip(f"cannot start a process with these capabilities here: {r.stderr.strip()[-200:]}")
+    print(r.stdout.strip())
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "memory locked" in r.stdout and "SCHED_FIFO priority 80" in r.stdout
