@@ -90,6 +90,8 @@ class Admission:
         self._send(conn, P.error_reply(req_id, code, why, **extra))
         conn.closing = True
         self._flush(conn)
+        if not conn.authenticated:        # never lingers: the reply is best effort
+            self._drop(conn, why)
 
     def _slots_used(self) -> int:
         return len(self._conns) - len(self._preauth)
