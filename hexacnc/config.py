@@ -25,6 +25,7 @@ derived for the inside (``*_rad`` attributes).
 """
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
 import tomllib
@@ -299,6 +300,9 @@ class DaemonConfig:
     idle_timeout_s: float = 600.0              #: a connection silent this long (no wait/stream running) is closed
     max_unauthenticated: int = 16              #: TCP connections before "hello": own pool, never a client slot
     enable_at_start: bool = True               #: resolved at load: default true only with [bus] simulate
+    tcp_host: str = "127.0.0.1"                #: TCP address; other than loopback only with TLS
+    tls_cert: str = ""                         #: PEM certificate: TLS on the TCP socket (with tls_key)
+    tls_key: str = ""                          #: PEM private key, readable by the daemon's user only
     status_rate_hz: float = 20.0
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
@@ -405,6 +409,14 @@ def _expand_user_vars(path: str) -> str:
             user = str(os.getuid())
         path = path.replace("${USER}", user).replace("$USER", user)
     return os.path.expandvars(path)
+
+
+def _tcp_host(d: Section) -> str:
+    v = d.getstr("tcp_host", "127.0.0.1")
+    try:
+        return str(ipaddress.ip_address(v))
+    except ValueError:
+        raise d.error("tcp_host", f"value {v!r} is not an IP address") from None
 
 
 def _default_socket_path() -> str:
@@ -611,7 +623,15 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         idle_timeout_s=d.getfloat("idle_timeout_s", dd.idle_timeout_s, minval=1.0, maxval=86400.0),
         max_unauthenticated=d.getint("max_unauthenticated", dd.max_unauthenticated, minval=1, maxval=1024),
         enable_at_start=d.getbool("enable_at_start", bool(bus.simulate)),
+        tcp_host=_tcp_host(d),
+        tls_cert=_expand_user_vars(d.getstr("tls_cert", dd.tls_cert)),
+        tls_key=_expand_user_vars(d.getstr("tls_key", dd.tls_key)),
     )
+    if bool(daemon.tls_cert) != bool(daemon.tls_key):
+        raise d.error("tls_key" if daemon.tls_cert else "tls_cert", "tls_cert and tls_key go together")
+    if not daemon.tls_cert and not ipaddress.ip_address(daemon.tcp_host).is_loopback:
+        raise d.error("tcp_host", f"value {daemon.tcp_host!r} is not a loopback address: off the host the "
+                                  f"token needs TLS (set tls_cert and tls_key)")
     if daemon.tcp_port and not (daemon.tcp_token or daemon.token_file):
         raise d.error("token_file", "a token is required when tcp_port is set (token_file, or legacy tcp_token)")
     if daemon.tcp_token:

@@ -16,7 +16,7 @@ from typing import Any
 from ..errors import HexacncError
 from . import access as A
 from . import protocol as P
-from . import tcpauth
+from . import tcpauth, tlsio
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -40,6 +40,10 @@ class Admission:
         self.max_unauthenticated = int(getattr(dcfg, "max_unauthenticated", 16))
         self._limiter = tcpauth.FailureLimiter()
         self._log_gate = tcpauth.LogThrottle()
+        self._tls_ctx = None
+        if self.tcp_port and getattr(dcfg, "tls_cert", ""):
+            self._tls_ctx = tlsio.server_context(dcfg.tls_cert, dcfg.tls_key)
+        self.tcp_host = str(getattr(dcfg, "tcp_host", "127.0.0.1") or "127.0.0.1")
         self._preauth: dict = {}              # TCP connections before hello, oldest first
         self._idle_checked = 0.0
 
@@ -128,6 +132,12 @@ class Admission:
             self.stats["preauth_closed"] += 1
             self._refuse_conn(oldest, "hello", f"{self.max_unauthenticated} connections are waiting to "
                                                f"authenticate ([daemon] max_unauthenticated): the oldest is closed")
+        try:
+            s = tlsio.wrap_server(s, self._tls_ctx)
+        except (OSError, ValueError) as exc:
+            s.close()
+            self._log_refusal(f"tcp {peer}", "connect", f"TLS set-up failed: {exc}")
+            return
         conn = self._register(s, "tcp", peer)
         conn.who = f"tcp {peer}"
         self._preauth[conn.num] = conn

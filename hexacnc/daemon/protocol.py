@@ -358,10 +358,14 @@ class Client:
 
     @classmethod
     def tcp(cls, port: int, token: str, host: str = "127.0.0.1", timeout_s: float = 5.0,
-            client_name: str = "") -> "Client":
-        """Connect over TCP and authenticate with ``hello`` + ``token``."""
+            client_name: str = "", tls_ca: str | None = None) -> "Client":
+        """Connect over TCP (TLS checking the daemon's certificate against ``tls_ca`` when given)
+        and authenticate with ``hello`` + ``token``."""
         try:
             s = socket.create_connection((host, port), timeout=timeout_s)
+            if tls_ca:
+                from .tlsio import client_context
+                s = client_context(tls_ca).wrap_socket(s, server_hostname=host)
         except OSError as exc:
             raise ConnectionLost(f"cannot connect to the daemon at {host}:{port}: {exc.strerror or exc}") from exc
         s.settimeout(None)

@@ -45,7 +45,7 @@ from .. import __version__
 from ..errors import HexacncError, ProtocolError
 from . import access as A
 from . import protocol as P
-from . import sockpath, tcpauth
+from . import sockpath, tcpauth, tlsio
 from .admission import Admission
 
 log = logging.getLogger("hexacnc.daemon.server")
@@ -247,12 +247,12 @@ class SocketServer(Admission):
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind(("127.0.0.1", self.tcp_port))    # loopback only, always
+            s.bind((self.tcp_host, self.tcp_port))  # 127.0.0.1 unless TLS is on ([daemon] tcp_host)
             s.listen(64)
             s.setblocking(False)
         except OSError as exc:
             s.close()
-            raise HexacncError(f"cannot listen on 127.0.0.1:{self.tcp_port}: {exc.strerror or exc}") from exc
+            raise HexacncError(f"cannot listen on {self.tcp_host}:{self.tcp_port}: {exc.strerror or exc}") from exc
         self._tcp = s
         self.tcp_address = s.getsockname()[:2]
         self._sel.register(s, selectors.EVENT_READ, "listen-tcp")
@@ -364,11 +364,13 @@ class SocketServer(Admission):
         if want <= 0:
             return
         try:
-            data = conn.sock.recv(want)
-        except (BlockingIOError, InterruptedError):
-            return
+            data = tlsio.recv(conn.sock, want)      # plain or TLS; None: nothing there now
         except OSError as exc:
+            if not conn.authenticated:            # e.g. a failed TLS handshake: a refusal, logged
+                self._log_refusal(conn.who, "connect", f"receive failed: {exc}")
             self._drop(conn, f"receive failed: {exc}")
+            return
+        if data is None:
             return
         if not data:
             self._drop(conn, "disconnected")
@@ -717,12 +719,12 @@ class SocketServer(Admission):
     def _flush(self, conn: _Conn) -> None:
         while conn.out:
             try:
-                n = conn.sock.send(conn.out)
-            except (BlockingIOError, InterruptedError):
-                break
+                n = tlsio.send(conn.sock, conn.out)   # plain or TLS; 0: cannot take more now
             except OSError as exc:
                 self._drop(conn, f"send failed: {exc}")
                 return
+            if not n:
+                break
             del conn.out[:n]
         if not conn.out and conn.closing:
             self._drop(conn, "closed after a fatal error")
