@@ -564,7 +564,7 @@ class SocketServer(Admission):
         self._submit_motion(conn, req, fn, reply)
 
     def _op_temperatures(self, conn: _Conn, req: P.Request) -> None:
-        """A probe reading for the thermal observer (any client; validated as a whole, applied or not at all)."""
+        """A probe reading for the thermal observer (controller or sensor role; validated as a whole, applied or not at all)."""
         push = getattr(self.daemon, "push_temperatures", None)
         if push is None:
             self._send(conn, P.error_reply(req.id, P.REFUSED, "this daemon takes no temperatures"))
