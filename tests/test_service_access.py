@@ -72,19 +72,35 @@ def test_token_file_must_be_private_and_strong(tmpdir_):
         tcpauth.load_token_file(os.path.join(tmpdir_, "absent"))
 
 
-def test_config_refuses_a_weak_tcp_token_and_a_tcp_port_without_token(tmpdir_):
+def test_a_weak_tcp_token_is_refused_before_the_drives_boot(tmpdir_):
+    from hexacnc.daemon.admission import preflight
     base = open(os.path.join(os.path.dirname(__file__), "..", "config", "default.toml")).read()
     p = os.path.join(tmpdir_, "m.toml")
-    for extra, msg in (('tcp_port = 7777\ntcp_token = "s3cret"\n', r"\[daemon\] tcp_token: \(value not shown\)"),
-                       ('tcp_port = 7777\n', r"\[daemon\] token_file: a token is required"),
+    with open(p, "w") as f:
+        f.write(base.replace("[daemon]\n", '[daemon]\ntcp_port = 7777\ntcp_token = "s3cret"\n'))
+    os.chmod(p, 0o600)
+    cfg = load_config(p)
+    sock = os.path.join(tmpdir_, "s.sock")
+    with pytest.raises(HexacncError, match=r"\[daemon\] tcp_token: the token is too weak") as e:
+        preflight(cfg, sock)
+    assert "s3cret" not in str(e.value)
+    os.chmod(p, 0o644)
+    with pytest.raises(HexacncError, match=r"holds \[daemon\] tcp_token but has mode 0644"):
+        preflight(cfg, sock)
+    assert preflight(load_config(None), sock) == sock
+
+
+def test_config_refuses_a_tcp_port_without_token_and_bad_daemon_keys(tmpdir_):
+    base = open(os.path.join(os.path.dirname(__file__), "..", "config", "default.toml")).read()
+    p = os.path.join(tmpdir_, "m.toml")
+    for extra, msg in (('tcp_port = 7777\n', r"\[daemon\] token_file: a token is required"),
                        ('idle_timeout_s = 0.5\n', r"\[daemon\] idle_timeout_s: value 0.5 is below"),
                        ('tcp_role = "root"\n', r"\[daemon\] tcp_role"),
                        ('max_unauthenticated = 0\n', r"\[daemon\] max_unauthenticated")):
         with open(p, "w") as f:
             f.write(base.replace("[daemon]\n", "[daemon]\n" + extra))
-        with pytest.raises(ConfigError, match=msg) as e:
+        with pytest.raises(ConfigError, match=msg):
             load_config(p)
-        assert "s3cret" not in str(e.value)
 
 
 def test_enable_at_start_defaults_to_the_bus_being_simulated(tmpdir_):
@@ -198,3 +214,17 @@ def test_prepare_server_dir_creates_the_default_place_0700(tmpdir_, monkeypatch)
     assert stat.S_IMODE(os.stat(d).st_mode) == 0o700
     with pytest.raises(sockpath.SocketTrustError, match="does not exist"):
         sockpath.prepare_server_dir(os.path.join(tmpdir_, "nowhere", "x.sock"))   # not a default: not made
+
+
+def test_a_client_refused_at_connect_reports_the_daemons_reason():
+    import socket
+
+    from hexacnc.daemon import protocol as P
+    a, b = socket.socketpair()
+    b.sendall(P.encode(P.error_reply(None, P.UNAUTHORIZED, "uid 65534 (nobody) pid 7 is not the daemon's user")))
+    b.close()                                         # what the daemon does to a peer without a role
+    c = P.Client(a)
+    with pytest.raises(P.ConnectionLost, match=r"not the daemon's user \[unauthorized\]"):
+        for _ in range(50):                           # the first sends may still be buffered
+            c.send("hello", client="x" * 60000)
+    c.close()

@@ -15,7 +15,7 @@ from hexacnc.daemon import protocol as P
 from hexacnc.daemon.core import Daemon
 from hexacnc.daemon.server import SocketServer
 
-pytestmark = [pytest.mark.e2e, pytest.mark.socket]
+pytestmark = pytest.mark.e2e
 
 
 @pytest.fixture(scope="module")

@@ -22,7 +22,7 @@ from hexacnc.errors import ConfigError, HexacncError
 from test_protocol_fake import FakeDaemon
 from test_service_socket import _free_port, cfg_with
 
-pytestmark = pytest.mark.socket
+pytestmark = pytest.mark.e2e
 TOKEN = secrets.token_hex(32)
 
 

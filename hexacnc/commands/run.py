@@ -103,8 +103,8 @@ def main(args: argparse.Namespace) -> int:
     daemon = server = wd = None
     try:
         log.info("machine %s (%s)", cfg.name, cfg.path)
-        from ..daemon.sockpath import prepare_server_dir
-        prepare_server_dir(args.socket or cfg.daemon.socket_path)   # refused before the drives boot
+        from ..daemon.admission import preflight
+        preflight(cfg, args.socket)      # socket directory, token, TLS: refused before the drives boot
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
         info = daemon.info
         io_info = info.get("io_info", {})

@@ -21,6 +21,34 @@ from . import tcpauth, tlsio
 log = logging.getLogger("hexacnc.daemon.server")
 
 
+def tcp_secret(cfg: Any, override: str | None = None) -> str:
+    """The TCP token (``override``, ``[daemon] token_file`` or legacy ``tcp_token``); raises
+    HexacncError for a weak token or a file that lets others read it (the config file, for the
+    legacy key)."""
+    dcfg = cfg.daemon
+    if override is None and getattr(dcfg, "tcp_token", "") and not getattr(dcfg, "token_file", ""):
+        leak = tcpauth.config_file_leaks(getattr(cfg, "path", None))
+        if leak:
+            raise HexacncError(leak)
+    return tcpauth.resolve_token(dcfg, override)
+
+
+def preflight(cfg: Any, socket_path: str | None = None) -> str:
+    """What the socket server would refuse, checked before ``hexacnc run`` boots the drives: the
+    socket's directory (created 0700 at a default place), the TCP token, the TLS files, the
+    [daemon] groups.  Returns the socket path."""
+    from . import sockpath
+    dcfg = cfg.daemon
+    path = sockpath.server_socket_path(dcfg, socket_path)
+    sockpath.prepare_server_dir(path)
+    A.AccessPolicy.from_config(dcfg)
+    if dcfg.tcp_port:
+        tcp_secret(cfg)
+        if getattr(dcfg, "tls_cert", ""):
+            tlsio.server_context(dcfg.tls_cert, dcfg.tls_key)
+    return path
+
+
 class Admission:
     """Admission, authentication, refusals and time-outs of the socket server's connections."""
 
@@ -29,11 +57,7 @@ class Admission:
         self.tcp_token = ""
         self._token_digest = b""
         if self.tcp_port:
-            if tcp_token is None and getattr(dcfg, "tcp_token", "") and not getattr(dcfg, "token_file", ""):
-                leak = tcpauth.config_file_leaks(getattr(cfg, "path", None))
-                if leak:
-                    raise HexacncError(leak)
-            self.tcp_token = tcpauth.resolve_token(dcfg, tcp_token)   # refuses weak tokens, leaky files
+            self.tcp_token = tcp_secret(cfg, tcp_token)     # refuses weak tokens, leaky files
             self._token_digest = tcpauth.secret_digest(self.tcp_token)
         self.policy = A.AccessPolicy.from_config(dcfg)
         self.idle_timeout_s = float(getattr(dcfg, "idle_timeout_s", 600.0))

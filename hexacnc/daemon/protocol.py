@@ -397,8 +397,22 @@ class Client:
         try:
             self.sock.sendall(encode(msg))
         except OSError as exc:
-            raise ConnectionLost(f"connection to the daemon lost: {exc.strerror or exc}") from exc
+            why = self._parting_words()
+            raise ConnectionLost(f"connection to the daemon lost: {exc.strerror or exc}"
+                                 + (f" ({why})" if why else "")) from exc
         return rid
+
+    def _parting_words(self) -> str:
+        """The error the daemon sent before it closed (e.g. why it refused this peer), or ""."""
+        try:
+            while self._read_more(0.5):
+                pass
+        except (ProtocolError, OSError):
+            pass
+        for m in self.pending:
+            if isinstance(m, dict) and m.get("ok") is False and isinstance(m.get("error"), dict):
+                return f"{m['error'].get('message', '')} [{m['error'].get('code', '')}]"
+        return ""
 
     def _read_more(self, timeout_s: float | None) -> bool:
         self.sock.settimeout(timeout_s)

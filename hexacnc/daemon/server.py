@@ -122,7 +122,7 @@ class SocketServer(Admission):
         dcfg = cfg.daemon
         self.daemon = daemon
         self.cfg = cfg
-        self.socket_path = str(socket_path if socket_path is not None else dcfg.socket_path)
+        self.socket_path = sockpath.server_socket_path(dcfg, socket_path)
         self.tcp_port = int(dcfg.tcp_port if tcp_port is None else tcp_port)
         self._init_admission(cfg, tcp_token)
         self.max_clients = int(max_clients if max_clients is not None

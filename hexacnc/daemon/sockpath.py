@@ -190,6 +190,12 @@ __all__ = ["SocketTrustError", "default_socket_path", "client_socket_candidates"
            "fallback_dir", "SERVICE_DIR", "SOCKET_NAME"]
 
 
+def server_socket_path(dcfg, override: str | None = None) -> str:
+    """The daemon's socket: ``override`` (``--socket``), else ``[daemon] socket_path``, else the
+    default place (:func:`default_socket_path`)."""
+    return str(override or getattr(dcfg, "socket_path", "") or default_socket_path())
+
+
 def client_socket_path(cfg) -> str:
     """The socket a client uses: ``[daemon] socket_path`` when the config file sets it, else the
     first existing default place (:func:`client_socket_candidates`), else the first of them."""
