@@ -7,6 +7,7 @@ import dataclasses
 import os
 import shutil
 import tempfile
+import time
 
 import pytest
 
@@ -25,6 +26,7 @@ def cfg():
     return base.replace(cycle=cycle, daemon=dataclasses.replace(base.daemon, enable_at_start=False))
 
 
+@pytest.mark.slow
 def test_drives_stay_disabled_until_a_controller_sends_enable(cfg):
     d = tempfile.mkdtemp(prefix="hxe", dir="/tmp")
     try:
@@ -34,6 +36,10 @@ def test_drives_stay_disabled_until_a_controller_sends_enable(cfg):
                 assert st["drives_enabled"] is False and st["fault"] is None
                 assert st["waiting"].startswith("waiting for enable") and "enable_at_start" in st["waiting"]
                 assert all((sw & 0x6F) != 0x27 for sw in st["statuswords"])     # none in Operation Enabled
+                time.sleep(0.3)
+                later = c.call("status")
+                assert later["struts_act_mm"] == st["struts_act_mm"]            # nothing moved
+                assert later["waiting"] == st["waiting"]
                 with pytest.raises(P.DaemonError, match="waiting for enable"):
                     c.call("program", text="G0 X1\n", name="early.ngc")
                 r = c.call("enable", reply_timeout_s=30)

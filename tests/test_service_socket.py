@@ -200,7 +200,7 @@ def test_a_second_user_squatting_the_default_path_is_refused(base_cfg, monkeypat
     monkeypatch.delenv("RUNTIME_DIRECTORY", raising=False)
     path = sockpath.default_socket_path()
     assert path == os.path.join(tmp, f"hexacnc-{os.geteuid()}", "hexacnc.sock")
-    squat = _spawn_as_nobody(["-c", _SQUATTER, os.path.dirname(path), "3"], stdout=subprocess.PIPE)
+    squat = _spawn_as_nobody(["-c", _SQUATTER, os.path.dirname(path), "1"], stdout=subprocess.PIPE)
     try:
         assert squat.stdout.readline().strip() == "ready"
         assert os.stat(os.path.dirname(path)).st_uid == uid
