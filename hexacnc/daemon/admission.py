@@ -100,11 +100,14 @@ class Admission:
         if ok:
             A.log_refusal(who, op, why + (f" (and {hidden} similar refusals not logged)" if hidden else ""))
 
-    def _refuse_socket(self, s: socket.socket, who: str, op: str, why: str, **extra: Any) -> None:
-        """Refuse a connection before it is registered: the reason sent (best effort), logged, closed."""
+    def _refuse_socket(self, s: socket.socket, who: str, op: str, why: str, plain: bool = True,
+                       **extra: Any) -> None:
+        """Refuse a connection before it is registered: the reason sent (best effort; not to a
+        TLS client, which expects a handshake), logged, closed."""
         self.stats["refused"] += 1
         try:
-            s.send(P.encode(P.error_reply(None, P.UNAUTHORIZED, why, **extra)))
+            if plain:
+                s.send(P.encode(P.error_reply(None, P.UNAUTHORIZED, why, **extra)))
         except OSError:
             pass
         s.close()
@@ -149,7 +152,7 @@ class Admission:
         if wait > 0:
             self.stats["auth_throttled"] += 1
             self._refuse_socket(s, f"tcp {peer}", "connect", f"too many failed authentications from {addr}: "
-                                f"retry in {wait:.1f} s", retry_after_s=round(wait, 3))
+                                f"retry in {wait:.1f} s", plain=self._tls_ctx is None, retry_after_s=round(wait, 3))
             return
         if len(self._preauth) >= self.max_unauthenticated:
             oldest = next(iter(self._preauth.values()))
