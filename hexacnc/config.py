@@ -25,6 +25,7 @@ derived for the inside (``*_rad`` attributes).
 """
 from __future__ import annotations
 
+import ipaddress
 import math
 import os
 import tomllib
@@ -285,9 +286,24 @@ class BusConfig:
 
 @dataclass(frozen=True)
 class DaemonConfig:
-    socket_path: str = "/tmp/hexacnc.sock"
+    #: "" = the default place (hexacnc.daemon.sockpath.server_socket_path): $RUNTIME_DIRECTORY under
+    #: systemd, else $XDG_RUNTIME_DIR/hexacnc/, else a 0700 /tmp/hexacnc-UID/ the user owns
+    socket_path: str = ""
     tcp_port: int = 0                          #: 0: no TCP
-    tcp_token: str = ""
+    tcp_token: str = ""                        #: legacy: prefer token_file; >= 128 bits either way (checked
+                                               #: with the file modes at start: hexacnc.daemon.admission.preflight)
+    token_file: str = ""                       #: TCP token, a file only the daemon's user can read
+    controller_group: str = ""                 #: Unix peers in this group may command motion
+    observer_group: str = ""                   #: Unix peers in this group may only read
+    sensor_group: str = ""                     #: Unix peers in this group may read and send temperatures
+    tcp_role: str = "controller"               #: role of an authenticated TCP client
+    service_user: str = "hexacnc"              #: clients trust sockets owned by this user (and own/root)
+    idle_timeout_s: float = 600.0              #: a connection silent this long (no wait/stream running) is closed
+    max_unauthenticated: int = 16              #: TCP connections before "hello": own pool, never a client slot
+    enable_at_start: bool = True               #: resolved at load: default true only with [bus] simulate
+    tcp_host: str = "127.0.0.1"                #: TCP address; other than loopback only with TLS
+    tls_cert: str = ""                         #: PEM certificate: TLS on the TCP socket (with tls_key)
+    tls_key: str = ""                          #: PEM private key, readable by the daemon's user only
     status_rate_hz: float = 20.0
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
@@ -394,6 +410,48 @@ def _expand_user_vars(path: str) -> str:
             user = str(os.getuid())
         path = path.replace("${USER}", user).replace("$USER", user)
     return os.path.expandvars(path)
+
+
+def _daemon_config(d: Section, bus: BusConfig) -> DaemonConfig:
+    """``[daemon]``: socket, access (groups, TCP token, TLS), time-outs, enable at start."""
+    dd = DaemonConfig()
+    daemon = DaemonConfig(
+        socket_path=_expand_user_vars(d.getstr("socket_path", dd.socket_path)),
+        tcp_port=d.getint("tcp_port", dd.tcp_port, minval=0, maxval=65535),
+        tcp_token=d.getstr("tcp_token", dd.tcp_token),
+        status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),
+        log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
+        max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
+        max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
+        token_file=_expand_user_vars(d.getstr("token_file", dd.token_file)),
+        controller_group=d.getstr("controller_group", dd.controller_group),
+        observer_group=d.getstr("observer_group", dd.observer_group),
+        sensor_group=d.getstr("sensor_group", dd.sensor_group),
+        tcp_role=d.getchoice("tcp_role", ("controller", "sensor", "observer"), dd.tcp_role),
+        service_user=d.getstr("service_user", dd.service_user),
+        idle_timeout_s=d.getfloat("idle_timeout_s", dd.idle_timeout_s, minval=1.0, maxval=86400.0),
+        max_unauthenticated=d.getint("max_unauthenticated", dd.max_unauthenticated, minval=1, maxval=1024),
+        enable_at_start=d.getbool("enable_at_start", bool(bus.simulate)),
+        tcp_host=_tcp_host(d),
+        tls_cert=_expand_user_vars(d.getstr("tls_cert", dd.tls_cert)),
+        tls_key=_expand_user_vars(d.getstr("tls_key", dd.tls_key)),
+    )
+    if bool(daemon.tls_cert) != bool(daemon.tls_key):
+        raise d.error("tls_key" if daemon.tls_cert else "tls_cert", "tls_cert and tls_key go together")
+    if not daemon.tls_cert and not ipaddress.ip_address(daemon.tcp_host).is_loopback:
+        raise d.error("tcp_host", f"value {daemon.tcp_host!r} is not a loopback address: off the host the "
+                                  f"token needs TLS (set tls_cert and tls_key)")
+    if daemon.tcp_port and not (daemon.tcp_token or daemon.token_file):
+        raise d.error("token_file", "a token is required when tcp_port is set (token_file, or legacy tcp_token)")
+    return daemon
+
+
+def _tcp_host(d: Section) -> str:
+    v = d.getstr("tcp_host", "127.0.0.1")
+    try:
+        return str(ipaddress.ip_address(v))
+    except ValueError:
+        raise d.error("tcp_host", f"value {v!r} is not an IP address") from None
 
 
 def _freeze(a: np.ndarray) -> np.ndarray:
@@ -576,19 +634,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         simulate=b.getbool("simulate", bd.simulate),
     )
 
-    d = sec("daemon")
-    dd = DaemonConfig()
-    daemon = DaemonConfig(
-        socket_path=_expand_user_vars(d.getstr("socket_path", dd.socket_path)),
-        tcp_port=d.getint("tcp_port", dd.tcp_port, minval=0, maxval=65535),
-        tcp_token=d.getstr("tcp_token", dd.tcp_token),
-        status_rate_hz=d.getfloat("status_rate_hz", dd.status_rate_hz, above=0.0, maxval=1000.0),
-        log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
-        max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
-        max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
-    )
-    if daemon.tcp_port and not daemon.tcp_token:
-        raise d.error("tcp_token", "a token is required when tcp_port is set")
+    daemon = _daemon_config(sec("daemon"), bus)
 
     p = sec("planner")
     pd = PlannerConfig()

@@ -108,7 +108,7 @@ def test_run_duration_notifies_ready_watchdog_and_exits_zero():
 def test_systemd_unit_has_the_required_keys():
     text = (REPO / "systemd" / "hexacnc.service").read_text()
     for key in ("Type=notify", "Restart=on-failure", "LimitRTPRIO=", "LimitMEMLOCK=", "WatchdogSec=",
-                "ExecStart=/usr/local/bin/hexacnc run --config"):
+                "ExecStart=/opt/hexacnc/bin/hexacnc run --config"):
         assert key in text, key
 
 

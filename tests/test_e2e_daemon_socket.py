@@ -143,7 +143,7 @@ def test_hexacnc_run_serves_status_to_hexacnc_status_processes(tmp_path):
     import signal
     import subprocess
     import sys
-    sock = tempfile.mktemp(prefix="hxr", suffix=".sock", dir="/tmp")
+    sock = os.path.join(tempfile.mkdtemp(prefix="hxr", dir="/tmp"), "run.sock")   # a directory only we can write
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     run = subprocess.Popen([sys.executable, "-m", "hexacnc", "run", "--socket", sock, "--no-realtime",
                             "--duration", "60"], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)

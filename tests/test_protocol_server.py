@@ -444,10 +444,13 @@ def test_no_tcp_unless_configured(served):
     assert srv.tcp_address is None
 
 
+_TOKEN = "9f3c1b7e2a6d4c8b0e5f7a1d3b9c2e4f"  # 128 bits
+
+
 def test_tcp_needs_token_and_listens_on_loopback_only(cfg, sockdir):
     d = FakeDaemon()
     port = _free_port()
-    with SocketServer(d, cfg, os.path.join(sockdir, "s.sock"), tcp_port=port, tcp_token="s3cret") as srv:
+    with SocketServer(d, cfg, os.path.join(sockdir, "s.sock"), tcp_port=port, tcp_token=_TOKEN) as srv:
         assert srv.tcp_address == ("127.0.0.1", port)
         # first message not hello
         c = Raw(tcp=("127.0.0.1", port))
@@ -459,6 +462,7 @@ def test_tcp_needs_token_and_listens_on_loopback_only(cfg, sockdir):
         c.send_obj({"id": 1, "op": "hello", "token": "guess"})
         assert _err(c.recv())["code"] == "unauthorized"
         assert c.closed_within(3.0)
+        time.sleep(0.15)                 # the 0.1 s back-off the wrong token earned this address
         # malformed first message also closes
         c = Raw(tcp=("127.0.0.1", port))
         c.send_obj({"op": "hello"})
@@ -466,9 +470,9 @@ def test_tcp_needs_token_and_listens_on_loopback_only(cfg, sockdir):
         assert c.closed_within(3.0)
         # right token
         c = Raw(tcp=("127.0.0.1", port))
-        assert c.req("hello", token="s3cret")["ok"]
+        assert c.req("hello", token=_TOKEN)["ok"]
         assert c.req("status")["ok"]
-        cl = P.Client.tcp(port, "s3cret")
+        cl = P.Client.tcp(port, _TOKEN)
         assert cl.call("status")["state"] == "idle"
         cl.close()
         with pytest.raises(P.DaemonError):

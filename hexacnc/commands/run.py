@@ -103,6 +103,8 @@ def main(args: argparse.Namespace) -> int:
     daemon = server = wd = None
     try:
         log.info("machine %s (%s)", cfg.name, cfg.path)
+        from ..daemon.admission import preflight
+        preflight(cfg, args.socket)      # socket directory, token, TLS: refused before the drives boot
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
         info = daemon.info
         io_info = info.get("io_info", {})
@@ -113,7 +115,8 @@ def main(args: argparse.Namespace) -> int:
         server = SocketServer(daemon, cfg, args.socket).start()
         log.info("socket %s (hexacnc send PROGRAM.ngc --socket %s; hexacnc status --socket %s)",
                  server.socket_path, server.socket_path, server.socket_path)
-        notifier.notify("READY=1\nSTATUS=drives enabled, cycle running")
+        notifier.notify("READY=1\nSTATUS=" + ("drives disabled, waiting for enable" if daemon.awaiting_enable
+                                              else "drives enabled, cycle running"))
         wd_s = notifier.watchdog_s or (cfg.cycle.watchdog_s if notifier.enabled else 0.0)
         if notifier.enabled and wd_s > 0:
             wd = Watchdog(daemon, notifier, wd_s / 3.0)

@@ -54,19 +54,27 @@ def add_connection_args(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--tcp", metavar="PORT", type=int, default=None,
                         help="connect over TCP to 127.0.0.1:PORT instead (needs the token)")
     parser.add_argument("--token", default=None,
-                        help="TCP token (default: $HEXACNC_TOKEN, else [daemon] tcp_token of --config)")
+                        help="TCP token (default: $HEXACNC_TOKEN, else [daemon] token_file / tcp_token of --config)")
+    parser.add_argument("--host", default="127.0.0.1", help="--tcp: the daemon's address (default 127.0.0.1)")
+    parser.add_argument("--tls-ca", metavar="FILE", default=None,
+                        help="--tcp over TLS: the daemon's certificate or its CA (default: $HEXACNC_TLS_CA)")
 
 
 def connect(args: argparse.Namespace, name: str):
     """A :class:`~hexacnc.daemon.protocol.Client` from the connection options, after "hello"."""
     from ..daemon.protocol import Client
+    from ..daemon.sockpath import client_socket_path, connect_checked
     if args.tcp is not None:
         token = args.token or os.environ.get("HEXACNC_TOKEN")
         if not token:
-            token = _load_cfg(args).daemon.tcp_token
-        return Client.tcp(args.tcp, token, client_name=name)
-    path = args.socket or os.environ.get("HEXACNC_SOCKET") or _load_cfg(args).daemon.socket_path
-    client = Client.unix(path)
+            from ..daemon.tcpauth import client_token
+            token = client_token(_load_cfg(args).daemon)
+        return Client.tcp(args.tcp, token, host=getattr(args, "host", "127.0.0.1"), client_name=name,
+                          tls_ca=getattr(args, "tls_ca", None) or os.environ.get("HEXACNC_TLS_CA"))
+    cfg = None if args.socket or os.environ.get("HEXACNC_SOCKET") else _load_cfg(args)
+    path = args.socket or os.environ.get("HEXACNC_SOCKET") or client_socket_path(cfg)
+    # refuses a socket (or serving process) not owned by this user, root or [daemon] service_user
+    client = Client(connect_checked(path, (cfg or _load_cfg(args)).daemon.service_user))
     client.call("hello", client=name)
     return client
 

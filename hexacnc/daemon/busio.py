@@ -286,11 +286,13 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
     else:
         transport = cfg.bus.interface
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
+    # [daemon] enable_at_start false: the drives stay disabled until a controller sends "enable"
+    enable = bool(getattr(cfg.daemon, "enable_at_start", True))
     try:
         m = Master(cfg, buses)
         for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
             try:
-                m.bring_up(enable=True)
+                m.bring_up(enable=enable)
                 break
             except BusError as exc:
                 if attempt == 3:
@@ -300,7 +302,8 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         pos = m.positions_inc()
         m.detach()
         cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
-                              controlword=cia402.CW_ENABLE_OPERATION, period_s=period_s)
+                              controlword=cia402.CW_ENABLE_OPERATION if enable else cia402.CW_DISABLE_VOLTAGE,
+                              period_s=period_s)
         for i in range(6):
             cio.status[i] = sw[i]
             cio.pos_inc[i] = pos[i]

@@ -166,6 +166,7 @@ class Daemon:
         self._stats_cache: tuple[float, dict] = (0.0, {})
         self._last_fault_logged = 0
         self._notifier = None
+        self.awaiting_enable = False      #: started with drives disabled; "enable"/"reset" not sent yet
         if start:
             self.start()
 
@@ -199,10 +200,12 @@ class Daemon:
                                           else f"no answer within {timeout_s:g} s")
                 raise BusError(f"daemon start failed: {why}")
             self.info.update(msg[1])
-            # wait for the CiA 402 walk to Operation Enabled (inside the loop)
+            # wait for the CiA 402 walk to Operation Enabled (inside the loop); with [daemon]
+            # enable_at_start false the loop cycles with the drives disabled until "enable"/"reset"
+            self.awaiting_enable = not getattr(self.cfg.daemon, "enable_at_start", True)
             while time.monotonic() < t_end:
                 r = self.sh.h[S.H_READY]
-                if r == 1:
+                if r == 1 or (self.awaiting_enable and r == 0 and self.sh.h[S.H_CYCLES] > 0):
                     break
                 if r == -1 or not self.hot.is_alive():
                     h, s = self.sh.read_status()
@@ -218,8 +221,9 @@ class Daemon:
         self.thermal.start()
         self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
         self._feeder.start()
-        log.info("daemon ready: %s drives enabled, cycle %.3f ms, io %s", self.cfg.name,
-                 self.period_s * 1e3, mode)
+        log.info("daemon ready: %s drives %s, cycle %.3f ms, io %s", self.cfg.name,
+                 "disabled: waiting for enable ([daemon] enable_at_start false)" if self.awaiting_enable
+                 else "enabled", self.period_s * 1e3, mode)
         return self
 
     def _keep_off_hot_cpu(self) -> None:
@@ -475,6 +479,9 @@ class Daemon:
                                + self._fault_dict(self.sh.read_status())["message"] + ")")
         if st == S.ST_DISABLED:
             raise HexacncError("the drives are disabled: reset to enable them")
+        if st == S.ST_BOOT and self.awaiting_enable:
+            raise HexacncError("the drives are disabled, waiting for enable ([daemon] enable_at_start is "
+                               "false): a controller sends 'enable' (or 'reset') first")
         if st == S.ST_STOPPING or self.stop_requested:
             raise HexacncError("a stop is in progress; wait for idle")
 
@@ -581,8 +588,9 @@ class Daemon:
             if self.sh is None or not self.alive:
                 raise HexacncError("the daemon is not running")
             st = self.sh.h[S.H_STATE]
-            if st not in (S.ST_FAULT, S.ST_DISABLED):
+            if st not in (S.ST_FAULT, S.ST_DISABLED) and not (st == S.ST_BOOT and self.awaiting_enable):
                 return self.status()
+            self.awaiting_enable = False
             self._abort_jobs("reset")
             self.last_program = None
             self.sh.h[S.H_READY] = 0
@@ -597,6 +605,10 @@ class Daemon:
         if st["state"] == "fault":
             raise HexacncError(f"reset failed: {st['fault']['message']}")
         return st
+
+    def enable(self, timeout_s: float = 5.0) -> dict:
+        """Enable the drives (op ``enable``): the :meth:`reset` path; returns the status."""
+        return self.reset(timeout_s)
 
     def inject_fault(self, code: int = 0) -> None:
         """Tests: latch an internal fault (controlled stop follows)."""
@@ -725,6 +737,7 @@ class Daemon:
             "statuswords": h[S.H_STATUSWORDS:S.H_STATUSWORDS + 6],
             "line": h[S.H_LINE],
             "fault": fault,
+            "waiting": _waiting_reason(hstate, fault, self.awaiting_enable),
             "cycle": self.cycle_stats(),
             "program": prog,
             "thermal": self.thermal.status(s, h) if self.thermal is not None else {"source": "none", "state": "off"},
@@ -743,3 +756,11 @@ class Daemon:
                 return st
             with self.cv:
                 self.cv.wait(min(left, 0.02))
+
+
+def _waiting_reason(hstate: int, fault, awaiting_enable: bool) -> str | None:
+    """Why the machine does not move on its own (status key ``waiting``), or None."""
+    if fault is None and (hstate == S.ST_DISABLED or (hstate == S.ST_BOOT and awaiting_enable)):
+        return ("waiting for enable: the drives are disabled " + ("since the start ([daemon] enable_at_start "
+                "is false)" if hstate == S.ST_BOOT else "") + "; a controller sends 'enable' (or 'reset')")
+    return None

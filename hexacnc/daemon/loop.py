@@ -154,6 +154,8 @@ class HotLoop:
         self.streaming = False
         self.starve_ns = 0
         self.enable_t0 = 0
+        #: the enable walk may run ([daemon] enable_at_start, else from the first reset/enable)
+        self.enable_ok = bool(getattr(cfg.daemon, "enable_at_start", True))
         self.line = 0
         self.cmd_seen = sh.h[S.H_CMD_SEQ]
         self.exit_after = -1
@@ -252,6 +254,9 @@ class HotLoop:
                 for i in range(6):
                     self.emcy_seen[i] = self.io.emcy_count[i]
                     self.follow_max[i] = 0.0
+            elif st == S.ST_BOOT and not self.enable_ok:     # waiting for enable since the start
+                self.enable_ok = True
+                self.enable_t0 = now
         elif code in (S.CMD_SHUTDOWN, S.CMD_DISABLE):
             self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
             if st in (S.ST_IDLE, S.ST_RUNNING):
@@ -552,7 +557,7 @@ class HotLoop:
                     for i in range(6):
                         v = act[i]
                         out[i] = lmin[i] if v < lmin[i] else (lmax[i] if v > lmax[i] else v)
-                    if True:
+                    if self.enable_ok:
                         all_on = True
                         for i in range(6):
                             if pos_count[i] == 0:       # no position yet: never enable blind
@@ -721,6 +726,9 @@ class HotLoop:
             beat = self.sh.h[S.H_SUP_BEAT_NS]
             if self.state in (S.ST_IDLE, S.ST_RUNNING):
                 self._fault(F_SUPERVISOR, 0, (now - beat) // 1_000_000 if beat else -1)
+            elif self.state == S.ST_BOOT:       # e.g. waiting for enable: nothing moves, just end
+                self._disable()
+                self.state = S.ST_DISABLED
             if self.exit_after < 0:
                 self.exit_after = 1     # nobody left to reset us: stop, disable, exit
 

@@ -60,7 +60,7 @@ ERROR_CODES: tuple[str, ...] = (
 PROGRAM_CODES = (GCODE, UNSUPPORTED, LIMIT)
 
 #: ops that move the machine or change its motion state: controller only
-MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset"})
+MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset", "enable"})
 
 _NUM = (int, float)
 #: op -> {field: (accepted python types, required)}.  "id" and "op" are checked for all.
@@ -72,6 +72,7 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "resume": {},
     "stop": {},
     "reset": {},
+    "enable": {},
     "wait": {"timeout_s": (_NUM, True)},
     "subscribe": {"rate_hz": (_NUM, False)},
     "unsubscribe": {"sub": ((int,), False)},
@@ -357,10 +358,14 @@ class Client:
 
     @classmethod
     def tcp(cls, port: int, token: str, host: str = "127.0.0.1", timeout_s: float = 5.0,
-            client_name: str = "") -> "Client":
-        """Connect over TCP and authenticate with ``hello`` + ``token``."""
+            client_name: str = "", tls_ca: str | None = None) -> "Client":
+        """Connect over TCP (TLS checking the daemon's certificate against ``tls_ca`` when given)
+        and authenticate with ``hello`` + ``token``."""
         try:
             s = socket.create_connection((host, port), timeout=timeout_s)
+            if tls_ca:
+                from .tlsio import client_context
+                s = client_context(tls_ca).wrap_socket(s, server_hostname=host)
         except OSError as exc:
             raise ConnectionLost(f"cannot connect to the daemon at {host}:{port}: {exc.strerror or exc}") from exc
         s.settimeout(None)
@@ -392,8 +397,22 @@ class Client:
         try:
             self.sock.sendall(encode(msg))
         except OSError as exc:
-            raise ConnectionLost(f"connection to the daemon lost: {exc.strerror or exc}") from exc
+            why = self._parting_words()
+            raise ConnectionLost(f"connection to the daemon lost: {exc.strerror or exc}"
+                                 + (f" ({why})" if why else "")) from exc
         return rid
+
+    def _parting_words(self) -> str:
+        """The error the daemon sent before it closed (e.g. why it refused this peer), or ""."""
+        try:
+            while self._read_more(0.5):
+                pass
+        except (ProtocolError, OSError):
+            pass
+        for m in self.pending:
+            if isinstance(m, dict) and m.get("ok") is False and isinstance(m.get("error"), dict):
+                return f"{m['error'].get('message', '')} [{m['error'].get('code', '')}]"
+        return ""
 
     def _read_more(self, timeout_s: float | None) -> bool:
         self.sock.settimeout(timeout_s)

@@ -27,7 +27,6 @@ Usage::
 """
 from __future__ import annotations
 
-import hmac
 import logging
 import os
 import platform
@@ -44,7 +43,10 @@ import msgpack
 
 from .. import __version__
 from ..errors import HexacncError, ProtocolError
+from . import access as A
 from . import protocol as P
+from . import sockpath, tcpauth, tlsio
+from .admission import Admission
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -65,7 +67,7 @@ _MAX_MOTION_PENDING = 64
 #: subscriptions per client
 _MAX_SUBS_PER_CLIENT = 8
 #: a TCP client must authenticate within this time
-_AUTH_TIMEOUT_S = 5.0
+_AUTH_TIMEOUT_S = tcpauth.AUTH_TIMEOUT_S
 #: state values after which "wait" returns
 _WAIT_DONE_STATES = ("idle", "fault")
 
@@ -74,7 +76,8 @@ class _Conn:
     """One client connection (touched only by the selector thread, except ``alive``)."""
 
     __slots__ = ("sock", "num", "kind", "peer", "dec", "out", "authenticated", "closing", "alive",
-                 "subs", "waits", "motion_pending", "client_name", "registered_mask", "created", "backlog")
+                 "subs", "waits", "motion_pending", "client_name", "registered_mask", "created", "backlog",
+                 "role", "who", "last_active", "preauth_bytes", "addr")
 
     def __init__(self, sock: socket.socket, num: int, kind: str, peer: str, max_bytes: int):
         self.sock = sock
@@ -93,12 +96,17 @@ class _Conn:
         self.created = time.monotonic()
         self.backlog = False                  # decoded data left for the next pass
         self.registered_mask = 0
+        self.role: str | None = None          # access role (hexacnc.daemon.access); None before auth
+        self.who = peer                       # peer uid/pid or address, for refusal logs
+        self.last_active = self.created
+        self.preauth_bytes = 0
+        self.addr = peer.rsplit(":", 1)[0] if kind == "tcp" else ""
 
     def label(self) -> str:
         return f"client {self.num} ({self.kind} {self.peer}{', ' + self.client_name if self.client_name else ''})"
 
 
-class SocketServer:
+class SocketServer(Admission):
     """Serve the protocol of ``docs/protocol.md`` for ``daemon``.
 
     ``daemon`` offers ``hello() status() load_program(text, name) pause()
@@ -114,11 +122,9 @@ class SocketServer:
         dcfg = cfg.daemon
         self.daemon = daemon
         self.cfg = cfg
-        self.socket_path = str(socket_path if socket_path is not None else dcfg.socket_path)
+        self.socket_path = sockpath.server_socket_path(dcfg, socket_path)
         self.tcp_port = int(dcfg.tcp_port if tcp_port is None else tcp_port)
-        self.tcp_token = str(dcfg.tcp_token if tcp_token is None else tcp_token)
-        if self.tcp_port and not self.tcp_token:
-            raise HexacncError("[daemon] tcp_port is set but tcp_token is empty: TCP clients need a token")
+        self._init_admission(cfg, tcp_token)
         self.max_clients = int(max_clients if max_clients is not None
                                else getattr(dcfg, "max_clients", P.MAX_CLIENTS))
         self.max_message_bytes = int(max_message_bytes if max_message_bytes is not None
@@ -150,7 +156,8 @@ class SocketServer:
         self._motion_done = 0
         self._wait_pool: ThreadPoolExecutor | None = None
         self.stats = {"accepted": 0, "refused": 0, "requests": 0, "errors": 0, "closed_bad": 0,
-                      "stream_sent": 0, "stream_dropped": 0}
+                      "stream_sent": 0, "stream_dropped": 0, "refused_peer": 0, "refused_op": 0,
+                      "auth_failed": 0, "auth_throttled": 0, "preauth_closed": 0, "idle_closed": 0}
 
     # -- lifecycle ------------------------------------------------------------
     def start(self) -> "SocketServer":
@@ -206,18 +213,22 @@ class SocketServer:
     # -- binding ----------------------------------------------------------------
     def _bind_unix(self) -> None:
         path = self.socket_path
+        sockpath.prepare_server_dir(path)        # refuses a directory others can write (or own)
         check_socket_path(path, remove_stale=True)
+        # peer credentials decide who may do what; with groups configured anyone may connect (and
+        # gets a role or a logged refusal), else only the owner's group can open the socket
+        mode = 0o666 if self.policy.groups_configured else 0o660
         # bind under a temporary name, set 0660, then rename: no moment with wider permissions
         tmp = f"{path}.{os.getpid()}.{threading.get_ident() % 100000}.tmp"
         s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
         try:
             if len(os.fsencode(tmp)) <= 107:
                 s.bind(tmp)
-                os.chmod(tmp, 0o660)
+                os.chmod(tmp, mode)
                 os.replace(tmp, path)
             else:
                 s.bind(path)
-                os.chmod(path, 0o660)
+                os.chmod(path, mode)
             s.listen(64)
             s.setblocking(False)
         except OSError as exc:
@@ -236,12 +247,12 @@ class SocketServer:
         s = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         try:
             s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            s.bind(("127.0.0.1", self.tcp_port))    # loopback only, always
+            s.bind((self.tcp_host, self.tcp_port))  # 127.0.0.1 unless TLS is on ([daemon] tcp_host)
             s.listen(64)
             s.setblocking(False)
         except OSError as exc:
             s.close()
-            raise HexacncError(f"cannot listen on 127.0.0.1:{self.tcp_port}: {exc.strerror or exc}") from exc
+            raise HexacncError(f"cannot listen on {self.tcp_host}:{self.tcp_port}: {exc.strerror or exc}") from exc
         self._tcp = s
         self.tcp_address = s.getsockname()[:2]
         self._sel.register(s, selectors.EVENT_READ, "listen-tcp")
@@ -319,20 +330,22 @@ class SocketServer:
                     self._drop(conn, "internal error")
         self._deliver_results()
         self._serve_streams()
-        self._expire_unauthenticated()
+        self._expire_connections()
 
-    def _expire_unauthenticated(self) -> None:
-        now = time.monotonic()
-        for conn in list(self._conns.values()):
-            if not conn.authenticated and not conn.closing and now - conn.created > self.auth_timeout_s:
-                log.warning("%s: no hello with token within %g s; closing", conn.label(), self.auth_timeout_s)
-                self._send(conn, P.error_reply(None, P.UNAUTHORIZED,
-                                               f"no 'hello' with 'token' within {self.auth_timeout_s:g} s"))
-                conn.closing = True
-                self._flush(conn)
+    def _register(self, s: socket.socket, kind: str, peer: str) -> _Conn:
+        conn = _Conn(s, self._next_num, kind, peer, self.max_message_bytes)
+        self._next_num += 1
+        self._conns[conn.num] = conn
+        conn.registered_mask = selectors.EVENT_READ
+        self._sel.register(s, selectors.EVENT_READ, conn)
+        self.stats["accepted"] += 1
+        log.debug("%s connected", conn.label())
+        return conn
 
     def _accept(self, lsock: socket.socket, kind: str) -> None:
-        for _ in range(16):
+        # few TCP accepts per pass: a flood of new connections cannot push a fresh one out of the
+        # pre-auth pool before the loop has read its hello
+        for _ in range(16 if kind == "unix" else 4):
             try:
                 s, addr = lsock.accept()
             except (BlockingIOError, InterruptedError):
@@ -341,43 +354,43 @@ class SocketServer:
                 log.warning("accept failed: %s", exc)
                 return
             s.setblocking(False)
-            peer = f"{addr[0]}:{addr[1]}" if kind == "tcp" else "local"
-            if len(self._conns) >= self.max_clients:
-                self.stats["refused"] += 1
-                try:
-                    s.send(P.encode(P.error_reply(None, P.BUSY, f"too many clients (max {self.max_clients})")))
-                except OSError:
-                    pass
-                s.close()
-                log.warning("refused a %s client: %d clients connected", kind, self.max_clients)
-                continue
-            conn = _Conn(s, self._next_num, kind, peer, self.max_message_bytes)
-            self._next_num += 1
-            self._conns[conn.num] = conn
-            conn.registered_mask = selectors.EVENT_READ
-            self._sel.register(s, selectors.EVENT_READ, conn)
-            self.stats["accepted"] += 1
-            log.debug("%s connected", conn.label())
+            if kind == "tcp":
+                self._admit_tcp(s, f"{addr[0]}:{addr[1]}")
+            else:
+                self._admit_unix(s)
 
     def _on_readable(self, conn: _Conn) -> None:
-        try:
-            data = conn.sock.recv(_READ_CHUNK)
-        except (BlockingIOError, InterruptedError):
+        want = _READ_CHUNK if conn.authenticated else tcpauth.PREAUTH_MAX_BYTES - conn.preauth_bytes
+        if want <= 0:
             return
+        try:
+            data = tlsio.recv(conn.sock, want)      # plain or TLS; None: nothing there now
         except OSError as exc:
+            if not conn.authenticated:            # e.g. a failed TLS handshake: a refusal, logged
+                self._log_refusal(conn.who, "connect", f"receive failed: {exc}")
             self._drop(conn, f"receive failed: {exc}")
+            return
+        if data is None:
             return
         if not data:
             self._drop(conn, "disconnected")
             return
         if conn.closing:
             return                         # ignore anything after a fatal error
+        conn.last_active = time.monotonic()
+        if not conn.authenticated:
+            conn.preauth_bytes += len(data)
         try:
             conn.dec.feed(data)
         except ProtocolError as exc:
             self._bad_stream(conn, exc)
             return
         self._process(conn)
+        if (conn.alive and not conn.closing and not conn.authenticated
+                and conn.preauth_bytes >= tcpauth.PREAUTH_MAX_BYTES):
+            self.stats["preauth_closed"] += 1
+            self._refuse_conn(conn, "hello", f"more than {tcpauth.PREAUTH_MAX_BYTES} bytes before "
+                                             f"authentication", code=P.TOO_LARGE)
 
     def _process(self, conn: _Conn) -> None:
         """Handle up to _MAX_BATCH decoded requests; flag the connection if more are buffered."""
@@ -417,18 +430,15 @@ class SocketServer:
                 conn.closing = True
                 self._flush(conn)
             return
-        if not conn.authenticated:
-            token = req.fields.get("token")
-            if req.op != "hello" or not isinstance(token, str) or not hmac.compare_digest(
-                    token.encode("utf-8", "surrogatepass"), self.tcp_token.encode("utf-8", "surrogatepass")):
-                self.stats["errors"] += 1
-                log.warning("%s: authentication failed", conn.label())
-                self._send(conn, P.error_reply(req.id, P.UNAUTHORIZED,
-                                               "TCP clients must first send 'hello' with the right 'token'"))
-                conn.closing = True
-                self._flush(conn)
-                return
-            conn.authenticated = True
+        if not conn.authenticated and not self._authenticate(conn, req):
+            return
+        if not A.allowed(conn.role, req.op):
+            self.stats["refused_op"] += 1
+            self.stats["errors"] += 1
+            why = A.refusal(conn.role, req.op)
+            self._log_refusal(conn.who, req.op, why)
+            self._send(conn, P.error_reply(req.id, P.UNAUTHORIZED, why, access=conn.role))
+            return
         handler = getattr(self, "_op_" + req.op)
         try:
             handler(conn, req)
@@ -465,6 +475,7 @@ class SocketServer:
             "versions": versions,
             "machine": info.get("machine") or self.machine_name,
             "role": "controller" if self._controller is conn else "observer",
+            "access": conn.role,
             "controller_present": self._controller is not None,
             "status_rate_hz": self.status_rate_hz,
             "max_message_bytes": self.max_message_bytes,
@@ -475,6 +486,7 @@ class SocketServer:
     def _op_status(self, conn: _Conn, req: P.Request) -> None:
         st = self._status()
         st["role"] = "controller" if self._controller is conn else "observer"
+        st["access"] = conn.role
         self._send(conn, P.ok_reply(req.id, **st))
 
     def _take_control(self, conn: _Conn, req: P.Request) -> bool:
@@ -540,8 +552,19 @@ class SocketServer:
 
     _op_pause = _op_resume = _op_stop = _op_reset = _simple_motion
 
+    def _op_enable(self, conn: _Conn, req: P.Request) -> None:
+        """Enable the drives (after a start with [daemon] enable_at_start false, or a fault):
+        the daemon's ``enable`` when it has one, else its ``reset`` path."""
+        if not self._take_control(conn, req):
+            return
+        fn = getattr(self.daemon, "enable", None) or self.daemon.reset
+
+        def reply(result: Any) -> dict:
+            return P.ok_reply(req.id, **(P.plain(result) if isinstance(result, dict) else {}))
+        self._submit_motion(conn, req, fn, reply)
+
     def _op_temperatures(self, conn: _Conn, req: P.Request) -> None:
-        """A probe reading for the thermal observer (any client; validated as a whole, applied or not at all)."""
+        """A probe reading for the thermal observer (controller or sensor role; validated as a whole, applied or not at all)."""
         push = getattr(self.daemon, "push_temperatures", None)
         if push is None:
             self._send(conn, P.error_reply(req.id, P.REFUSED, "this daemon takes no temperatures"))
@@ -639,6 +662,7 @@ class SocketServer:
                 conn.waits -= 1
             elif item[2] == "motion-done":
                 conn.motion_pending -= 1
+            conn.last_active = time.monotonic()       # idle time counts from the end of a wait/op
             if out is not None and conn.alive and not conn.closing:
                 self._send(conn, out)
 
@@ -695,12 +719,12 @@ class SocketServer:
     def _flush(self, conn: _Conn) -> None:
         while conn.out:
             try:
-                n = conn.sock.send(conn.out)
-            except (BlockingIOError, InterruptedError):
-                break
+                n = tlsio.send(conn.sock, conn.out)   # plain or TLS; 0: cannot take more now
             except OSError as exc:
                 self._drop(conn, f"send failed: {exc}")
                 return
+            if not n:
+                break
             del conn.out[:n]
         if not conn.out and conn.closing:
             self._drop(conn, "closed after a fatal error")
@@ -716,6 +740,7 @@ class SocketServer:
         conn.alive = False
         conn.subs.clear()
         self._conns.pop(conn.num, None)
+        self._preauth.pop(conn.num, None)
         try:
             if self._sel is not None:
                 self._sel.unregister(conn.sock)
