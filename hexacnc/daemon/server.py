@@ -45,6 +45,7 @@ import msgpack
 from .. import __version__
 from ..errors import HexacncError, ProtocolError
 from . import protocol as P
+from .ops_operator import OPERATOR_OPS, attach_operator
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -127,6 +128,7 @@ class SocketServer:
         self.tcp_address: tuple[str, int] | None = None
         self.auth_timeout_s = _AUTH_TIMEOUT_S
         self.machine_name = str(getattr(cfg, "name", "") or "")
+        self.operator = attach_operator(daemon, cfg)     # overrides, jog, MDI, offsets (ops_operator.py)
 
         self._sel: selectors.BaseSelector | None = None
         self._unix: socket.socket | None = None
@@ -429,9 +431,12 @@ class SocketServer:
                 self._flush(conn)
                 return
             conn.authenticated = True
-        handler = getattr(self, "_op_" + req.op)
+        handler = getattr(self, "_op_" + req.op, None)
         try:
-            handler(conn, req)
+            if handler is None:
+                OPERATOR_OPS[req.op](self, conn, req)
+            else:
+                handler(conn, req)
         except Exception as exc:
             log.exception("%s: op %s failed", conn.label(), req.op)
             self._send(conn, P.error_from_exception(exc, req.id, self._state_or_none()))
@@ -446,7 +451,12 @@ class SocketServer:
         """The daemon's status as plain types; read at most once per loop pass (a copy each time)."""
         st = self._pass_status
         if st is None:
-            st = self._pass_status = P.plain(self.daemon.status())
+            st = self.daemon.status()
+            if self.operator is not None:
+                st = self.operator.status(st)
+            ctl = self._controller
+            st["controller"] = None if ctl is None else ctl.label()
+            st = self._pass_status = P.plain(st)
         return dict(st)
 
     def _op_hello(self, conn: _Conn, req: P.Request) -> None:
@@ -486,8 +496,9 @@ class SocketServer:
             return True
         self.stats["errors"] += 1
         self._send(conn, P.error_reply(req.id, P.NOT_CONTROLLER,
-                                       f"op {req.op!r}: client {self._controller.num} controls motion; "
-                                       f"this connection may only observe until it disconnects"))
+                                       f"op {req.op!r}: {self._controller.label()} controls the machine; "
+                                       f"this connection may only observe until it disconnects or "
+                                       f"takes control ('take'; hexacnc ... --take)"))
         return False
 
     def _submit_motion(self, conn: _Conn, req: P.Request, call: Callable[[], Any],
@@ -526,7 +537,8 @@ class SocketServer:
             info = P.plain(result) if isinstance(result, dict) else {"blocks": result}
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
-        self._submit_motion(conn, req, lambda: self.daemon.load_program(text, name), reply)
+        load = self.operator.load_program if self.operator is not None else self.daemon.load_program
+        self._submit_motion(conn, req, lambda: load(text, name), reply)
 
     def _simple_motion(self, conn: _Conn, req: P.Request) -> None:
         if not self._take_control(conn, req):
