@@ -113,6 +113,9 @@ class Operator:
         self._motion_checks(what)
         if mdi:
             self._idle_checks("MDI")
+        src_j = self.jog_src
+        if src_j is not None and not src_j.finished:
+            raise OperatorError(f"{what} refused: a jog is running", "busy")
         with d.lock:
             d._require_motion_ok()
             start = d._planned_start()
@@ -140,8 +143,9 @@ class Operator:
             if mdi:
                 self._idle_checks("MDI")
             d._queue(job)
-            self.store.commit(new_state)
-            self.status_view.program_loaded(name, text, prog, float(plan.duration_s))
+        # the files are written outside the daemon's lock (the feeder must never wait for a disk)
+        self.store.commit(new_state)
+        self.status_view.program_loaded(name, text, prog, float(plan.duration_s))
         return {"blocks": len(prog.blocks), "duration_s": float(plan.duration_s)}
 
     def mdi(self, text: str) -> dict:

@@ -69,12 +69,14 @@ class OperatorStatus:
 
     def _times(self, st: dict, running: bool, name) -> tuple:
         now = time.monotonic()
+        prog = st.get("program") or {}
         if running and name == self.name and self.started is None:
-            self.started, self.ended = now, None
+            # first seen running: back-date by the planned time done (exact when seen at the start)
+            done = self.duration_s * float(prog.get("percent") or 0.0) / 100.0
+            self.started, self.ended = now - done, None
         if not running and self.started is not None and self.ended is None:
             self.ended = now
         elapsed = None if self.started is None else (self.ended or now) - self.started
-        prog = st.get("program") or {}
         remaining = prog.get("time_left_s") if running else (0.0 if prog else None)
         if st.get("state") == "stopping":
             remaining = 0.0
