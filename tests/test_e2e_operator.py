@@ -36,7 +36,9 @@ def state_dir():
 
 @pytest.fixture(scope="module")
 def opcfg(cfg, state_dir):  # noqa: F811
-    op = dataclasses.replace(cfg.operator, state_dir=state_dir, max_feed_override=1.5,
+    # deadman 0.1 s (the largest allowed): a loaded test machine must not stop the jogs early
+    jog = dataclasses.replace(cfg.operator.jog, deadman_s=0.1)
+    op = dataclasses.replace(cfg.operator, state_dir=state_dir, max_feed_override=1.5, jog=jog,
                              tip_min=np.array(TIP_MIN), tip_max=np.array(TIP_MAX))
     return cfg.replace(operator=op)
 

@@ -19,7 +19,9 @@ time base: one setpoint per cycle) and ``loop_speed`` their ratio (< 1: the hot 
 the wall clock, e.g. without SCHED_FIFO on a loaded machine).
 
 Persistence: offsets and a tool set over the socket, the daemon closed, a new one started on the
-same state directory: ``survive_restart`` says whether both came back.  Prints one JSON object.
+same state directory: ``survive_restart`` says whether both came back.  ``jog_deadman_early_stops``
+counts jogs the deadman stopped while the bench was still confirming (a confirmation later than
+``deadman_s`` on a loaded machine: the safe side; the jog is then repeated).  Prints one JSON object.
 """
 from __future__ import annotations
 
@@ -136,25 +138,34 @@ def _holds(daemon, client, S, args) -> dict:
     return rows
 
 
-def _deadman(daemon, client, S, repeats: int) -> list:
+def _deadman(daemon, client, S, repeats: int, P) -> tuple[list, int]:
+    """Deadman stops; also the count of jogs the deadman stopped early (a confirmation came late)."""
     out = []
+    early = 0
     deadman_s = daemon.cfg.operator.jog.deadman_s
-    for k in range(repeats):
+    k = 0
+    while len(out) < repeats and k < 4 * repeats:
+        k += 1
         client.call("jog", axis="x", direction=1 if k % 2 == 0 else -1)
         t_end = time.monotonic() + 0.3
         t_last = time.monotonic()
         c_last = daemon.sh.h[S.H_CYCLES]
-        while time.monotonic() < t_end:
-            t_last, c_last = time.monotonic(), daemon.sh.h[S.H_CYCLES]
-            client.call("jog", action="confirm")
-            time.sleep(0.02)
+        try:
+            while time.monotonic() < t_end:
+                t_last, c_last = time.monotonic(), daemon.sh.h[S.H_CYCLES]
+                client.call("jog", action="confirm")
+                time.sleep(0.02)
+        except P.DaemonError:
+            early += 1
+            client.call("wait", timeout_s=10.0)
+            continue
         t_rest, cycles = _time_to_rest(daemon.sh, S, t_last, cyc0=c_last)
         out.append({"stop_after_last_confirm_ms": round(t_rest * 1e3, 1),
                     "stop_after_deadline_ms": round((t_rest - deadman_s) * 1e3, 1),
                     "stop_after_last_confirm_cycles_ms": round(cycles * daemon.period_s * 1e3, 1),
                     "loop_speed": round(cycles * daemon.period_s / max(t_rest, 1e-9), 3)})
         client.call("wait", timeout_s=10.0)
-    return out
+    return out, early
 
 
 def _restart(cfg, core, P, SocketServer, tmp: str) -> dict:
@@ -208,7 +219,7 @@ def main(args: argparse.Namespace) -> int:
                 out["period_s"] = daemon.period_s
                 rows = _holds(daemon, client, S, args)
                 out["deadman_s"] = cfg.operator.jog.deadman_s
-                out["jog_deadman"] = _deadman(daemon, client, S, args.repeats)
+                out["jog_deadman"], out["jog_deadman_early_stops"] = _deadman(daemon, client, S, args.repeats, P)
         finally:
             srv.close()
             daemon.close()
