@@ -182,3 +182,25 @@ def test_jog_plan_reach_and_rotation_about_the_tip(cfg):
     L = hx.inverse_batch(sj.pose_of([0.0, 0.1]))
     d = L[1] - L[0]
     assert d[1] == pytest.approx(0.1, abs=1e-4) and np.max(np.abs(np.delete(d, 1))) < 1e-4
+
+
+def test_homing_gate_and_cia402_not_implemented(cfg, tmp_path):
+    import dataclasses
+    from types import SimpleNamespace
+
+    from hexacnc.daemon import shm as S
+    from hexacnc.daemon.operator import Operator, OperatorError
+    hm = dataclasses.replace(cfg.operator.homing, method="cia402", required=True)
+    c = cfg.replace(operator=dataclasses.replace(cfg.operator, homing=hm, state_dir=str(tmp_path)))
+    fake = SimpleNamespace(cfg=c, sh=SimpleNamespace(h={S.H_STATE: S.ST_IDLE}), alive=True)
+    op = Operator(fake)
+    assert op.referenced is False
+    with pytest.raises(OperatorError) as ei:
+        op._motion_checks("program 'p'")
+    assert ei.value.code == "invalid_state" and "not referenced" in str(ei.value)
+    op._motion_checks("jog", cartesian=False)               # strut jogs stay allowed
+    hm2 = dataclasses.replace(hm, method="absolute")
+    c2 = c.replace(operator=dataclasses.replace(c.operator, homing=hm2))
+    op2 = Operator(SimpleNamespace(cfg=c2, sh=fake.sh, alive=True))
+    assert op2.referenced is True
+    op2._motion_checks("program 'p'")
