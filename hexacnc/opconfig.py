@@ -24,9 +24,7 @@ Keys (all optional, every value range-checked):
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass, field
-from pathlib import Path
 
 import numpy as np
 
@@ -131,20 +129,3 @@ def tip_violation(cfg, tip_deg, box=None) -> str | None:
             return (f"tool tip {'xyzabc'[i]} = {v:.3f} {unit} outside the [workspace] soft limit "
                     f"[{lo[i]:.3f}, {hi[i]:.3f}]")
     return None
-
-
-def state_dir(cfg) -> Path:
-    """Directory of the persistent state files (see module doc)."""
-    sd = cfg.operator.state_dir
-    if sd:
-        return Path(os.path.expanduser(os.path.expandvars(sd)))
-    from .config import default_config_path
-    p = Path(cfg.path)
-    try:
-        embedded = p.resolve() == default_config_path().resolve()
-    except OSError:
-        embedded = False
-    if not embedded and p.parent.is_dir() and str(cfg.path) not in ("", "<config>"):
-        return p.parent
-    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
-    return Path(base) / "hexacnc"

@@ -28,7 +28,7 @@ from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 from ..errors import HexacncError
 from ..opconfig import tip_box
 from ..pose import euler_from_matrix, matrix_from_axis_angle, matrix_from_euler
-from .shm import FLAG_END, ROW
+from ..setpoint import COL_FLAGS, FLAG_END, FLAG_MOTION, ROW
 
 CARTESIAN = ("x", "y", "z", "a", "b", "c")
 STRUTS = ("1", "2", "3", "4", "5", "6")
@@ -38,8 +38,8 @@ SCAN_STEP = (0.5, 0.05)
 SCAN_REACH = (2000.0, 90.0)
 BISECT_TOL = 1e-5
 LIMIT_MARGIN = (0.005, 0.0005)
-#: jog flags written in the rows (FLAG_MOTION)
-_FLAG_MOTION = 1.0
+
+
 
 
 class JogLimitError(HexacncError):
@@ -285,10 +285,10 @@ class JogSource:
         rows = np.zeros((n, ROW))
         rows[:, :3] = X[:, :3]
         rows[:, 3:6] = np.radians(X[:, 3:6])
-        rows[:, 7] = _FLAG_MOTION
+        rows[:, COL_FLAGS] = float(FLAG_MOTION)
         self.t = float(ts[-1])
         if self.t >= dur:
-            rows[-1, 7] = float(FLAG_END)
+            rows[-1, COL_FLAGS] = float(FLAG_END)
             self.finished = True
         self._last = rows[-1].copy()
         return rows

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import logging
+import os
 import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -204,11 +205,28 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
     return prog, MachineState(newp, tools, modal)
 
 
+def state_dir(cfg) -> Path:
+    """Directory of the persistent state files: ``[daemon] state_dir``, else beside the config file;
+    for the embedded default machine ``$XDG_STATE_HOME/hexacnc`` or ``~/.local/state/hexacnc``."""
+    sd = cfg.operator.state_dir
+    if sd:
+        return Path(os.path.expanduser(os.path.expandvars(sd)))
+    from ..config import default_config_path
+    p = Path(cfg.path)
+    try:
+        embedded = p.resolve() == default_config_path().resolve()
+    except OSError:
+        embedded = False
+    if not embedded and p.parent.is_dir() and str(cfg.path) not in ("", "<config>"):
+        return p.parent
+    base = os.environ.get("XDG_STATE_HOME") or os.path.join(os.path.expanduser("~"), ".local", "state")
+    return Path(base) / "hexacnc"
+
+
 class StateStore:
     """The current :class:`MachineState` of a daemon and its files (thread-safe)."""
 
     def __init__(self, cfg, directory: Path | None = None):
-        from ..opconfig import state_dir
         self.cfg = cfg
         self.dir = Path(directory) if directory is not None else state_dir(cfg)
         self.lock = threading.Lock()
