@@ -117,9 +117,12 @@ def test_jog_rotation_about_the_tool_tip(sock, capsys):
 
 
 def test_continuous_jog_comes_to_rest_at_the_limit(sock, capsys):
-    rc, out, err = run(capsys, "jog", "--continuous", "x", "+", "--for", "2.5", "--socket", sock)
-    assert rc == 0, err
-    t = tip(sock)
+    for _ in range(4):      # a confirmation late by over deadman_s (loaded machine) stops it early: go on
+        rc, out, err = run(capsys, "jog", "--continuous", "x", "+", "--for", "20", "--socket", sock)
+        assert rc == 0, err
+        t = tip(sock)
+        if t[0] >= TIP_MAX[0] - 0.05:
+            break
     assert TIP_MAX[0] - 0.05 <= t[0] <= TIP_MAX[0]
     rc, out, err = run(capsys, "jog", "x", "+0.5", "--socket", sock)
     assert rc == 3 and "soft limit" in err
