@@ -271,3 +271,51 @@ def test_offsets_and_tools_survive_programs_and_a_restart(opcfg, sock, capsys):
         shutil.rmtree(d, ignore_errors=True)
     assert run(capsys, "offsets", "--select", "G54", "--socket", sock)[0] == 0
     assert run(capsys, "mdi", "G0 X0 Y0 Z30", "--socket", sock)[0] == 0
+
+
+def test_interactive_jog_in_a_terminal(sock):
+    """``hexacnc jog --interactive`` in a pseudo-terminal: axis z, one step up, one down, quit."""
+    import pty
+    import subprocess
+    import sys
+    t0 = tip(sock)
+    master, slave = pty.openpty()
+    proc = subprocess.Popen([sys.executable, "-m", "hexacnc.cli", "jog", "--interactive", "--step", "0.2",
+                             "--socket", sock], stdin=slave, stdout=slave, stderr=slave, close_fds=True)
+    os.close(slave)
+    out = b""
+
+    def read_for(s: float, until: bytes | None = None) -> None:
+        nonlocal out
+        end = time.monotonic() + s
+        while time.monotonic() < end and not (until is not None and until in out):
+            import select
+            if select.select([master], [], [], 0.05)[0]:
+                try:
+                    out += os.read(master, 4096)
+                except OSError:
+                    return
+    try:
+        read_for(60.0, until=b"step 0.2")          # started and in cbreak mode (a loaded machine: slow)
+        os.write(master, b"z")
+        read_for(10.0, until=b"z base")
+        os.write(master, b"+")
+        deadline = time.monotonic() + 30.0
+        while time.monotonic() < deadline:
+            read_for(0.3)
+            t1 = tip(sock)
+            if abs(t1[2] - t0[2] - 0.2) < 1e-6:
+                break
+        os.write(master, b"q")
+        assert proc.wait(20) == 0, out.decode(errors="replace")
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        os.close(master)
+    assert t1[2] - t0[2] == pytest.approx(0.2, abs=1e-6), out.decode(errors="replace")
+    assert b"step 0.2" in out and b"tip" in out
+    assert run_cli_back(sock, t1, t0)
+
+
+def run_cli_back(sock_path: str, t1, t0) -> bool:
+    return cli(["jog", "z", f"{t0[2] - t1[2]:+.6f}", "--socket", sock_path]) == 0
