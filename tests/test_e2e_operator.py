@@ -314,8 +314,4 @@ def test_interactive_jog_in_a_terminal(sock):
         os.close(master)
     assert t1[2] - t0[2] == pytest.approx(0.2, abs=1e-6), out.decode(errors="replace")
     assert b"step 0.2" in out and b"tip" in out
-    assert run_cli_back(sock, t1, t0)
-
-
-def run_cli_back(sock_path: str, t1, t0) -> bool:
-    return cli(["jog", "z", f"{t0[2] - t1[2]:+.6f}", "--socket", sock_path]) == 0
+    assert cli(["jog", "z", f"{t0[2] - t1[2]:+.6f}", "--socket", sock]) == 0

@@ -90,9 +90,11 @@ def main(args: argparse.Namespace) -> int:
         if args.pivot is None:
             print("hexacnc jog: give an axis and a step, --continuous, --pivot or --interactive", file=sys.stderr)
             return EXIT_LOCAL
-        return run_op(args, "jog", lambda client: (print_reply(args, r := _pivot(client, args.pivot),
-                                                               f"pivot {r.get('pivot')} {r.get('pivot_mm')}"),
-                                                   EXIT_OK)[1])
+        def set_pivot(client) -> int:
+            r = _pivot(client, args.pivot)
+            print_reply(args, r, f"pivot {r.get('pivot')} {r.get('pivot_mm')}")
+            return EXIT_OK
+        return run_op(args, "jog", set_pivot)
     if str(args.axis).lower() not in AXES:
         print(f"hexacnc jog: unknown axis {args.axis!r} (x y z a b c or 1..6)", file=sys.stderr)
         return EXIT_REFUSED
