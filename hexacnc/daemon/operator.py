@@ -60,6 +60,7 @@ class Operator:
                          else np.asarray(self.cfg.operator.pivot_mm, dtype=float))
         self.lock = threading.RLock()
         self.jog_src: JogSource | None = None
+        self.jog_job = None
         self.jog_info: dict | None = None
         self._deadline = math.inf
         self._watch: threading.Thread | None = None
@@ -89,6 +90,15 @@ class Operator:
             if d.sh.h[S.H_STATE] in (S.ST_RUNNING, S.ST_STOPPING) or d.stop_requested:
                 raise OperatorError(f"{what} refused: the machine is moving", "busy")
 
+    def active_jog(self) -> JogSource | None:
+        """The jog source while its job is queued or running (not after it ended or was dropped)."""
+        src, job = self.jog_src, self.jog_job
+        if src is None or job is None or src.finished:
+            return None
+        d = self.daemon
+        with d.lock:                      # the feeder moves jobs between queue and current under it
+            return src if (d.current is job or job in d.queue) else None
+
     def tool_length_mm(self) -> float:
         return self.store.state.tool_length_mm
 
@@ -113,8 +123,7 @@ class Operator:
         self._motion_checks(what)
         if mdi:
             self._idle_checks("MDI")
-        src_j = self.jog_src
-        if src_j is not None and not src_j.finished:
+        if self.active_jog() is not None:
             raise OperatorError(f"{what} refused: a jog is running", "busy")
         with d.lock:
             d._require_motion_ok()
@@ -274,6 +283,7 @@ class Operator:
                   end_rad=np.r_[end[:3], np.radians(end[3:6])], blocks=1, duration_s=src.duration_s)
         with self.lock:
             self.jog_src = src
+            self.jog_job = job
             self.jog_info = {"axis": axis, "frame": frame, "unit": plan.unit, "continuous": continuous,
                              "target": target, "limit": plan.why_hi if target > 0 else plan.why_lo}
             self._deadline = time.monotonic() + self.cfg.operator.jog.deadman_s if continuous else math.inf
@@ -288,8 +298,8 @@ class Operator:
     def jog_confirm(self) -> dict:
         """The client still holds the key: extend the deadman."""
         with self.lock:
-            src = self.jog_src
-            if src is None or src.finished or src.stopping or not (self.jog_info or {}).get("continuous"):
+            src = self.active_jog()
+            if src is None or src.stopping or not (self.jog_info or {}).get("continuous"):
                 raise OperatorError("jog confirm: no continuous jog is running (stopped by the deadman "
                                     "or at a limit?)", "invalid_state")
             self._deadline = time.monotonic() + self.cfg.operator.jog.deadman_s
@@ -297,9 +307,9 @@ class Operator:
 
     def jog_stop(self) -> dict:
         with self.lock:
-            src = self.jog_src
+            src = self.active_jog()
             self._deadline = math.inf
-        if src is None or src.finished:
+        if src is None:
             return {"jogging": False}
         self._stop_jog(src)
         return {"jogging": False}
@@ -322,8 +332,8 @@ class Operator:
     def _watchdog(self) -> None:
         while not self._closed:
             with self.lock:
-                src, deadline = self.jog_src, self._deadline
-            if src is None or src.finished:
+                src, deadline = self.active_jog(), self._deadline
+            if src is None:
                 return
             if time.monotonic() > deadline and not src.stopping:
                 log.info("jog deadman: no confirmation for %.0f ms; stopping",

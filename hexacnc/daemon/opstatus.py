@@ -123,8 +123,8 @@ class OperatorStatus:
         st["remaining_s"] = None if remaining is None else round(float(remaining), 3)
         st["referenced"] = op.referenced
         ji = op.jog_info
-        src = op.jog_src
-        st["jog"] = None if ji is None or src is None or src.finished else dict(ji, stopping=src.stopping)
+        src = op.active_jog()
+        st["jog"] = None if ji is None or src is None else dict(ji, stopping=src.stopping)
         st["why_idle"] = self.why_idle(st)
         return st
 
