@@ -126,7 +126,8 @@ def test_continuous_jog_comes_to_rest_at_the_limit(sock, capsys):
     assert TIP_MAX[0] - 0.05 <= t[0] <= TIP_MAX[0]
     rc, out, err = run(capsys, "jog", "x", "+0.5", "--socket", sock)
     assert rc == 3 and "soft limit" in err
-    assert run(capsys, "jog", "x", f"{-t[0]:.6f}", "--socket", sock)[0] == 0
+    rc, out, err = run(capsys, "jog", "x", f"{-t[0]:.6f}", "--socket", sock)
+    assert rc == 0, err
 
 
 def test_continuous_jog_stops_when_confirmations_stop(sock):
