@@ -19,12 +19,29 @@ COMMANDS: dict[str, str] = {
     "diagnose": "hexacnc.commands.diagnose",
     "simulate": "hexacnc.commands.simulate",
     "bench": "hexacnc.commands.bench",
+    # operator control (module:object with HELP, configure, main)
+    "pause": "hexacnc.commands.machine:PAUSE",
+    "resume": "hexacnc.commands.machine:RESUME",
+    "stop": "hexacnc.commands.machine:STOP",
+    "reset": "hexacnc.commands.machine:RESET",
+    "enable": "hexacnc.commands.machine:ENABLE",
+    "disable": "hexacnc.commands.machine:DISABLE",
+    "take": "hexacnc.commands.machine:TAKE",
+    "home": "hexacnc.commands.machine:HOME",
+    "feed": "hexacnc.commands.machine:FEED",
+    "rapid": "hexacnc.commands.machine:RAPID",
+    "mdi": "hexacnc.commands.machine:MDI",
+    "jog": "hexacnc.commands.jog",
+    "offsets": "hexacnc.commands.offsets:OFFSETS",
+    "tools": "hexacnc.commands.offsets:TOOLS",
 }
 
 
 def _load(modname: str):
+    modname, _, attr = modname.partition(":")
     try:
-        return importlib.import_module(modname)
+        mod = importlib.import_module(modname)
+        return getattr(mod, attr) if attr else mod
     except ModuleNotFoundError as exc:
         if exc.name == modname:
             return None

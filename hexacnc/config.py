@@ -37,6 +37,7 @@ from typing import Any
 import numpy as np
 
 from .errors import ConfigError
+from .opconfig import OperatorConfig, parse_operator
 
 _REQUIRED = object()
 
@@ -388,6 +389,7 @@ class MachineConfig:
     tools: ToolTableConfig = field(default_factory=ToolTableConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/opconfig.py
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -471,6 +473,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
+                   "homing", "jog",
                    "dynamics", "calibration")
 
 
@@ -681,6 +684,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     )
 
     calibration = _parse_calibration(sec("calibration"))
+    operator = parse_operator(w, p, d, sec("homing"), sec("jog"))
 
     for sct in sections:
         sct.finish()
@@ -695,7 +699,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         inertia_kg_mm2=_freeze(inertia),
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
-        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, raw=doc,
+        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, operator=operator,
+        raw=doc,
     )
     _check_geometry(cfg)
     _check_calibration(cfg)

@@ -32,7 +32,10 @@ def cfg():
     # suites check the commands against the plain IK + sag; tests/test_e2e_thermal_*.py cover the
     # compensation (the simulated plant's probe noise alone would move them by ~0.2 um)
     assert base.thermal.source == "socket"
-    return base.replace(cycle=cycle)
+    # persistent offsets / tool table (hexacnc/state) in a private directory, never the user's
+    state = tempfile.mkdtemp(prefix="hxstate", dir="/tmp")
+    yield base.replace(cycle=cycle, operator=dataclasses.replace(base.operator, state_dir=state))
+    shutil.rmtree(state, ignore_errors=True)
 
 
 def running_machine(cfg, realtime: bool = False, name: str = "e2e"):

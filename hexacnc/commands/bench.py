@@ -16,6 +16,7 @@ BENCHES: dict[str, str] = {
     "simulate": "hexacnc.bench.simulate",
     "hold": "hexacnc.bench.hold",
     "arch": "hexacnc.bench.arch",
+    "operator": "hexacnc.bench.operator",
 }
 
 

@@ -14,7 +14,9 @@ import sys
 from typing import Any, TextIO
 
 from ..errors import HexacncError
-from .send import EXIT_CONNECTION, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration, progress_of
+from .send import (EXIT_CONNECTION, EXIT_FAULT, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration,
+                   progress_of)
+from .statusview import format_compact
 
 HELP = "show the running daemon's state, poses, struts and cycle statistics"
 
@@ -72,9 +74,14 @@ def _cycle_text(cy: Any) -> list[str]:
     return lines
 
 
+#: operator fields shown by the compact view (not repeated in the details)
+_OPERATOR = ("tool_tip", "work_offset", "tool", "feed", "overrides", "block", "modal", "message", "elapsed_s",
+             "remaining_s", "referenced", "jog", "why_idle", "controller", "drives_enabled")
+
+
 def format_status(st: dict) -> str:
-    """Human-readable multi-line status."""
-    out = [f"state      {st.get('state', '?')}"]
+    """Human-readable multi-line status: the compact operator view, then the details."""
+    out = [format_compact(st), "", f"state      {st.get('state', '?')}"]
     pr = progress_of(st)
     if pr.get("name") or pr.get("percent") is not None:
         pct = pr.get("percent")
@@ -98,11 +105,20 @@ def format_status(st: dict) -> str:
         out.append("cycle")
         out.extend(_cycle_text(cy))
     shown = {"state", "progress", "program", "line", "pose_cmd", "pose_act", "struts_cmd_mm", "struts_act_mm", "fault",
-             "cycle", "cycle_stats", *_FRAMING}
+             "cycle", "cycle_stats", *_FRAMING, *_OPERATOR}
     for k, v in st.items():
         if k not in shown:
             out.append(f"{k:<10} {v}")
     return "\n".join(out)
+
+
+def _exit_of(st: dict) -> int:
+    """0, or 4 with a one-line reason on stderr when the machine is in fault."""
+    if st.get("state") == "fault":
+        f = st.get("fault") or {}
+        print(f"hexacnc status: fault: {f.get('message', f) if isinstance(f, dict) else f}", file=sys.stderr)
+        return EXIT_FAULT
+    return EXIT_OK
 
 
 def _strip(msg: dict) -> dict:
@@ -131,7 +147,7 @@ def main(args: argparse.Namespace) -> int:
                     out.write(json.dumps(json_safe(st), sort_keys=True) + "\n")
                 else:
                     out.write(format_status(st) + "\n")
-                return EXIT_OK
+                return _exit_of(st)
             fields = {} if args.rate is None else {"rate_hz": args.rate}
             first = client.call("subscribe", **fields)
             sub = first.get("sub", first.get("id"))
@@ -144,9 +160,9 @@ def main(args: argparse.Namespace) -> int:
                     if args.json:
                         out.write(json.dumps(json_safe(st), sort_keys=True) + "\n")
                     elif tty:
-                        out.write("\x1b[H\x1b[J" + format_status(st) + "\n")
+                        out.write("\x1b[H\x1b[J" + format_compact(st) + "\n")
                     else:
-                        out.write(format_status(st) + "\n\n")
+                        out.write(format_compact(st) + "\n\n")
                     out.flush()
                     n += 1
                     if args.count and n >= args.count:

@@ -44,8 +44,9 @@ log = logging.getLogger("hexacnc.daemon")
 #: rows kept queued in the ring while streaming (seconds of motion)
 FEED_AHEAD_S = 0.3
 #: a pause, resume, stop or override takes back the queued rows beyond this lead (seconds) and
-#: re-plans them from the source's state there: commands act within it, not after FEED_AHEAD_S
-REWIND_LEAD_S = 0.04
+#: re-plans them from the source's state there: commands act within it plus one chunk (25 + 16 ms;
+#: 40 ms gave 41-43 ms reactions, over issue 15's 40 ms), not after FEED_AHEAD_S
+REWIND_LEAD_S = 0.025
 #: rows per feeder chunk: a source snapshot is kept at every chunk start (the rewind points)
 FEED_CHUNK_ROWS = 32
 #: marks tried before a command falls back to acting at the end of the queue

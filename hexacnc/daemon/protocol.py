@@ -60,7 +60,8 @@ ERROR_CODES: tuple[str, ...] = (
 PROGRAM_CODES = (GCODE, UNSUPPORTED, LIMIT)
 
 #: ops that move the machine or change its motion state: controller only
-MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset", "enable"})
+MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset", "override", "enable", "disable", "home",
+                        "jog", "mdi", "take"})
 
 _NUM = (int, float)
 #: op -> {field: (accepted python types, required)}.  "id" and "op" are checked for all.
@@ -72,12 +73,24 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "resume": {},
     "stop": {},
     "reset": {},
-    "enable": {},
     "wait": {"timeout_s": (_NUM, True)},
     "subscribe": {"rate_hz": (_NUM, False)},
     "unsubscribe": {"sub": ((int,), False)},
     "release": {},
     "temperatures": {"probes_C": ((list, tuple, dict), True), "spindle_C": (_NUM, False), "time_s": (_NUM, False)},
+    # operator control (hexacnc/daemon/ops_operator.py)
+    "override": {"feed": (_NUM, False), "rapid": (_NUM, False)},
+    "enable": {},
+    "disable": {},
+    "take": {},
+    "home": {},
+    "mdi": {"text": ((str,), True)},
+    "jog": {"action": ((str,), False), "axis": ((str, int), False), "frame": ((str,), False),
+            "distance": (_NUM, False), "direction": ((int,), False), "speed": (_NUM, False)},
+    "pivot": {"pivot_mm": ((list, tuple), False)},
+    "offsets": {"system": ((str,), False), "values": ((dict,), False), "select": ((str,), False)},
+    "tools": {"tool": ((int,), False), "z_mm": (_NUM, False), "diameter_mm": (_NUM, False),
+              "pocket": ((int,), False), "comment": ((str,), False), "delete": ((bool,), False)},
 }
 
 #: states reported in status["state"]
@@ -186,10 +199,63 @@ def validate_request(msg: Any) -> Request:
             raise RequestError(BAD_VALUE, f"op 'subscribe': rate_hz must be in [{MIN_RATE_HZ}, {MAX_RATE_HZ}], "
                                           f"got {r!r}", rid)
         fields["rate_hz"] = r
+    elif op in OPERATOR_CHECKS:
+        OPERATOR_CHECKS[op](fields, rid)
     elif op == "program":
         if "\x00" in fields["text"]:
             raise RequestError(BAD_VALUE, "op 'program': text contains a NUL character", rid)
     return Request(rid, op, fields)
+
+
+def _check_override(fields: dict, rid) -> None:
+    for name, hi in (("feed", 2.0), ("rapid", 1.0)):
+        if name in fields:
+            v = float(fields[name])
+            if not math.isfinite(v) or not 0.0 <= v <= hi:
+                raise RequestError(BAD_VALUE, f"op 'override': {name} must be in [0, {hi:g}], got {v!r}", rid,
+                                   field=name)
+
+
+def _check_jog(fields: dict, rid) -> None:
+    a = fields.get("action", "start")
+    if a not in ("start", "confirm", "stop"):
+        raise RequestError(BAD_VALUE, f"op 'jog': action must be start, confirm or stop, got {a!r}", rid)
+    if "axis" in fields:
+        ax = str(fields["axis"]).lower()
+        if ax not in ("x", "y", "z", "a", "b", "c", "1", "2", "3", "4", "5", "6"):
+            raise RequestError(BAD_VALUE, f"op 'jog': axis must be x y z a b c or a strut 1..6, got {ax!r}", rid,
+                               field="axis")
+        fields["axis"] = ax
+    if fields.get("frame", "base") not in ("base", "tool", "work"):
+        raise RequestError(BAD_VALUE, f"op 'jog': frame must be base, tool or work, got {fields['frame']!r}", rid)
+    if "direction" in fields and fields["direction"] not in (1, -1):
+        raise RequestError(BAD_VALUE, f"op 'jog': direction must be 1 or -1, got {fields['direction']!r}", rid)
+    for name in ("distance", "speed"):
+        if name in fields and not math.isfinite(float(fields[name])):
+            raise RequestError(BAD_VALUE, f"op 'jog': {name} must be finite", rid, field=name)
+    if "speed" in fields and not 0.0 < float(fields["speed"]) <= 1.0:
+        raise RequestError(BAD_VALUE, "op 'jog': speed is a fraction of the [jog] speed in (0, 1]", rid)
+
+
+def _check_mdi(fields: dict, rid) -> None:
+    t = fields["text"]
+    if "\x00" in t or len(t) > 4096:
+        raise RequestError(BAD_VALUE, "op 'mdi': text must be at most 4096 characters without NUL", rid)
+
+
+def _check_values(fields: dict, rid) -> None:
+    for k, v in (fields.get("values") or {}).items():
+        if not _is_type(v, _NUM) or not math.isfinite(float(v)):
+            raise RequestError(BAD_VALUE, f"op 'offsets': values[{k!r}] must be a finite number", rid)
+    if "pivot_mm" in fields:
+        pv = fields["pivot_mm"]
+        if len(pv) not in (0, 3) or not all(_is_type(v, _NUM) and math.isfinite(float(v)) for v in pv):
+            raise RequestError(BAD_VALUE, "op 'pivot': pivot_mm must be 3 finite numbers ([]: the tool tip)", rid)
+
+
+#: value checks of the operator ops
+OPERATOR_CHECKS = {"override": _check_override, "jog": _check_jog, "mdi": _check_mdi,
+                   "offsets": _check_values, "pivot": _check_values}
 
 
 # -- replies ----------------------------------------------------------------

@@ -47,6 +47,7 @@ from . import access as A
 from . import protocol as P
 from . import sockpath, tcpauth, tlsio
 from .admission import Admission
+from .ops_operator import OPERATOR_OPS, attach_operator
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -133,6 +134,7 @@ class SocketServer(Admission):
         self.tcp_address: tuple[str, int] | None = None
         self.auth_timeout_s = _AUTH_TIMEOUT_S
         self.machine_name = str(getattr(cfg, "name", "") or "")
+        self.operator = attach_operator(daemon, cfg)     # overrides, jog, MDI, offsets (ops_operator.py)
 
         self._sel: selectors.BaseSelector | None = None
         self._unix: socket.socket | None = None
@@ -439,9 +441,12 @@ class SocketServer(Admission):
             self._log_refusal(conn.who, req.op, why)
             self._send(conn, P.error_reply(req.id, P.UNAUTHORIZED, why, access=conn.role))
             return
-        handler = getattr(self, "_op_" + req.op)
+        handler = getattr(self, "_op_" + req.op, None)
         try:
-            handler(conn, req)
+            if handler is None:
+                OPERATOR_OPS[req.op](self, conn, req)
+            else:
+                handler(conn, req)
         except Exception as exc:
             log.exception("%s: op %s failed", conn.label(), req.op)
             self._send(conn, P.error_from_exception(exc, req.id, self._state_or_none()))
@@ -456,7 +461,12 @@ class SocketServer(Admission):
         """The daemon's status as plain types; read at most once per loop pass (a copy each time)."""
         st = self._pass_status
         if st is None:
-            st = self._pass_status = P.plain(self.daemon.status())
+            st = self.daemon.status()
+            if self.operator is not None:
+                st = self.operator.status(st)
+            ctl = self._controller
+            st["controller"] = None if ctl is None else ctl.label()
+            st = self._pass_status = P.plain(st)
         return dict(st)
 
     def _op_hello(self, conn: _Conn, req: P.Request) -> None:
@@ -498,8 +508,9 @@ class SocketServer(Admission):
             return True
         self.stats["errors"] += 1
         self._send(conn, P.error_reply(req.id, P.NOT_CONTROLLER,
-                                       f"op {req.op!r}: client {self._controller.num} controls motion; "
-                                       f"this connection may only observe until it disconnects"))
+                                       f"op {req.op!r}: {self._controller.label()} controls the machine; "
+                                       f"this connection may only observe until it disconnects or "
+                                       f"takes control ('take'; hexacnc ... --take)"))
         return False
 
     def _submit_motion(self, conn: _Conn, req: P.Request, call: Callable[[], Any],
@@ -538,7 +549,8 @@ class SocketServer(Admission):
             info = P.plain(result) if isinstance(result, dict) else {"blocks": result}
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
-        self._submit_motion(conn, req, lambda: self.daemon.load_program(text, name), reply)
+        load = self.operator.load_program if self.operator is not None else self.daemon.load_program
+        self._submit_motion(conn, req, lambda: load(text, name), reply)
 
     def _simple_motion(self, conn: _Conn, req: P.Request) -> None:
         if not self._take_control(conn, req):
@@ -551,17 +563,6 @@ class SocketServer(Admission):
         self._submit_motion(conn, req, fn, reply)
 
     _op_pause = _op_resume = _op_stop = _op_reset = _simple_motion
-
-    def _op_enable(self, conn: _Conn, req: P.Request) -> None:
-        """Enable the drives (after a start with [daemon] enable_at_start false, or a fault):
-        the daemon's ``enable`` when it has one, else its ``reset`` path."""
-        if not self._take_control(conn, req):
-            return
-        fn = getattr(self.daemon, "enable", None) or self.daemon.reset
-
-        def reply(result: Any) -> dict:
-            return P.ok_reply(req.id, **(P.plain(result) if isinstance(result, dict) else {}))
-        self._submit_motion(conn, req, fn, reply)
 
     def _op_temperatures(self, conn: _Conn, req: P.Request) -> None:
         """A probe reading for the thermal observer (controller or sensor role; validated as a whole, applied or not at all)."""

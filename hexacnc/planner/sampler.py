@@ -27,7 +27,7 @@ import math
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Trajectory
 
-from ..setpoint import COL_FLAGS, COL_LINE, FLAG_END, FLAG_PAUSED, FLAG_STOPPING
+from ..setpoint import COL_FLAGS, COL_LINE, FLAG_END, FLAG_PAUSED, FLAG_RAPID, FLAG_STOPPING
 
 #: samples per governor block and look-ahead of the governor (seconds)
 GOV_BLOCK = 20
@@ -97,6 +97,11 @@ class PlanSampler:
         self.f = 1.0
         self.fd = 0.0
         self.user = 1.0
+        self.rapid = 1.0                             # rapid override: rate factor on governor blocks of rapids
+        ft = np.asarray(plan.flag_tab)
+        pad = (-len(ft)) % GOV_BLOCK
+        self._rapid_blk = (np.concatenate([ft, np.zeros(pad, ft.dtype)]).reshape(-1, GOV_BLOCK)
+                           & FLAG_RAPID).any(axis=1).tolist() if len(ft) else []
         self.state = RUN
         self.done = self.n == 0
         g = plan.gov
@@ -124,6 +129,13 @@ class PlanSampler:
         if not math.isfinite(f):
             raise ValueError(f"override must be finite, got {f!r}")
         self.user = min(MAX_OVERRIDE, max(0.0, f))
+
+    def set_rapid_override(self, r: float) -> None:
+        """Rapid override (0 .. 1): scales the rate on rapids (G0) only; jerk-limited transitions."""
+        r = float(r)
+        if not math.isfinite(r):
+            raise ValueError(f"rapid override must be finite, got {r!r}")
+        self.rapid = min(1.0, max(0.0, r))
 
     def pause(self) -> None:
         """Jerk-limited deceleration to standstill on the path."""
@@ -234,6 +246,8 @@ class PlanSampler:
     def _target(self, b: int) -> float:
         if self.state in (PAUSING, STOPPING, PAUSED, PROGRAM_PAUSED, DONE):
             return 0.0
+        if self.rapid != 1.0 and b < len(self._rapid_blk) and self._rapid_blk[b]:
+            return min(self.user * self.rapid, self._cap[b])
         return min(self.user, self._cap[b])
 
     def next_rows(self, out: np.ndarray) -> int:
