@@ -637,7 +637,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         simulate=b.getbool("simulate", bd.simulate),
     )
 
-    daemon = _daemon_config(sec("daemon"), bus)
+    d = sec("daemon")
+    daemon = _daemon_config(d, bus)
 
     p = sec("planner")
     pd = PlannerConfig()
