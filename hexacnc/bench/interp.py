@@ -42,6 +42,11 @@ def default_corpus() -> Path:
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--corpus", default=None, help="directory of .ngc files (default: ../shared/data/gcode)")
     parser.add_argument("--runs", type=int, default=11, help="runs per file; the best is reported")
+    parser.add_argument("--linuxcnc", default=None, metavar="DIR",
+                        help="a LinuxCNC source tree: compare with the canonical output of its tests/interp "
+                             "programs instead (counts same / unsupported / refused / differ)")
+    parser.add_argument("--stream-lines", type=int, default=0, metavar="N",
+                        help="also stream a generated N-line CAM file through iter_blocks and report peak RSS")
 
 
 def _measure(text: str, name: str, runs: int) -> dict:
@@ -80,6 +85,11 @@ def _measure(text: str, name: str, runs: int) -> dict:
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.linuxcnc:
+        from .interp_linuxcnc import run_all
+        res = run_all(Path(args.linuxcnc))
+        print(json.dumps(res, indent=2))
+        return 0 if res["tests"] else 2
     corpus = Path(args.corpus) if args.corpus else default_corpus()
     files = sorted(corpus.glob("*.ngc")) if corpus.is_dir() else []
     if not files:

@@ -28,10 +28,12 @@ _DIGITS = re.compile(r"\d+")
 _OWORD = re.compile(r"(elseif|else|endif|endsub|endwhile|endrepeat|sub|call|if|while|do|"
                     r"repeat|break|continue|return)")
 #: word letters the dialect knows (others are refused)
-_LETTERS = frozenset("abcfghijklmpqrstxyz")
+_LETTERS = frozenset("abcefghijklmpqrstxyz")
 _FORBIDDEN_LETTERS = {
     "d": "D word (cutter radius compensation) is not supported",
-    "e": "E word is not supported",
+    "@": "polar coordinates (@ radius) are not supported",
+    "^": "polar coordinates (^ angle) are not supported",
+    "$": "$ spindle selection (multiple spindles) is not supported",
     "u": "U axis does not exist on a hexapod (axes X Y Z A B C)",
     "v": "V axis does not exist on a hexapod (axes X Y Z A B C)",
     "w": "W axis does not exist on a hexapod (axes X Y Z A B C)",
@@ -150,7 +152,7 @@ def _gcode_int(v: float) -> int | None:
 
 #: numbers in value position (after a value word letter, an operator, '[' or '=')
 #: (a malformed run of digits and dots makes float() fail: the line is then parsed in full)
-_SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
+_SHAPE_SPLIT = re.compile(r"(?<=[abcefhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
 _COMMENT = re.compile(r"\(([^()]*)\)")
