@@ -87,7 +87,7 @@ class ExecuteMixin:
         m66 = mgroups.get(5) == 66
         for letter, users in (("i", arcw or g0 == 100), ("j", arcw or g0 == 100), ("k", arcw), ("r", arcw or g0 == 100 or cyc),
                               ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io),
-                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (67, 68))
+                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68)) or 61 in mgroups.values()
                                or g0 == 100 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),

@@ -271,7 +271,7 @@ def _read_param(c: _Ctx, i: int):
         if not name or "<" in name:
             raise _Bad(i, f"bad parameter name {s[i:j + 1]!r}", "parameter")
         if name.startswith(("_ini[", "_hal[")):
-            raise _Bad(i, f"#<{name[:4]}[...]> {'INI-file' if name[1] == 'i' else 'HAL pin'} parameters "
+            raise _Bad(i - 1, f"#<{name[:4]}[...]> {'INI-file' if name[1] == 'i' else 'HAL pin'} parameters "
                           "are not supported", "unsupported")
         return _named_src(name), j + 1
     if ch.isdigit():

@@ -30,7 +30,7 @@ class ParamMixin:
         if ln.fn is not None:
             try:
                 res = ln.fn(self.P, self.L, self.G, self._sys, ln.k)
-            except (KeyError, ArithmeticError, ValueError, ExprError, IndexError, TypeError) as exc:
+            except (KeyError, ArithmeticError, ValueError, ExprError, IndexError, TypeError, GcodeError) as exc:
                 raise self._expr_error(ln, exc) from None
             vals = dict(vals)
             for key, v in zip(ln.dyn, res):
@@ -41,7 +41,7 @@ class ParamMixin:
 
     def _expr_error(self, ln: Line, exc: Exception) -> GcodeError:
         if isinstance(exc, GcodeError):
-            return exc
+            return GcodeError(exc.bare_message, ln.num, 1, exc.code)
         if isinstance(exc, KeyError):
             name = exc.args[0] if exc.args else "?"
             col = 1
@@ -125,6 +125,7 @@ class ParamMixin:
 
     # -- comments ---------------------------------------------------------------------
     def _comments(self, ln: Line) -> None:
+        self.line_now = ln.num
         for c in ln.comments:
             m = _HOT.match(c)
             if not m:

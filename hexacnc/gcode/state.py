@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 from ..errors import GcodeError
 
@@ -118,7 +118,7 @@ def tool_entries(table) -> dict[int, ToolEntry] | None:
         except (TypeError, ValueError):
             raise GcodeError(f"tool table key {k!r} is not a tool number", None, None, "tool") from None
         if isinstance(v, ToolEntry):
-            e = v
+            e = replace(v)
         else:
             try:
                 e = ToolEntry(tool=t, pocket=t, z_offset_mm=float(v))
