@@ -282,13 +282,13 @@ def test_endless_loop_is_stopped():
 
 # -- refused input ---------------------------------------------------------------------------
 @pytest.mark.parametrize("text, line, col, code", [
-    ("G0 X1\n  G41 X2\n", 2, 3, "unsupported"),
+    ("G0 X1\n  G5 X2\n", 2, 3, "unsupported"),
     ("G0 X1\nM428\n", 2, 1, "unsupported"),
     ("G33 Z-1 K1\n", 1, 1, "unsupported"),
     ("G76 P1 Z-1 R1\n", 1, 1, "unsupported"),
     ("M100\n", 1, 1, "unsupported"),
     ("G0 U1\n", 1, 4, "unsupported"),
-    ("G0 X1 D1\n", 1, 7, "unsupported"),
+    ("G0 X1 D1\n", 1, 7, "word"),
     ("G1 X1 G0 Y1\n", 1, 7, "modal"),
     ("M3 M4\n", 1, 4, "modal"),
     ("G0 X1 X2\n", 1, 7, "word"),

@@ -182,7 +182,7 @@ def test_dwell_spindle_cycles_and_refusals():
     assert [b.spindle_rpm for b in p.blocks if b.kind == "spindle"] == [500, 0, 500, -500, 500]
     assert err("G0 Z5\nG81 X1 Z-1 F10\n").code == "word"                     # no R
     assert err("G0 Z5\nG81 X1 Z2 R1 F10\n").code == "cycle"                  # R below Z
-    for text in ("G76 P1 Z-1\n", "G87 X1 Z-1 R1 I1 J1 K1 F10\n", "G88 X1 Z-1 R1 P1 F10\n", "G41 D1\n"):
+    for text in ("G76 P1 Z-1\n", "G87 X1 Z-1 R1 I1 J1 K1 F10\n", "G88 X1 Z-1 R1 P1 F10\n", "G18 G41.1 D2\n"):
         assert err(text).code == "unsupported"
 
 

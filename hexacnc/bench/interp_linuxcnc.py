@@ -15,7 +15,7 @@ compared:
   ``differ`` (the first difference is reported).
 
 A test's program runs from pose zero with zero offsets and its ``-t`` tool
-table (mm); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
+table (in inches: the unit of the standalone ``rs274``'s tool table); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
 for subroutine files.  The tool axis is -Z (a tool hangs below the spindle,
 as LinuxCNC's tool length offsets assume).
 """
@@ -216,6 +216,9 @@ def run_test(t: dict) -> dict:
     text = t["ngc"].read_text(errors="replace")
     exp = parse_expected(t["expected"].read_text(errors="replace"))
     tools = parse_tool_table(t["tbl"].read_text(errors="replace")) if t["tbl"] else None
+    for e in (tools or {}).values():     # rs274 (standalone) reads its tool table in inches
+        e.z_offset_mm, e.x_offset_mm, e.y_offset_mm = e.z_offset_mm * 25.4, e.x_offset_mm * 25.4, e.y_offset_mm * 25.4
+        e.diameter_mm *= 25.4
     try:
         prog = parse_program(text, t["ngc"].name, tool_table=tools, tool_axis_platform=(0.0, 0.0, -1.0),
                              subroutine_path=_ini_subpath(t["ini"], t["dir"]))

@@ -91,7 +91,7 @@ class ExecuteMixin:
                                or g0 == 100 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),
-                              ("d", 0)):
+                              ("d", bool(gset & {410, 411, 420, 421}))):
             if letter in vals and not users:
                 raise ln.error(f"{letter.upper()} word with no G or M code that uses it", letter, "word")
         return g0, motion_g, motion, axis_user
@@ -201,6 +201,9 @@ class ExecuteMixin:
         for g in (170, 180, 190):
             if g in gset:
                 self.plane = g
+        for g in (400, 410, 411, 420, 421):
+            if g in gset:
+                self._comp_mode(ln, vals, g)
         if 430 in gset:
             self._g43(ln, vals)
         elif 490 in gset:
@@ -243,6 +246,11 @@ class ExecuteMixin:
         prev = self.motion
         if motion_g is not None:
             self.motion = motion_g
+        if self.comp_side and (g0 in (280, 300, 530) or (motion in CYCLES or motion in PROBES)
+                               and (ln.axes or motion_g is not None)):
+            what = {280: "G28", 300: "G30", 530: "G53"}.get(g0, f"G{motion / 10:g}")
+            raise ln.error(f"{what} cannot be used with cutter radius compensation on (G40 first)",
+                           f"g{g0 if g0 in (280, 300, 530) else motion}", "comp")
         if axis_user is not None:
             return
         if motion in CYCLES:
@@ -279,6 +287,8 @@ class ExecuteMixin:
         stop = mgroups.get(4)
         if stop is None:
             return None
+        if stop in (2, 30) and self.comp_side:
+            self._comp_off(ln)
         if stop == 0:
             self._emit(Block(B.PAUSE, ln.num, exact_stop=True))
         elif stop == 1:

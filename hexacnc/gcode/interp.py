@@ -35,6 +35,7 @@ import numpy as np
 from ..errors import GcodeError
 from . import blocks as B
 from .blocks import Block
+from .comp import CompMixin
 from .cycles import CycleMixin
 from .execute import ExecuteMixin
 from .expr import MAX_PARAMETER, SYSTEM_PARAMETERS, ExprError
@@ -91,7 +92,7 @@ def _six(v, what: str) -> list[float]:
 
 
 class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin, CycleMixin, IoMixin,
-                  SubfileMixin):
+                  SubfileMixin, CompMixin):
     """Interpret one program text; :meth:`run` returns the :class:`Program`."""
 
     system_numbers = SYSTEM_PARAMETERS
@@ -136,6 +137,10 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.sub_path = [str(p) for p in subroutine_path]
         self.segments: list[tuple[int, str]] = []   #: (first line index, file) of loaded subroutine files
         self.P = [0.0] * (MAX_PARAMETER + 1)
+        self.comp_side = None          # cutter compensation: "L", "R" or None
+        self.comp_q = None
+        self.comp_first = True
+        self.comp_arc_not_allowed = False
         self.G: dict[str, float] = {}
         self.L: dict[str, float] = {}
         self._init_state(initial_state, tool_table, work_offsets, g28_pose, g30_pose)
@@ -300,11 +305,11 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
                     continue
                 if self.seek:
                     raise ln.error("internal: seeking an O-word branch", None, "flow")
-                if ln.plain and self.motion in (0, 10) and self.rot_deg == 0.0:
+                if ln.plain and self.motion in (0, 10) and not self.slow:
                     if ln.comments:
                         self._comments(ln)
                     self._plain(ln)
-                elif ln.gmot is not None and self.rot_deg == 0.0:
+                elif ln.gmot is not None and not self.slow:
                     if ln.comments:
                         self._comments(ln)
                     self.motion = ln.gmot
@@ -335,6 +340,8 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
                     fr = self.frames[-1]
                     raise GcodeError(f"program ended inside subroutine o{fr.label} called at line {fr.line}",
                                      n, 1, "flow")
+                if self.comp_q:
+                    self._comp_flush()
                 if self.require_end and end_reason == "eof":
                     raise GcodeError("file ended with no percent sign (%) or program end (M2/M30)",
                                      max(n, 1), 1, "end")
@@ -420,7 +427,10 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.feed = f
 
     def _emit(self, b: Block) -> None:
-        self.blocks.append(b)
+        if self.comp_q:      # behind the compensated moves still waiting for their corner
+            self.comp_q.append(["block", b])
+        else:
+            self.blocks.append(b)
 
 
 def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_offsets=None,

@@ -28,9 +28,8 @@ _DIGITS = re.compile(r"\d+")
 _OWORD = re.compile(r"(elseif|else|endif|endsub|endwhile|endrepeat|sub|call|if|while|do|"
                     r"repeat|break|continue|return)")
 #: word letters the dialect knows (others are refused)
-_LETTERS = frozenset("abcefghijklmpqrstxyz")
+_LETTERS = frozenset("abcdefghijklmpqrstxyz")
 _FORBIDDEN_LETTERS = {
-    "d": "D word (cutter radius compensation) is not supported",
     "@": "polar coordinates (@ radius) are not supported",
     "^": "polar coordinates (^ angle) are not supported",
     "$": "$ spindle selection (multiple spindles) is not supported",
@@ -152,7 +151,7 @@ def _gcode_int(v: float) -> int | None:
 
 #: numbers in value position (after a value word letter, an operator, '[' or '=')
 #: (a malformed run of digits and dots makes float() fail: the line is then parsed in full)
-_SHAPE_SPLIT = re.compile(r"(?<=[abcefhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
+_SHAPE_SPLIT = re.compile(r"(?<=[abcdefhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
 _COMMENT = re.compile(r"\(([^()]*)\)")

@@ -39,6 +39,7 @@ class MotionMixin:
         self.o5x = [P[base + i] for i in range(6)]
         self.off = [self.o5x[i] + self.g92[i] for i in range(6)]
         self.rot_deg = P[base + 9]
+        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed
         r = math.radians(self.rot_deg)
         self.rot_cs = (math.cos(r), math.sin(r))
 
@@ -189,6 +190,12 @@ class MotionMixin:
         return f * self.u / 60.0, None
 
     def _move(self, ln: Line, vals: dict, motion: int, g53: bool) -> None:
+        if self.comp_side:
+            self._comp_straight(ln, vals, motion)
+            return
+        if self.comp_arc_not_allowed:
+            self.comp_arc_not_allowed = False
+            self._refresh_offsets()
         end = self._target(ln, vals, g53)
         pos = self.pos
         if end == pos:
@@ -210,6 +217,11 @@ class MotionMixin:
         self.pos_arr = e
 
     def _arc(self, ln: Line, vals: dict, motion: int) -> None:
+        if self.comp_side:
+            self._comp_arc(ln, vals, motion)
+            return
+        if self.comp_arc_not_allowed:
+            raise ln.error("the move just after G40 must be straight, not an arc", f"g{motion}", "comp")
         plane = self.plane
         # plane axes (p, q) and normal axis w; CCW = positive rotation about +w
         if plane == 170:
