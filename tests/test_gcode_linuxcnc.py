@@ -253,3 +253,39 @@ def test_tool_table_round_trip():
     assert parse_tool_table(format_tool_table(t)) == t
     with pytest.raises(GcodeError):
         parse_tool_table("T1 P1 K7\n")
+
+
+# -- cutter radius compensation -----------------------------------------------------------------
+def test_cutter_compensation_square_outside():
+    tools = {1: ToolEntry(tool=1, pocket=1, diameter_mm=2.0)}
+    text = "G0 X-5 Y-5\nG42 D1\nG1 X0 Y0 F100\nX10\nY10\nX0\nG40\nG0 X-5 Y15\nM2\n"
+    p = parse_program(text, tool_table=tools)
+    s2 = math.sqrt(2.0)
+    got = [(b.kind[0].upper(), [round(float(v), 6) for v in b.end[:2]],
+            None if b.center is None else [round(float(v), 6) for v in b.center[:2]], b.clockwise)
+           for b in p.blocks if b.kind in B.MOTION_KINDS]
+    assert got == [
+        ("R", [-5, -5], None, False),
+        # entry heading 45 deg, right side; the concave corner at (0,0) pulls its end back to the
+        # intersection of the offset lines y = x - sqrt(2) and y = -1
+        ("L", [round(s2 - 1, 6), -1], None, False),
+        ("L", [10, -1], None, False),
+        ("A", [11, 0], [10, 0], False),          # convex corner: CCW arc about the programmed corner
+        ("L", [11, 10], None, False),
+        ("A", [10, 11], [10, 10], False),
+        ("L", [0, 11], None, False),             # G40 flushes the last compensated move
+        ("R", [-5, 15], None, False)]
+
+
+def test_cutter_compensation_refusals():
+    tools = {1: ToolEntry(tool=1, pocket=1, diameter_mm=2.0)}
+    e = err("G0 X0 Y-5\nG41 D1\nG1 Y0 F100\nG3 X1 Y0 R0.5\nM2\n", tool_table=tools)
+    assert (e.code, e.line) == ("comp", 4)                      # the tool does not fit in the arc
+    e = err("G41 D1\nG1 X0.5 F100\n", tool_table=tools)
+    assert (e.code, e.line) == ("comp", 2)                      # entry move not longer than the radius
+    e = err("G41 D1\nG1 X5 F100\nG28\n", tool_table=tools)
+    assert (e.code, e.line) == ("comp", 3)
+    assert err("G18 G41 D1\n", tool_table=tools).code == "unsupported"
+    e = err("G41 D1\nG1 X5 F100\nG40\nG2 X6 Y1 I1\n", tool_table=tools)
+    assert (e.code, e.line) == ("comp", 4)                      # first move after G40 must be straight
+    assert err("G1 X5 D1 F100\n", tool_table=tools).code == "word"
