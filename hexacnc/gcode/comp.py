@@ -137,6 +137,8 @@ class CompMixin:
         self.comp_last6 = list(end_prog)
 
     def _move_endpoint_and_flush(self, ln: Line, x: float, y: float) -> None:
+        if not self.comp_q:
+            return
         ep = self.comp_endpoint
         for it in self.comp_q:
             if it[0] == "arc":
@@ -159,6 +161,7 @@ class CompMixin:
                 continue
             it[2][0], it[2][1] = x, y
         self._comp_flush()
+        self.comp_endpoint = (x, y)
 
     # -- moves ---------------------------------------------------------------------------
     def _comp_target(self, ln: Line, vals: dict) -> list[float]:

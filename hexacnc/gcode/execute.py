@@ -85,7 +85,7 @@ class ExecuteMixin:
         probe = motion in PROBES and axis_user is None
         io = 5 in mgroups
         m66 = mgroups.get(5) == 66
-        for letter, users in (("i", arcw or g0 == 100), ("j", arcw or g0 == 100), ("k", arcw), ("r", arcw or g0 == 100 or cyc),
+        for letter, users in (("i", arcw or g0 == 100), ("j", arcw or g0 == 100), ("k", arcw), ("r", arcw or g0 == 100 or cyc or 640 in gset),
                               ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io),
                               ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68)) or 61 in mgroups.values()
                                or g0 == 100 and vals.get("l") in (1.0, 10.0, 11.0)),
@@ -108,9 +108,11 @@ class ExecuteMixin:
                 v = vals[key]
                 if kind == "n":
                     self.P[target] = v
+                    if target in self.runtime_pending:     # set by the program: known again
+                        self.runtime_pending.discard(target)
                 elif kind == "i":
                     t = int(vals[ln.dyn[target]])
-                    if t in self.system_numbers:
+                    if t in self.readonly_numbers:
                         raise ln.error(f"parameter #{t} is read-only", key, "parameter")
                     self.P[t] = v
                 elif kind == "l":

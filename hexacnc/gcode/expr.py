@@ -21,7 +21,9 @@ import re
 MAX_PARAMETER = 5601
 #: numbered parameters computed from the interpreter state (read-only)
 SYSTEM_PARAMETERS = frozenset({5061, 5062, 5063, 5064, 5065, 5066, 5067, 5068, 5069, 5070, 5399}
-                              | set(range(5400, 5414)) | set(range(5420, 5429)))
+                              | set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
+#: parameters a program may not set (LinuxCNC's readonly_parameters)
+READONLY_PARAMETERS = frozenset(set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
 #: read-only predefined named parameters (LinuxCNC names)
 PREDEFINED = frozenset({
     "_x", "_y", "_z", "_a", "_b", "_c", "_u", "_v", "_w", "_abs_x", "_abs_y", "_abs_z", "_abs_a",
@@ -315,6 +317,10 @@ def _read_func(c: _Ctx, name: str, i: int, start: int):
     if not s.startswith("[", i):
         raise _Bad(i, f"function {name.upper()} needs its argument in [ ]", "expression")
     if name == "exists":
+        m = _INDEX.match(s, i + 2) if s.startswith("#", i + 1) else None
+        if m and s.startswith("]", m.end()):     # EXISTS[#n]: numbered parameters 1..5601 exist
+            n = _param_number(m.group(), i + 2)
+            return (1.0 if 1 <= n <= MAX_PARAMETER else 0.0), m.end() + 1
         if not s.startswith("#<", i + 1):
             raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")
         j = s.find(">", i + 3)

@@ -38,7 +38,7 @@ from .blocks import Block
 from .comp import CompMixin
 from .cycles import CycleMixin
 from .execute import ExecuteMixin
-from .expr import MAX_PARAMETER, SYSTEM_PARAMETERS, ExprError
+from .expr import MAX_PARAMETER, READONLY_PARAMETERS, SYSTEM_PARAMETERS, ExprError
 from .flow import FlowMixin, _Frame
 from .iocmds import IoMixin
 from .lexer import Line, Presplit, parse_line
@@ -96,6 +96,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
     """Interpret one program text; :meth:`run` returns the :class:`Program`."""
 
     system_numbers = SYSTEM_PARAMETERS
+    readonly_numbers = READONLY_PARAMETERS
 
     def __init__(self, text, name: str = "<program>", *, start_pose=None, work_offsets=None,
                  tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
@@ -355,7 +356,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
     def final_state(self) -> MachineState:
         """Parameters and tool table now (after :meth:`run`: the program's final state)."""
         params = {k: self.P[k] for k in range(1, MAX_PARAMETER + 1)
-                  if self.P[k] != 0.0 and k not in SYSTEM_PARAMETERS}
+                  if self.P[k] != 0.0 and k not in READONLY_PARAMETERS}
         from .state import PERSISTENT
         for k in PERSISTENT:
             params[k] = self.P[k]

@@ -19,7 +19,7 @@ import re
 
 from ..errors import GcodeError
 from .expr import (
-    _CACHE_MAX, _INDEX, _UNSIGNED, MAX_PARAMETER, PREDEFINED, SYSTEM_PARAMETERS, _Bad, _Ctx, _Ph,
+    _CACHE_MAX, _INDEX, _UNSIGNED, MAX_PARAMETER, PREDEFINED, READONLY_PARAMETERS, _Bad, _Ctx, _Ph,
     _param_number, _read_real, compile_template,
 )
 
@@ -461,7 +461,7 @@ def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
         target = _param_number(m.group(), j)
         if target < 1 or target > MAX_PARAMETER:
             raise _Bad(j, f"parameter number {target} is outside 1..{MAX_PARAMETER}", "parameter")
-        if target in SYSTEM_PARAMETERS:
+        if target in READONLY_PARAMETERS:
             raise _Bad(j, f"parameter #{target} is read-only", "parameter")
         kind = "n"
         j = m.end()
@@ -498,6 +498,8 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         j = k + 1
     else:
         m = _DIGITS.match(s, j)
+        if not m and j < len(s) and s[j] in "#[":
+            raise _Bad(j, "computed O-word labels (o#<name>, o[...]) are not supported", "unsupported")
         if not m:
             raise _Bad(j, "O word needs a number or <name>")
         label = m.group().lstrip("0") or "0"

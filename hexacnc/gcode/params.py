@@ -81,8 +81,11 @@ class ParamMixin:
         if isinstance(key, int):
             if 5420 <= key <= 5425:
                 return self._prog(key - 5420)
-            if key in (5426, 5427, 5428):
+            if key in (5426, 5427, 5428) or 5027 <= key <= 5029:
                 return 0.0
+            if 5021 <= key <= 5026:     # machine coordinates of the controlled point (tool reference point)
+                i = key - 5021
+                return self._ref_point(self.pos)[i] / (u if i < 3 else 1.0)
             if key == 5400:
                 return float(self.tool)
             if 5401 <= key <= 5413:
