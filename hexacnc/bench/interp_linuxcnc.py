@@ -12,7 +12,8 @@ compared:
   ``DWELL`` seconds and ``MESSAGE`` texts (blanks collapsed);
 * outcome per test: ``same``, ``unsupported`` (refused with code
   ``unsupported``: the feature is named), ``refused`` (any other refusal),
-  ``differ`` (the first difference is reported).
+  ``differ`` (the first difference is reported); ``refused_as_linuxcnc``: refused
+  (not ``unsupported``) where LinuxCNC's output also stops without PROGRAM_END.
 
 A test's program runs from pose zero with zero offsets and its ``-t`` tool
 table (in inches: the unit of the standalone ``rs274``'s tool table); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
@@ -31,7 +32,7 @@ from ..gcode import parse_program
 from ..gcode.state import parse_tool_table
 
 TOL = 1e-4
-_CALL = re.compile(r"([A-Z_]+)\((.*)\)\s*$")
+_CALL = re.compile(r"([A-Z_0-9]+)\((.*)\)\s*$")
 _NUM = re.compile(r"[-+]?\d+\.?\d*(?:[eE][-+]?\d+)?")
 
 
@@ -229,6 +230,8 @@ def run_test(t: dict) -> dict:
             raw = t["expected"].read_text(errors="replace")
             if _norm(exc.bare_message) in _norm(raw) or _norm(exc.bare_message) in msgs:
                 return {"outcome": "same", "aborted": where}
+        if exc.code != "unsupported" and "PROGRAM_END()" not in t["expected"].read_text(errors="replace"):
+            return {"outcome": "refused_as_linuxcnc", "error": where}   # LinuxCNC stopped with an error too
         return {"outcome": "unsupported" if exc.code == "unsupported" else "refused", "error": where}
     msgs = [text for kind, _ln, text in prog.notes if kind in ("msg", "debug")]
     diff = compare(exp, program_events(prog), msgs)
@@ -238,7 +241,7 @@ def run_test(t: dict) -> dict:
 def run_all(root: Path) -> dict:
     tests = find_tests(root)
     res = {}
-    counts = {"same": 0, "unsupported": 0, "refused": 0, "differ": 0}
+    counts = {"same": 0, "refused_as_linuxcnc": 0, "unsupported": 0, "refused": 0, "differ": 0}
     for t in tests:
         r = run_test(t)
         counts[r["outcome"]] += 1

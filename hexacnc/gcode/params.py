@@ -160,6 +160,6 @@ class ParamMixin:
             else:
                 name = m.group(2).lower().replace(" ", "")
                 v = self._sys(name) if name in PREDEFINED else (self.G if name[0] == "_" else self.L)[name]
-            return f"{v:.6f}"
+            return f"{v:.6f}" if abs(v) >= 5e-7 else "0.000000"     # no "-0.000000" from rounding noise
         except (KeyError, IndexError, ValueError):
             return "######"
