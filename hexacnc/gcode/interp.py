@@ -10,7 +10,8 @@ Error codes: ``syntax``, ``unsupported``, ``word`` (missing, repeated or
 unused word), ``modal`` (two codes of one modal group), ``parameter``,
 ``expression``, ``arc``, ``feed``, ``value``, ``tool``, ``flow`` (O-words,
 subroutine files), ``runaway`` (execution limit), ``abort`` (``(ABORT,...)``),
-``end`` (no M2/M30/% with ``require_end``), ``cycle`` (canned cycles).
+``end`` (no M2/M30/% with ``require_end``), ``cycle`` (canned cycles), ``comp``
+(cutter compensation gouging and conflicts).
 
 Tool length: the controlled point is the tool tip, at ``tool_length_mm``
 along the platform tool axis from the tool reference point.  G43/G49 do not
@@ -22,7 +23,8 @@ Modules: :mod:`.expr` (expressions), :mod:`.lexer` (lines and shapes),
 :mod:`.params` (system parameters, comments), :mod:`.execute` (one general
 line in LinuxCNC's order of execution), :mod:`.tooling` (G10, G43, tool
 table), :mod:`.cycles` (canned cycles), :mod:`.iocmds` (probe, I/O, M70-M73),
-:mod:`.subfiles` (subroutine files), this one (state and the run loop).
+:mod:`.subfiles` (subroutine files), :mod:`.comp` (cutter compensation), :mod:`.stream`
+(``iter_blocks``), :mod:`.state` (parameters and tool table), this one (state and the run loop).
 """
 from __future__ import annotations
 

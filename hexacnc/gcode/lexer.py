@@ -237,10 +237,11 @@ class Presplit:
     shapes do not cover take the per-line path.
     """
 
-    __slots__ = ("lines", "shapes", "nums", "offsets", "shape_text")
+    __slots__ = ("lines", "shapes", "nums", "offsets", "shape_text", "base")
 
-    def __init__(self, text: str, lines: list[str]):
+    def __init__(self, text: str, lines: list[str], base: int = 0):
         self.lines = lines
+        self.base = base          #: line number of lines[0] minus 1 (a window of a longer file)
         self.shapes = None
         if "\x01" in text or not text.isascii():
             return
@@ -291,10 +292,10 @@ class Presplit:
             sh = shapes[idx]
             if sh and sh[0] != "o" and len(sh) < 300 and "(" not in sh and ")" not in sh and ";" not in sh:
                 off = self.offsets
-                ln = _fill(sh, self.nums[off[idx]:off[idx + 1]], raw, idx + 1, None)
+                ln = _fill(sh, self.nums[off[idx]:off[idx + 1]], raw, idx + 1 + self.base, None)
                 if ln is not None:
                     return ln
-        return parse_line(raw, idx + 1)
+        return parse_line(raw, idx + 1 + self.base)
 
 
 def _parse_full(raw: str, num: int, s: str, comments) -> Line:

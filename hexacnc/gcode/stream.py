@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import GcodeError
 from .flow import _O_LINE_ONE
 from .interp import Interpreter, Program
-from .lexer import parse_line
+from .lexer import Presplit, parse_line
 
 _DONE = object()
 
@@ -47,6 +47,7 @@ class _FileLines:
         self.percent: list[int] = []
         self._lo = 0
         self._cur: list[str] = []
+        self._pre = None
         self._scan()
 
     def _scan(self) -> None:
@@ -91,8 +92,20 @@ class _FileLines:
                 if not raw:
                     break
                 cur.append(raw.decode("utf-8", errors="replace").rstrip("\n"))
-        self._lo, self._cur = chunk * self.window, cur
+        self._lo, self._cur, self._pre = chunk * self.window, cur, None
         return self._cur[idx - self._lo]
+
+    def parsed_line(self, idx: int):
+        """Parsed line ``idx`` of the program (shapes split per window, as the whole-text path does)."""
+        if idx >= self.n:
+            return parse_line(self.extra[idx - self.n], idx + 1)
+        k = idx - self._lo
+        if not 0 <= k < len(self._cur):
+            self[idx]
+            k = idx - self._lo
+        if self._pre is None:
+            self._pre = Presplit("\n".join(self._cur), self._cur, self._lo)
+        return self._pre.line(k)
 
 
 class _Parsed:
@@ -162,7 +175,7 @@ class BlockStream:
             it.stop_at = it._find_end()
             it.jump, it.subs, it.do_end = {}, {}, set()
             it._match(sorted(it.lines.owords), it.main_n if it.stop_at is None else it.stop_at)
-            reason, end_line, executed = it._loop(lambda idx: parse_line(it.lines[idx], idx + 1),
+            reason, end_line, executed = it._loop(it.lines.parsed_line,
                                                   lambda blocks: self._put(list(blocks)))
             self.program = Program(name=it.name, blocks=[], line_count=it.main_n, lines_executed=executed,
                                    messages=it.messages, end_line=end_line, end_reason=reason,
