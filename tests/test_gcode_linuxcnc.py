@@ -289,3 +289,29 @@ def test_cutter_compensation_refusals():
     e = err("G41 D1\nG1 X5 F100\nG40\nG2 X6 Y1 I1\n", tool_table=tools)
     assert (e.code, e.line) == ("comp", 4)                      # first move after G40 must be straight
     assert err("G1 X5 D1 F100\n", tool_table=tools).code == "word"
+
+
+def test_gcode_config_section(tmp_path):
+    import tomllib
+
+    from hexacnc.config import default_config_path, parse_config
+    from hexacnc.errors import ConfigError
+    from hexacnc.gcode import program_from_config
+    doc = tomllib.loads(Path(default_config_path()).read_text())
+    doc["gcode"] = {"subroutine_path": [str(DATA / "subs")], "require_end": True}
+    cfg = parse_config(doc, str(tmp_path / "m.toml"))
+    assert cfg.gcode.subroutine_path == (str(DATA / "subs"),) and cfg.gcode.require_end
+    p = program_from_config("G91\no<square> call [2] [100]\nM2\n", "t", cfg)
+    assert sum(b.kind == "line" for b in p.blocks) == 4
+    assert err_cfg(program_from_config, "G0 X0\n", cfg).code == "end"
+    doc["gcode"] = {"subroutine_path": ["subs"]}            # relative to the config file
+    assert parse_config(doc, str(tmp_path / "m.toml")).gcode.subroutine_path == (str(tmp_path / "subs"),)
+    doc["gcode"] = {"subroutine_path": [3]}
+    with pytest.raises(ConfigError, match="subroutine_path"):
+        parse_config(doc, "m.toml")
+
+
+def err_cfg(fn, text, cfg) -> GcodeError:
+    with pytest.raises(GcodeError) as ei:
+        fn(text, "t", cfg)
+    return ei.value

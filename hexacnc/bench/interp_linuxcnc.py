@@ -16,7 +16,8 @@ compared:
   (not ``unsupported``) where LinuxCNC's output also stops without PROGRAM_END.
 
 A test's program runs from pose zero with zero offsets and its ``-t`` tool
-table (in inches: the unit of the standalone ``rs274``'s tool table); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
+table (in inches: the unit of the standalone ``rs274``'s tool table); the
+``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
 for subroutine files.  The tool axis is -Z (a tool hangs below the spindle,
 as LinuxCNC's tool length offsets assume).
 """
@@ -81,7 +82,12 @@ def find_tests(root: Path) -> list[dict]:
 
 
 def parse_expected(text: str) -> list[tuple]:
-    """Canonical calls -> events in mm (and deg): ('T'|'F', pose6, unit_mm, feed_mm_s), ('A', end6, unit_mm, centre, rotation, feed_mm_s), ('D', s), ('M', text)."""
+    """Canonical calls -> events in machine mm (and deg).
+
+    ('T'|'F', pose6, unit_mm, feed_mm_s), ('A', end6, unit_mm, centre, rotation, feed_mm_s),
+    ('D', seconds), ('M', text); program coordinates are mapped through the G5x, G92 and
+    XY-rotation calls in force; zero-length moves are dropped (hexacnc emits no block for them).
+    """
     u = 1.0
     feed = 0.0
     plane = "XY"

@@ -82,13 +82,14 @@ class ExecuteMixin:
                            else "axis words with G80", ln.axes[0][1], "word")
         arcw = motion in (20, 30) and axis_user is None and (bool(ln.axes) or motion_g in (20, 30))
         cyc = motion in CYCLES and axis_user is None
-        probe = motion in PROBES and axis_user is None
         io = 5 in mgroups
         m66 = mgroups.get(5) == 66
-        for letter, users in (("i", arcw or g0 == 100), ("j", arcw or g0 == 100), ("k", arcw), ("r", arcw or g0 == 100 or cyc or 640 in gset),
+        g10 = g0 == 100
+        for letter, users in (("i", arcw or g10), ("j", arcw or g10), ("k", arcw),
+                              ("r", arcw or g10 or cyc or 640 in gset),
                               ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io),
-                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68)) or 61 in mgroups.values()
-                               or g0 == 100 and vals.get("l") in (1.0, 10.0, 11.0)),
+                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68))
+                               or 61 in mgroups.values() or g10 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),
                               ("d", bool(gset & {410, 411, 420, 421}))):

@@ -109,7 +109,8 @@ class ParamMixin:
             return self.ret_flag
         return float({
             "_line": self.line_now, "_motion_mode": self.motion, "_plane": self.plane,
-            "_ccomp": {"L": 410, "R": 420}.get(self.comp_side, 400), "_metric": self.u == 1.0, "_imperial": self.u != 1.0,
+            "_ccomp": {"L": 410, "R": 420}.get(self.comp_side, 400),
+            "_metric": self.u == 1.0, "_imperial": self.u != 1.0,
             "_absolute": self.absolute, "_incremental": not self.absolute,
             "_inverse_time": self.inverse_time, "_units_per_minute": not self.inverse_time,
             "_units_per_rev": 0, "_feed": self.feed, "_rpm": self.rpm,
