@@ -315,3 +315,14 @@ def err_cfg(fn, text, cfg) -> GcodeError:
     with pytest.raises(GcodeError) as ei:
         fn(text, "t", cfg)
     return ei.value
+
+
+def test_g52_and_dynamic_tool_length():
+    p = parse_program("G0 X1\nG52 X2 Y3\n(DEBUG,#5210 #5211 #5212 #5420)\nG0 X0 Y0\nG92.2\n(DEBUG,#5210 #5211)\n"
+                      "G1 F100\nG43.1 Z5\nG0 X1\nG43.2 Z1\n(DEBUG,#<_tool_offset>)\nM2\n", tool_axis_platform=DOWN)
+    assert p.messages[0][1] == "1.000000 2.000000 3.000000 -1.000000"     # X1 is -1 from the new origin
+    assert p.messages[1][1] == "0.000000 2.000000"                         # G92.2 keeps the values
+    # G52 moves the origin to (2, 3); G43.1 Z5 / G43.2 Z1 (no motion): the tip 5, then 6 mm down
+    assert moves(p) == [("R", [1, 0, 0]), ("R", [2, 3, 0]), ("R", [1, 3, -5])]
+    assert p.final_state.tool_length_mm == 6.0
+    assert err("G43.1 X1\n").code == "unsupported"

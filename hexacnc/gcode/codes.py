@@ -13,7 +13,8 @@ G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 382: 1, 383: 1, 384: 1, 385: 1, 730: 1, 80
            430: 8, 490: 8, 980: 10, 990: 10,
            540: 12, 550: 12, 560: 12, 570: 12, 580: 12, 590: 12, 591: 12, 592: 12, 593: 12,
            610: 13, 611: 13, 640: 13, 80: 15,
-           40: 0, 100: 0, 530: 0, 920: 0, 921: 0, 922: 0, 923: 0, 280: 0, 281: 0, 300: 0, 301: 0}
+           431: 8, 432: 8,
+           40: 0, 100: 0, 520: 0, 530: 0, 920: 0, 921: 0, 922: 0, 923: 0, 280: 0, 281: 0, 300: 0, 301: 0}
 #: canned cycles (motion group)
 CYCLES = frozenset({730, 810, 820, 830, 840, 850, 860, 890})
 #: straight probes
@@ -22,8 +23,6 @@ G_UNSUPPORTED = {
     50: "G5 cubic spline", 51: "G5.1 quadratic spline", 52: "G5.2 NURBS", 53: "G5.3 NURBS end",
     70: "G7 lathe diameter mode", 330: "G33 spindle-synchronised motion",
     331: "G33.1 rigid tapping (needs spindle-synchronised motion)",
-    431: "G43.1 dynamic tool length", 432: "G43.2 additional tool length",
-    520: "G52 local coordinate offset",
     760: "G76 lathe threading cycle (a lathe cycle: no spindle-synchronised motion on a hexapod)",
     870: "G87 back boring cycle (needs spindle orientation M19)",
     880: "G88 boring cycle with manual retract (needs an operator jog during the program)",

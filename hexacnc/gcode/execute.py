@@ -11,7 +11,7 @@ from .blocks import Block
 from .codes import CYCLES, G_GROUP, G_UNSUPPORTED, M_GROUP, M_UNSUPPORTED, PROBES
 from .lexer import Line
 
-_AXIS_USERS = (100, 920, 280, 300)
+_AXIS_USERS = (100, 520, 920, 280, 300)
 
 
 class ExecuteMixin:
@@ -77,6 +77,8 @@ class ExecuteMixin:
             raise ln.error(f"G{g0 / 10:g} and G{motion_g / 10:g} both use the axis words", f"g{motion_g}",
                            "modal")
         motion = motion_g if motion_g is not None else self.motion
+        if (431 in gset or 432 in gset) and axis_user is None and motion_g is None:
+            axis_user = 431         # G43.1/G43.2: the axis words are the offset, not a move (LinuxCNC)
         if ln.axes and axis_user is None and motion == 800:
             raise ln.error("axis words without a motion mode (G0/G1/G2/G3)" if motion_g is None
                            else "axis words with G80", ln.axes[0][1], "word")
@@ -127,7 +129,7 @@ class ExecuteMixin:
         # -- G10 / G28 / G30 / G92 family
         if g0 == 100:
             self._g10(ln, vals)
-        elif g0 in (920, 921, 922, 923):
+        elif g0 in (520, 920, 921, 922, 923):
             self._g92(ln, vals, g0)
         elif g0 in (280, 300):
             self._g28(ln, vals, 5161 if g0 == 280 else 5181)
@@ -209,6 +211,8 @@ class ExecuteMixin:
                 self._comp_mode(ln, vals, g)
         if 430 in gset:
             self._g43(ln, vals)
+        elif 431 in gset or 432 in gset:
+            self._g43_dynamic(ln, vals, 431 in gset)
         elif 490 in gset:
             self._set_tool_length(0.0)
         cs = groups.get(12)

@@ -67,6 +67,18 @@ class ToolingMixin:
                            "h" if "h" in vals else "g430", "unsupported")
         self._set_tool_length(e.z_offset_mm)
 
+    def _g43_dynamic(self, ln: Line, vals: dict, direct: bool) -> None:
+        """G43.1 Z (tool length given on the line) / G43.2 Z (added to the current one)."""
+        code = "G43.1" if direct else "G43.2"
+        if any(i != 2 for i, _l in ln.axes):
+            bad = next(letter for i, letter in ln.axes if i != 2)
+            raise ln.error(f"{code} with a {bad.upper()} offset is not supported: a hexapod tool offset acts "
+                           "along the tool axis only", bad, "unsupported")
+        if "h" in vals:
+            raise ln.error(f"{code} with H is not supported", "h", "unsupported")
+        z = vals["z"] * self.u if "z" in vals else 0.0
+        self._set_tool_length(z if direct else self.tool_len + z)
+
     # -- G10 --------------------------------------------------------------------------
     def _g10(self, ln: Line, vals: dict) -> None:
         if "l" not in vals:
@@ -184,7 +196,12 @@ class ToolingMixin:
 
     # -- G92 ----------------------------------------------------------------------------
     def _g92(self, ln: Line, vals: dict, g: int) -> None:
-        if g == 920:
+        if g == 520:          # G52: the G92 offsets are the given values (LinuxCNC shares them)
+            if not ln.axes:
+                raise ln.error("G52 needs at least one axis word", "g520", "word")
+            for i, letter in ln.axes:
+                self.g92[i] = vals[letter] * (self.u if i < 3 else 1.0)
+        elif g == 920:
             if not ln.axes:
                 raise ln.error("G92 needs at least one axis word", "g920", "word")
             u = self.u
@@ -202,5 +219,5 @@ class ToolingMixin:
         if g != 922:
             for i in range(6):
                 self.P[5211 + i] = self.g92[i]
-            self.P[5210] = 1.0 if any(self.g92) else 0.0
+        self.P[5210] = 1.0 if g in (520, 920, 923) else 0.0   # LinuxCNC: applied flag
         self._refresh_offsets()
