@@ -127,7 +127,7 @@ def parse_expected(text: str) -> list[tuple]:
         elif name in ("STRAIGHT_TRAVERSE", "STRAIGHT_FEED", "STRAIGHT_PROBE"):
             v = [float(x) for x in _NUM.findall(args)][:6]
             pose = machine([v[0] * u, v[1] * u, v[2] * u] + v[3:6])
-            if max(abs(a - b) for a, b in zip(pose, last)) < 1e-9:
+            if max(abs(a - b) for a, b in zip(pose, last)) < TOL * u:   # (4-decimal output, rotated)
                 continue       # LinuxCNC emits zero-length moves; hexacnc emits no block for them
             last = pose
             ev.append(("T" if name == "STRAIGHT_TRAVERSE" else "F", pose, u, feed * u / 60.0))
