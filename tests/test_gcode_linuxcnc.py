@@ -326,3 +326,28 @@ def test_g52_and_dynamic_tool_length():
     assert moves(p) == [("R", [1, 0, 0]), ("R", [2, 3, 0]), ("R", [1, 3, -5])]
     assert p.final_state.tool_length_mm == 6.0
     assert err("G43.1 X1\n").code == "unsupported"
+
+
+# -- the LinuxCNC comparison harness, on a canonical output written by hand ----------------------
+_CANON = """ N..... USE_LENGTH_UNITS(CANON_UNITS_MM)
+ N..... SET_G5X_OFFSET(1, 10.0000, 0.0000, 0.0000, 0.0000, 0.0000, 0.0000)
+ N..... STRAIGHT_TRAVERSE(1.0000, 2.0000, 0.0000, 0.0000, 0.0000, 0.0000)
+ N..... SET_FEED_RATE(60.0000)
+ N..... ARC_FEED(3.0000, 2.0000, 2.0000, 2.0000, -1, 0.0000, 0.0000, 0.0000, 0.0000)
+ N..... MESSAGE("hi there")
+ N..... PROGRAM_END()
+"""
+
+
+def test_linuxcnc_harness_on_a_hand_written_canonical_output(tmp_path):
+    from hexacnc.bench.interp_linuxcnc import run_all
+    for name, canon in (("same", _CANON), ("moved", _CANON.replace("ARC_FEED(3.0000, 2.0000, 2.0000",
+                                                                    "ARC_FEED(3.0000, 2.0000, 2.1000"))):
+        d = tmp_path / "tests" / "interp" / name
+        d.mkdir(parents=True)
+        (d / "test.sh").write_text("#!/bin/bash\nrs274 -g test.ngc | awk '{$1=\"\"; print}'\n")
+        (d / "test.ngc").write_text("G21\nG10 L2 P1 X10\nG0 X1 Y2\nG2 X3 Y2 I1 J0 F60\n(MSG, hi  there)\nM2\n")
+        (d / "expected").write_text(canon)
+    res = run_all(tmp_path)
+    assert res["tests"] == 2 and res["results"]["same"] == {"outcome": "same"}
+    assert res["results"]["moved"]["outcome"] == "differ" and "centre" in res["results"]["moved"]["difference"]
