@@ -13,6 +13,8 @@ Public contract (more keys may be added, none renamed):
 * ``[carrier] mass_kg, center_of_gravity_mm`` (platform frame), gravity along
   -z of the base frame unless ``gravity_mm_s2`` is given.
 * ``[tools] length_mm = {"1" = 62.5}``: tool lengths (mm along the tool axis) for G43 H.
+* ``[gcode] subroutine_path = ["subs"]`` (directories searched for ``<name>.ngc`` on ``o<name> call``;
+  relative to the config file), ``require_end = false`` (true: refuse programs without M2/M30/%).
 * ``[calibration] strut_scale`` (6 or one, dimensionless, 0.5..2), ``strut_nonlinearity_mm``
   (6 rows of Legendre coefficients P1..Pd, d <= 7), ``strut_nonlinearity_center_mm`` and
   ``strut_nonlinearity_half_range_mm`` (6, required with the polynomial), ``source``, ``date``:
@@ -355,6 +357,13 @@ class ToolTableConfig:
 
 
 @dataclass(frozen=True)
+class GcodeConfig:
+    """``[gcode]``: subroutine search path (``o<name> call`` of ``name.ngc``), program-end rule."""
+    subroutine_path: tuple = ()     #: directories (relative ones: to the config file's directory)
+    require_end: bool = False       #: refuse programs without M2/M30/% at the end (LinuxCNC)
+
+
+@dataclass(frozen=True)
 class MachineConfig:
     """The whole machine description. Arrays are read-only, mm and degrees."""
     path: str
@@ -390,6 +399,7 @@ class MachineConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/opconfig.py
+    gcode: GcodeConfig = field(default_factory=GcodeConfig)
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -474,7 +484,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
                    "homing", "jog",
-                   "dynamics", "calibration")
+                   "dynamics", "calibration", "gcode")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -686,6 +696,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
 
     calibration = _parse_calibration(sec("calibration"))
     operator = parse_operator(w, p, d, sec("homing"), sec("jog"))
+    gcode = _parse_gcode(sec("gcode"), path)
 
     for sct in sections:
         sct.finish()
@@ -701,11 +712,25 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
         daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, operator=operator,
+        gcode=gcode,
         raw=doc,
     )
     _check_geometry(cfg)
     _check_calibration(cfg)
     return cfg
+
+
+def _parse_gcode(gs: Section, path: str) -> GcodeConfig:
+    """``[gcode] subroutine_path = ["subs", "/opt/ngc"]``, ``require_end = false``."""
+    raw = gs._get("subroutine_path", [])
+    if isinstance(raw, str):
+        raw = [raw]
+    if not isinstance(raw, list) or len(raw) > 32 or not all(isinstance(d, str) and 0 < len(d) <= 4096
+                                                               for d in raw):
+        raise gs.error("subroutine_path", f"{raw!r} must be a list of at most 32 directory names")
+    base = os.path.dirname(os.path.abspath(path)) if not path.startswith("<") else os.getcwd()
+    dirs = tuple(d if os.path.isabs(d) else os.path.normpath(os.path.join(base, d)) for d in raw)
+    return GcodeConfig(subroutine_path=dirs, require_end=gs.getbool("require_end", False))
 
 
 def _parse_calibration(cs: Section) -> CalibrationConfig:

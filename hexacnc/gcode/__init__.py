@@ -9,5 +9,8 @@ from ..errors import GcodeError
 from .blocks import Block
 from .interp import Program, parse_program
 from .factory import program_from_config
+from .state import MachineState, ToolEntry, parse_tool_table
+from .stream import iter_blocks
 
-__all__ = ["Block", "GcodeError", "Program", "parse_program", "program_from_config"]
+__all__ = ["Block", "GcodeError", "MachineState", "Program", "ToolEntry", "iter_blocks", "parse_program",
+           "parse_tool_table", "program_from_config"]

@@ -22,6 +22,10 @@ END = "end"                #: M2/M30
 SPINDLE = "spindle"        #: M3/M4/M5/S: ``spindle_rpm`` (signed: M4 negative, M5 zero)
 COOLANT = "coolant"        #: M7/M8/M9: ``coolant`` in {"mist", "flood", "off"}
 TOOL_CHANGE = "tool_change"  #: M6: ``tool``
+#: G38.2-G38.5 straight probe from ``start`` toward ``end`` at ``feed_mm_s``; ``extra``: see docs/gcode.md
+PROBE = "probe"
+#: M62-M68 output / M66 input wait; ``extra``: see docs/gcode.md
+IO = "io"
 
 MOTION_KINDS = (RAPID, LINE, ARC)
 

@@ -20,14 +20,21 @@ import re
 #: numbered parameters #1 .. #5601 (LinuxCNC's RS274NGC_MAX_PARAMETERS - 1)
 MAX_PARAMETER = 5601
 #: numbered parameters computed from the interpreter state (read-only)
-SYSTEM_PARAMETERS = frozenset({5400, 5403, 5420, 5421, 5422, 5423, 5424, 5425})
+SYSTEM_PARAMETERS = frozenset({5061, 5062, 5063, 5064, 5065, 5066, 5067, 5068, 5069, 5070, 5399}
+                              | set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
+#: parameters a program may not set (LinuxCNC's readonly_parameters)
+READONLY_PARAMETERS = frozenset(set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
 #: read-only predefined named parameters (LinuxCNC names)
 PREDEFINED = frozenset({
-    "_x", "_y", "_z", "_a", "_b", "_c", "_abs_x", "_abs_y", "_abs_z", "_abs_a", "_abs_b", "_abs_c",
-    "_line", "_motion_mode", "_plane", "_metric", "_imperial", "_absolute", "_incremental",
-    "_inverse_time", "_units_per_minute", "_feed", "_rpm", "_current_tool", "_selected_tool",
-    "_coord_system", "_tool_offset", "_spindle_on", "_spindle_cw", "_flood", "_mist",
-    "_call_level", "_remap_level", "_ijk_absolute_mode",
+    "_x", "_y", "_z", "_a", "_b", "_c", "_u", "_v", "_w", "_abs_x", "_abs_y", "_abs_z", "_abs_a",
+    "_abs_b", "_abs_c", "_abs_u", "_abs_v", "_abs_w",
+    "_line", "_motion_mode", "_plane", "_ccomp", "_metric", "_imperial", "_absolute", "_incremental",
+    "_inverse_time", "_units_per_minute", "_units_per_rev", "_feed", "_rpm", "_current_tool",
+    "_selected_tool", "_current_pocket", "_selected_pocket", "_coord_system", "_tool_offset",
+    "_retract_r_plane", "_retract_old_z", "_control_mode", "_spindle_rpm_mode", "_spindle_css_mode",
+    "_lathe_diameter_mode", "_lathe_radius_mode", "_spindle_on", "_spindle_cw", "_flood", "_mist",
+    "_speed_override", "_feed_override", "_adaptive_feed", "_feed_hold", "_task",
+    "_call_level", "_remap_level", "_ijk_absolute_mode", "_value", "_value_returned",
 })
 #: equality tolerance of EQ / NE (LinuxCNC TOLERANCE_EQUAL)
 TOLERANCE_EQUAL = 0.0001
@@ -265,6 +272,9 @@ def _read_param(c: _Ctx, i: int):
         name = s[i + 1:j]
         if not name or "<" in name:
             raise _Bad(i, f"bad parameter name {s[i:j + 1]!r}", "parameter")
+        if name.startswith(("_ini[", "_hal[")):
+            raise _Bad(i - 1, f"#<{name[:4]}[...]> {'INI-file' if name[1] == 'i' else 'HAL pin'} parameters "
+                          "are not supported", "unsupported")
         return _named_src(name), j + 1
     if ch.isdigit():
         m = _INDEX.match(s, i)
@@ -307,6 +317,10 @@ def _read_func(c: _Ctx, name: str, i: int, start: int):
     if not s.startswith("[", i):
         raise _Bad(i, f"function {name.upper()} needs its argument in [ ]", "expression")
     if name == "exists":
+        m = _INDEX.match(s, i + 2) if s.startswith("#", i + 1) else None
+        if m and s.startswith("]", m.end()):     # EXISTS[#n]: numbered parameters 1..5601 exist
+            n = _param_number(m.group(), i + 2)
+            return (1.0 if 1 <= n <= MAX_PARAMETER else 0.0), m.end() + 1
         if not s.startswith("#<", i + 1):
             raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")
         j = s.find(">", i + 3)

@@ -19,6 +19,7 @@ def machine_defaults(cfg) -> dict:
     * tool axis: ``[tool] axis_platform``; tool lengths: ``[tools] length_mm`` if present.
     * G28 and G30 positions: the start pose (the tool reference point at home).
     * no-op M-codes: ``[planner] noop_m_codes``.
+    * subroutine files: ``[gcode] subroutine_path``; ``[gcode] require_end``.
     """
     home = np.asarray(cfg.home_pose, dtype=float)
     R = matrix_from_euler(*(math.radians(float(v)) for v in home[3:6]))
@@ -29,10 +30,13 @@ def machine_defaults(cfg) -> dict:
     table = None
     if tools is not None and getattr(tools, "length_mm", None):
         table = dict(tools.length_mm)   # an empty [tools] table means "no table": any T is accepted
+    gc_cfg = getattr(cfg, "gcode", None)
     return {"start_pose": start, "work_offsets": {1: wo}, "tool_table": table,
             "tool_axis_platform": [float(v) for v in cfg.tool.axis_platform],
             "g28_pose": list(start), "g30_pose": list(start),
-            "noop_m_codes": tuple(getattr(cfg.planner, "noop_m_codes", ()))}
+            "noop_m_codes": tuple(getattr(cfg.planner, "noop_m_codes", ())),
+            "subroutine_path": tuple(getattr(gc_cfg, "subroutine_path", ())),
+            "require_end": bool(getattr(gc_cfg, "require_end", False))}
 
 
 def program_from_config(text: str, name: str, cfg, **overrides) -> Program:

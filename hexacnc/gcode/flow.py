@@ -18,8 +18,20 @@ _O_LINE = re.compile(r"^[ \t]*(?:\([^)\n]*\)[ \t]*)*/?[ \t]*(?:[nN][ \t\d.]*)?[o
                     re.MULTILINE)
 _O_LINE_ONE = re.compile(_O_LINE.pattern)
 
+def oword_indices(text: str, first: int = 0) -> list[int]:
+    """Indices (from ``first``) of the lines of ``text`` that start with an O word."""
+    pos = 0
+    idx = first
+    out = []
+    for m in _O_LINE.finditer(text):
+        idx += text.count("\n", pos, m.start())
+        pos = m.start()
+        out.append(idx)
+    return out
+
+
 class _Frame:
-    __slots__ = ("ret", "L", "saved", "label", "repeat", "line")
+    __slots__ = ("ret", "L", "saved", "label", "repeat", "line", "autorestore")
 
     def __init__(self, ret, L, saved, label, line):
         self.ret = ret
@@ -28,6 +40,7 @@ class _Frame:
         self.label = label
         self.repeat: dict[int, int] = {}
         self.line = line
+        self.autorestore = None
 
 
 class FlowMixin:
@@ -38,24 +51,20 @@ class FlowMixin:
         self.jump: dict[int, object] = {}
         self.subs: dict[str, tuple[int, int]] = {}
         self.do_end: set[int] = set()
-        stack: list[list] = []
-        idxs = pre.oword_lines(_O_LINE_ONE)
+        idxs = pre.oword_lines(_O_LINE_ONE) if pre is not None else None
         if idxs is None:
-            pos = 0
-            idx = 0
-            idxs = []
-            for m in _O_LINE.finditer(text):
-                idx += text.count("\n", pos, m.start())
-                pos = m.start()
-                idxs.append(idx)
+            idxs = oword_indices(text)
+        self._match(idxs, self.main_n if self.stop_at is None else self.stop_at)
+
+    def _match(self, idxs, limit: int) -> None:
+        """Match the O-word structures of the lines ``idxs`` (sorted indices below ``limit``)."""
+        stack: list[list] = []
         for idx in idxs:
-            if idx >= len(self.lines):
+            if idx >= limit:
                 break
             ln = self._line(idx)
             if ln.oword is None:
                 continue
-            if self.stop_at is not None and idx >= self.stop_at:
-                break
             kw, label, _n = ln.oword
 
             def err(msg):
@@ -119,10 +128,9 @@ class FlowMixin:
                         break
                 else:
                     raise err(f"o{label} {kw} outside an o{label} while/do/repeat loop")
-            elif kw == "return":
-                subs = [s for s in stack if s[0] == "sub"]
-                if not subs or subs[-1][1] != label:
-                    raise err(f"o{label} return outside subroutine o{label}")
+            elif kw == "return":     # LinuxCNC: any label, anywhere inside a subroutine
+                if not any(s[0] == "sub" for s in stack):
+                    raise err(f"o{label} return outside a subroutine")
         if stack:
             s = stack[-1]
             ln = self._line(s[2])
@@ -155,13 +163,12 @@ class FlowMixin:
             vals = self._ovals(ln)
             if not self.frames:
                 raise ln.error(f"o{label} {kw} reached outside a subroutine call", "o", "flow")
-            if vals:
-                self.G["_value"] = vals[0]
-                self.G["_value_returned"] = 1.0
-            else:
-                self.G["_value"] = 0.0
-                self.G["_value_returned"] = 0.0
-            fr = self.frames.pop()
+            self.ret_value, self.ret_flag = (vals[0], 1.0) if vals else (0.0, 0.0)
+            fr = self.frames[-1]
+            if fr.autorestore is not None:
+                self._restore(ln, fr.autorestore)
+            self.saved_modal.pop(len(self.frames), None)
+            self.frames.pop()
             self.L = fr.L
             self.P[1:31] = fr.saved
             return fr.ret
@@ -169,8 +176,7 @@ class FlowMixin:
             vals = self._ovals(ln)
             sub = self.subs.get(label)
             if sub is None:
-                raise ln.error(f"subroutine o{label} is not defined in this program "
-                               "(subroutine files are not searched)", "o", "flow")
+                sub = self._load_sub_file(ln, label)
             if len(self.frames) >= self.max_depth:
                 raise ln.error(f"subroutine calls nested deeper than {self.max_depth}", "o", "runaway")
             self.frames.append(_Frame(pc + 1, self.L, self.P[1:31], label, ln.num))

@@ -19,7 +19,7 @@ import re
 
 from ..errors import GcodeError
 from .expr import (
-    _CACHE_MAX, _INDEX, _UNSIGNED, MAX_PARAMETER, PREDEFINED, SYSTEM_PARAMETERS, _Bad, _Ctx, _Ph,
+    _CACHE_MAX, _INDEX, _UNSIGNED, MAX_PARAMETER, PREDEFINED, READONLY_PARAMETERS, _Bad, _Ctx, _Ph,
     _param_number, _read_real, compile_template,
 )
 
@@ -28,10 +28,11 @@ _DIGITS = re.compile(r"\d+")
 _OWORD = re.compile(r"(elseif|else|endif|endsub|endwhile|endrepeat|sub|call|if|while|do|"
                     r"repeat|break|continue|return)")
 #: word letters the dialect knows (others are refused)
-_LETTERS = frozenset("abcfghijklmpqrstxyz")
+_LETTERS = frozenset("abcdefghijklmpqrstxyz")
 _FORBIDDEN_LETTERS = {
-    "d": "D word (cutter radius compensation) is not supported",
-    "e": "E word is not supported",
+    "@": "polar coordinates (@ radius) are not supported",
+    "^": "polar coordinates (^ angle) are not supported",
+    "$": "$ spindle selection (multiple spindles) is not supported",
     "u": "U axis does not exist on a hexapod (axes X Y Z A B C)",
     "v": "V axis does not exist on a hexapod (axes X Y Z A B C)",
     "w": "W axis does not exist on a hexapod (axes X Y Z A B C)",
@@ -150,7 +151,7 @@ def _gcode_int(v: float) -> int | None:
 
 #: numbers in value position (after a value word letter, an operator, '[' or '=')
 #: (a malformed run of digits and dots makes float() fail: the line is then parsed in full)
-_SHAPE_SPLIT = re.compile(r"(?<=[abcfhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
+_SHAPE_SPLIT = re.compile(r"(?<=[abcdefhijklnpqrstxyz\[*/+\-=])([-+]?[\d.]+)")
 _NAMED_DIGIT = re.compile(r"<[^>]*[\d\x01][^>]*>")
 _SHAPES: dict[str, tuple | None] = {}
 _COMMENT = re.compile(r"\(([^()]*)\)")
@@ -236,10 +237,11 @@ class Presplit:
     shapes do not cover take the per-line path.
     """
 
-    __slots__ = ("lines", "shapes", "nums", "offsets", "shape_text")
+    __slots__ = ("lines", "shapes", "nums", "offsets", "shape_text", "base")
 
-    def __init__(self, text: str, lines: list[str]):
+    def __init__(self, text: str, lines: list[str], base: int = 0):
         self.lines = lines
+        self.base = base          #: line number of lines[0] minus 1 (a window of a longer file)
         self.shapes = None
         if "\x01" in text or not text.isascii():
             return
@@ -290,10 +292,10 @@ class Presplit:
             sh = shapes[idx]
             if sh and sh[0] != "o" and len(sh) < 300 and "(" not in sh and ")" not in sh and ";" not in sh:
                 off = self.offsets
-                ln = _fill(sh, self.nums[off[idx]:off[idx + 1]], raw, idx + 1, None)
+                ln = _fill(sh, self.nums[off[idx]:off[idx + 1]], raw, idx + 1 + self.base, None)
                 if ln is not None:
                     return ln
-        return parse_line(raw, idx + 1)
+        return parse_line(raw, idx + 1 + self.base)
 
 
 def _parse_full(raw: str, num: int, s: str, comments) -> Line:
@@ -460,7 +462,7 @@ def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
         target = _param_number(m.group(), j)
         if target < 1 or target > MAX_PARAMETER:
             raise _Bad(j, f"parameter number {target} is outside 1..{MAX_PARAMETER}", "parameter")
-        if target in SYSTEM_PARAMETERS:
+        if target in READONLY_PARAMETERS:
             raise _Bad(j, f"parameter #{target} is read-only", "parameter")
         kind = "n"
         j = m.end()
@@ -497,6 +499,8 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         j = k + 1
     else:
         m = _DIGITS.match(s, j)
+        if not m and j < len(s) and s[j] in "#[":
+            raise _Bad(j, "computed O-word labels (o#<name>, o[...]) are not supported", "unsupported")
         if not m:
             raise _Bad(j, "O word needs a number or <name>")
         label = m.group().lstrip("0") or "0"

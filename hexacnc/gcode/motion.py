@@ -16,8 +16,10 @@ from . import blocks as B
 from .blocks import Block
 from .lexer import Line
 
-_LINEAR_TOL_MM = {25.4: 0.002 * 25.4, 1.0: 0.02}   #: arc end-radius tolerance (LinuxCNC-like)
-_R_TOL_MM = {25.4: 0.00005 * 25.4, 1.0: 0.0005}    #: R-arc chord tolerance
+#: LinuxCNC CENTER_ARC_RADIUS_TOLERANCE (inch, mm) in mm
+_SPIRAL_TOL_MM = {25.4: 0.002 * math.sqrt(2.0) * 25.4, 1.0: 0.02 * math.sqrt(2.0)}
+#: LinuxCNC RADIUS_TOLERANCE: R arcs may fall short of the half chord by this; smaller radii are zero
+_R_TOL_MM = {25.4: 0.00005 * 25.4, 1.0: 0.00005 * 25.4}
 _EPS = 1e-12
 _RAPID, _LINE, _ARC = B.RAPID, B.LINE, B.ARC
 # motion blocks are built with positional arguments (fast): the field order is part of the contract
@@ -35,61 +37,62 @@ class MotionMixin:
     def _refresh_offsets(self) -> None:
         base = 5201 + 20 * self.cs
         P = self.P
-        self.off = [P[base + i] + self.g92[i] for i in range(6)]
+        self.o5x = [P[base + i] for i in range(6)]
+        self.off = [self.o5x[i] + self.g92[i] for i in range(6)]
+        self.rot_deg = P[base + 9]
+        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed
+        r = math.radians(self.rot_deg)
+        self.rot_cs = (math.cos(r), math.sin(r))
+
+    def _to_machine(self, prog: list[float]) -> list[float]:
+        """Program coordinates (mm, deg, without offsets) -> machine coordinates."""
+        off = self.off
+        out = [prog[i] + off[i] for i in range(len(prog))]
+        if self.rot_deg != 0.0:
+            c, s = self.rot_cs
+            x, y = prog[0] + self.g92[0], prog[1] + self.g92[1]
+            out[0] = self.o5x[0] + c * x - s * y
+            out[1] = self.o5x[1] + s * x + c * y
+        return out
+
+    def _unrotate(self, pos) -> tuple[float, float]:
+        """Program X, Y (mm) of the machine point ``pos`` under the G10 L2 R rotation."""
+        c, s = self.rot_cs
+        dx, dy = pos[0] - self.o5x[0], pos[1] - self.o5x[1]
+        return c * dx + s * dy - self.g92[0], -s * dx + c * dy - self.g92[1]
+
+    def _prog_pose(self) -> list[float]:
+        """Current tool-tip pose in program coordinates (mm, deg)."""
+        pos, off = self.pos, self.off
+        out = [pos[i] - off[i] for i in range(6)]
+        if self.rot_deg != 0.0:
+            out[0], out[1] = self._unrotate(pos)
+        return out
+
+    def _tool_vec(self, abc) -> list[float]:
+        """Tool tip minus tool reference point (mm, machine frame) at orientation ``abc`` (deg)."""
+        L = self.tool_len
+        if L == 0.0:
+            return [0.0, 0.0, 0.0]
+        r = rotation_elements(*(math.radians(v) for v in abc))
+        x, y, z = self.tool_axis
+        return [L * (r[3 * i] * x + r[3 * i + 1] * y + r[3 * i + 2] * z) for i in range(3)]
+
+    def _ref_point(self, pose) -> list[float]:
+        """Machine pose of the tool reference point (the controlled point of G53/G28/G30)."""
+        v = self._tool_vec(pose[3:6])
+        return [pose[0] - v[0], pose[1] - v[1], pose[2] - v[2]] + list(pose[3:6])
 
     def _set_tool_length(self, new_len: float) -> None:
         d = new_len - self.tool_len
         if d != 0.0:
-            r = rotation_elements(*(math.radians(v) for v in self.pos[3:6]))
-            x, y, z = self.tool_axis
+            old = self._tool_vec(self.pos[3:6])
+            self.tool_len = new_len
+            new = self._tool_vec(self.pos[3:6])
             for i in range(3):
-                self.pos[i] += d * (r[3 * i] * x + r[3 * i + 1] * y + r[3 * i + 2] * z)
+                self.pos[i] += new[i] - old[i]
             self.pos_arr = None
         self.tool_len = new_len
-
-    def _g10(self, ln: Line, vals: dict) -> None:
-        if "l" not in vals:
-            raise ln.error("G10 needs an L word (L2 or L20)", "g100", "word")
-        lv = vals["l"]
-        if lv not in (2.0, 20.0):
-            raise ln.error(f"G10 L{lv:g} is not supported (only L2 and L20)", "l", "unsupported")
-        if "p" not in vals:
-            raise ln.error("G10 L2/L20 needs a P word (coordinate system 0..9)", "g100", "word")
-        p = vals["p"]
-        if p != int(p) or not 0 <= p <= 9:
-            raise ln.error(f"G10 P{p:g}: coordinate system must be 0..9", "p", "value")
-        if "r" in vals:
-            raise ln.error("G10 R (coordinate system rotation) is not supported", "r", "unsupported")
-        k = int(p) or self.cs
-        base = 5201 + 20 * k
-        u = self.u
-        for i, letter in ln.axes:
-            v = vals[letter] * (u if i < 3 else 1.0)
-            if lv == 2.0:
-                self.P[base + i] = v
-            else:  # L20: the current point gets coordinate v in that system
-                self.P[base + i] = self.pos[i] - self.g92[i] - v
-        if k == self.cs:
-            self._refresh_offsets()
-
-    def _g92(self, ln: Line, vals: dict, g: int) -> None:
-        if g == 920:
-            if not ln.axes:
-                raise ln.error("G92 needs at least one axis word", "g920", "word")
-            base = 5201 + 20 * self.cs
-            u = self.u
-            for i, letter in ln.axes:
-                v = vals[letter] * (u if i < 3 else 1.0)
-                self.g92[i] = self.pos[i] - self.P[base + i] - v
-        elif g in (921, 922):
-            self.g92 = [0.0] * 6
-        else:  # G92.3: restore from parameters
-            self.g92 = [self.P[5211 + i] for i in range(6)]
-        if g != 922:
-            for i in range(6):
-                self.P[5211 + i] = self.g92[i]
-            self.P[5210] = 1.0 if any(self.g92) else 0.0
-        self._refresh_offsets()
 
     # -- motion ---------------------------------------------------------------------------
     def _g28(self, ln: Line, vals: dict, base: int) -> None:
@@ -99,12 +102,12 @@ class MotionMixin:
         """
         if ln.axes:
             self._rapid_to(ln, self._target(ln, vals, False))
-            end = list(self.pos)
+            ref = self._ref_point(self.pos)
             for i, _letter in ln.axes:
-                end[i] = self.P[base + i]
+                ref[i] = self.P[base + i]
         else:
-            end = self.P[base:base + 6]
-        self._rapid_to(ln, end)
+            ref = self.P[base:base + 6]
+        self._rapid_to(ln, self._tip_of(ref))
 
     def _rapid_to(self, ln: Line, end: list[float]) -> None:
         if end == self.pos:
@@ -116,14 +119,39 @@ class MotionMixin:
         self.pos = list(end)
         self.pos_arr = e
 
+    def _line_to(self, ln: Line, end: list[float]) -> None:
+        """Feed move (current G94 feed) to the machine pose ``end``."""
+        if end == self.pos:
+            return
+        fm, inv = self._feed_of(ln, {}, 10)
+        e = np.array(end)
+        e.flags.writeable = False
+        self.blocks.append(Block(_LINE, ln.num, self._start_arr(), e, fm, inv, None, None, 0, False,
+                                 self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool))
+        self.pos = list(end)
+        self.pos_arr = e
+
+    def _tip_of(self, ref) -> list[float]:
+        """Tool-tip machine pose whose tool reference point is ``ref``."""
+        v = self._tool_vec(ref[3:6])
+        return [ref[0] + v[0], ref[1] + v[1], ref[2] + v[2]] + list(ref[3:6])
+
     def _target(self, ln: Line, vals: dict, g53: bool) -> list[float]:
         pos = self.pos
         end = list(pos)
         u = self.u
-        if g53:
+        if g53:    # machine coordinates of the controlled point (tool reference point)
+            ref = self._ref_point(pos)
             for i, letter in ln.axes:
-                end[i] = vals[letter] * u if i < 3 else vals[letter]
-        elif self.absolute:
+                ref[i] = vals[letter] * u if i < 3 else vals[letter]
+            return self._tip_of(ref)
+        if self.rot_deg != 0.0:
+            prog = self._prog_pose()
+            for i, letter in ln.axes:
+                v = vals[letter] * u if i < 3 else vals[letter]
+                prog[i] = v if self.absolute else prog[i] + v
+            return self._to_machine(prog)
+        if self.absolute:
             off = self.off
             for i, letter in ln.axes:
                 end[i] = (vals[letter] * u if i < 3 else vals[letter]) + off[i]
@@ -159,6 +187,12 @@ class MotionMixin:
         return f * self.u / 60.0, None
 
     def _move(self, ln: Line, vals: dict, motion: int, g53: bool) -> None:
+        if self.comp_side:
+            self._comp_straight(ln, vals, motion)
+            return
+        if self.comp_arc_not_allowed:
+            self.comp_arc_not_allowed = False
+            self._refresh_offsets()
         end = self._target(ln, vals, g53)
         pos = self.pos
         if end == pos:
@@ -180,6 +214,11 @@ class MotionMixin:
         self.pos_arr = e
 
     def _arc(self, ln: Line, vals: dict, motion: int) -> None:
+        if self.comp_side:
+            self._comp_arc(ln, vals, motion)
+            return
+        if self.comp_arc_not_allowed:
+            raise ln.error("the move just after G40 must be straight, not an arc", f"g{motion}", "comp")
         plane = self.plane
         # plane axes (p, q) and normal axis w; CCW = positive rotation about +w
         if plane == 170:
@@ -190,69 +229,90 @@ class MotionMixin:
             p, q, w, cp, cq, bad = 1, 2, 0, "j", "k", "i"
         if bad in vals:
             raise ln.error(f"{bad.upper()} word with an arc in the G{plane // 10} plane", bad, "word")
-        end = self._target(ln, vals, False)
-        start = self.pos
+        start = self._prog_pose()
+        end = list(start)
         u = self.u
+        for i, letter in ln.axes:
+            v = vals[letter] * u if i < 3 else vals[letter]
+            end[i] = v if self.absolute else start[i] + v
         fm, inv = self._feed_of(ln, vals, motion)
         turns = 0
         if "p" in vals:
             pv = vals["p"]
-            if pv != int(pv) or not 1 <= pv <= 10000:
+            if abs(pv - round(pv)) > 1e-4 or not 1 <= round(pv) <= 10000:
                 raise ln.error(f"arc P{pv:g} (number of turns) must be an integer 1..10000", "p", "arc")
-            turns = int(pv) - 1
+            turns = int(round(pv)) - 1
         cw = motion == 20
         sp, sq, ep, eq = start[p], start[q], end[p], end[q]
         if "r" in vals:
             if cp in vals or cq in vals:
                 raise ln.error("arc with both R and I/J/K words", "r", "arc")
-            r = vals["r"] * u
-            dp, dq = ep - sp, eq - sq
-            d = math.hypot(dp, dq)
-            if d < 1e-9:
-                raise ln.error("R-format arc with start equal to end (use I/J/K for full circles)", "r", "arc")
-            half = 0.5 * d
-            ar = abs(r)
-            if ar < _EPS:
-                raise ln.error("arc radius R0", "r", "arc")
-            if half > ar:
-                if half - ar > _R_TOL_MM[u]:
-                    raise ln.error(f"arc radius {ar / u:g} too small to reach the end point "
-                                   f"(half chord {half / u:g})", "r", "arc")
-                h = 0.0
-            else:
-                h = math.sqrt(ar * ar - half * half)
-            # left normal of the chord; CCW short arc has its centre on the left
-            nlp, nlq = -dq / d, dp / d
-            side = (1.0 if not cw else -1.0) * (1.0 if r > 0 else -1.0)
-            c_p = sp + 0.5 * dp + side * h * nlp
-            c_q = sq + 0.5 * dq + side * h * nlq
+            c_p, c_q = self._r_centre(ln, vals["r"] * u, sp, sq, ep, eq, cw)
         else:
-            if cp not in vals and cq not in vals:
-                raise ln.error(f"arc in the G{plane // 10} plane needs {cp.upper()}/{cq.upper()} "
-                               "words or R", f"g{motion}", "arc")
-            if self.arc_absolute:
-                c_p = vals.get(cp, 0.0) * u + self.off[p]
-                c_q = vals.get(cq, 0.0) * u + self.off[q]
-            else:
-                c_p = sp + vals.get(cp, 0.0) * u
-                c_q = sq + vals.get(cq, 0.0) * u
-            r0 = math.hypot(sp - c_p, sq - c_q)
-            r1 = math.hypot(ep - c_p, eq - c_q)
-            if r0 < 1e-9:
-                raise ln.error("arc with zero radius (centre at the start point)",
-                               cp if cp in vals else cq, "arc")
-            err = abs(r1 - r0)
-            if err > _LINEAR_TOL_MM[u] and err > 0.001 * r0:
-                raise ln.error(f"radius to the arc end differs from radius to the start by {err / u:.6g} "
-                               f"({r0 / u:.6g} vs {r1 / u:.6g})", cp if cp in vals else cq, "arc")
-        center = [0.0, 0.0, 0.0]
+            c_p, c_q = self._ijk_centre(ln, vals, cp, cq, sp, sq, ep, eq)
+        center = [0.0] * 6
         center[p], center[q], center[w] = c_p, c_q, start[w]
+        center = self._to_machine(center)[:3]
         normal = [0.0, 0.0, 0.0]
         normal[w] = 1.0
-        e = np.array(end)
+        if self.rot_deg != 0.0 and w != 2:
+            c, s_ = self.rot_cs
+            normal = [c * normal[0] - s_ * normal[1], s_ * normal[0] + c * normal[1], normal[2]]
+        end_m = self._to_machine(end)
+        if turns == 0 and end_m == self.pos and "r" in vals:
+            raise ln.error("R-format arc with start equal to end (use I/J/K for full circles)", "r", "arc")
+        e = np.array(end_m)
         e.flags.writeable = False
         b = Block(_ARC, ln.num, self._start_arr(), e, fm, inv, np.array(center), np.array(normal),
                   turns, cw, self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool)
         self.blocks.append(b)
-        self.pos = end
+        self.pos = end_m
         self.pos_arr = e
+
+    def _r_centre(self, ln: Line, r: float, sp, sq, ep, eq, cw: bool):
+        """Centre of an R-format arc (LinuxCNC's rule: R may fall short of the half chord by
+        0.00005 in / 0.00127 mm)."""
+        if ep == sp and eq == sq:
+            raise ln.error("R-format arc with start equal to end (use I/J/K for full circles)", "r", "arc")
+        tol = _R_TOL_MM[self.u]
+        dp, dq = ep - sp, eq - sq
+        d = math.hypot(dp, dq)
+        half = 0.5 * d
+        ar = abs(r)
+        if ar < _EPS or half - ar > tol:
+            raise ln.error(f"arc radius {ar / self.u:g} too small to reach the end point "
+                           f"(half chord {half / self.u:g})", "r", "arc")
+        if half / ar > 1.0 - 1e-12:
+            half = ar
+        h = ar * math.cos(math.asin(half / ar))
+        # left normal of the chord; CCW short arc has its centre on the left
+        side = (1.0 if not cw else -1.0) * (1.0 if r > 0 else -1.0)
+        return sp + 0.5 * dp + side * h * (-dq / d), sq + 0.5 * dq + side * h * (dp / d)
+
+    def _ijk_centre(self, ln: Line, vals: dict, cp: str, cq: str, sp, sq, ep, eq):
+        """Centre of an I/J/K arc with LinuxCNC's end-radius rule: refused when the radii differ
+        by more than 100 x 0.02*sqrt(2) mm (0.002*sqrt(2) in), or by more than 0.1 % and that tolerance."""
+        if cp not in vals and cq not in vals:
+            raise ln.error(f"arc in the G{self.plane // 10} plane needs {cp.upper()}/{cq.upper()} "
+                           "words or R", f"g{self.motion}", "arc")
+        u = self.u
+        if self.arc_absolute:
+            for letter in (cp, cq):
+                if letter not in vals:
+                    raise ln.error(f"{letter.upper()} word missing in absolute centre arc (G90.1)",
+                                   f"g{self.motion}", "arc")
+            c_p, c_q = vals[cp] * u, vals[cq] * u
+        else:
+            c_p, c_q = sp + vals.get(cp, 0.0) * u, sq + vals.get(cq, 0.0) * u
+        r0 = math.hypot(sp - c_p, sq - c_q)
+        r1 = math.hypot(ep - c_p, eq - c_q)
+        col = cp if cp in vals else cq
+        if r0 < _R_TOL_MM[u] or r1 < _R_TOL_MM[u]:
+            raise ln.error(f"zero-radius arc (radius {r0 / u:.4f} at the start, {r1 / u:.4f} at the end)",
+                           col, "arc")
+        err = abs(r1 - r0)
+        tol = _SPIRAL_TOL_MM[u]
+        if err > 100.0 * tol or (err / max(r0, r1) > 0.001 and err > tol):
+            raise ln.error(f"radius to the arc end differs from radius to the start by {err / u:.6g} "
+                           f"({r0 / u:.6g} vs {r1 / u:.6g})", col, "arc")
+        return c_p, c_q
