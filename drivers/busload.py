@@ -25,7 +25,7 @@ from typing import Any
 
 from hexacnc.errors import BusError
 
-from .layout import plan_layout
+from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 ASYNC_RESERVE_BYTES = 2
 EMCY_BYTES = 8
@@ -95,10 +95,13 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
         })
     worst = max(per_bus, key=lambda p: p["max_us"])
     emcy = frame_time_us(EMCY_BYTES, br, False)
-    hb_rate = len(bus_cfg.node_ids) * 1000.0 / bus_cfg.heartbeat_ms + 1000.0 / bus_cfg.heartbeat_ms
-    status_rate = len(bus_cfg.node_ids) * 1000.0 / 50.0
+    n = len(bus_cfg.node_ids)
+    hb_rate = sum(1000.0 / heartbeat_producer_ms(bus_cfg.heartbeat_ms, i) for i in range(n)) \
+        + 1000.0 / bus_cfg.heartbeat_ms
+    status_rate = sum(1000.0 / status_event_timer_ms(i) for i in range(n))
     return {
-        "layout": bus_cfg.layout, "bitrate": br, "fd": bool(bus_cfg.fd), "data_bitrate": dbr,
+        "layout": plan.layout, "requested_layout": plan.requested_layout or bus_cfg.layout,
+        "layout_note": plan.note, "bitrate": br, "fd": bool(bus_cfg.fd), "data_bitrate": dbr,
         "buses": bus_cfg.buses, "feedback_divider": bus_cfg.feedback_divider,
         "period_us": round(period_us, 3), "max_load": bus_cfg.max_load,
         "min_us": worst["min_us"], "max_us": worst["max_us"],
@@ -121,7 +124,10 @@ def _split(cfg, period_s):
 
 def describe(report: dict[str, Any]) -> str:
     """One-line human summary of a :func:`bus_time` report."""
-    return (f"layout {report['layout']!r} at {report['bitrate'] / 1e6:g} Mbit/s"
+    return (f"layout {report['layout']!r}"
+            + (f" (instead of {report['requested_layout']!r}: no dummy mapping)"
+               if report.get("requested_layout", report["layout"]) != report["layout"] else "")
+            + f" at {report['bitrate'] / 1e6:g} Mbit/s"
             + (f" (FD data {report['data_bitrate'] / 1e6:g} Mbit/s)" if report["fd"] else "")
             + f" on {report['buses']} bus(es), feedback every {report['feedback_divider']} cycle(s): "
             f"{report['min_us']:.0f}-{report['max_us']:.0f} us per cycle on the busiest bus = "
