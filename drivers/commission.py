@@ -21,7 +21,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from hexacnc.errors import BusError
 
 from . import cia402
-from .description import expected_identity, identity_problems, modes_text
+from .description import expected_identity, identity_problems, interpolation_candidates, modes_text
 
 if TYPE_CHECKING:
     from .master import Master
@@ -74,24 +74,6 @@ def check_identity(m: "Master") -> list[dict]:
 
 
 # -- interpolation time period 0x60C2 --------------------------------------------------------------
-def interpolation_candidates(period_s: float, index_range: tuple[int, int] = (-6, -3),
-                             max_multiple: int = 20) -> list[tuple[int, int, float]]:
-    """(value, index, bus period s) that 0x60C2 can express, shortest bus period first (a whole
-    multiple of ``period_s``), then coarsest index first (-3 is the most widely accepted)."""
-    lo, hi = index_range
-    out = []
-    for mult in range(1, max_multiple + 1):
-        p = period_s * mult
-        for idx in range(min(hi, 0), max(lo, -9) - 1, -1):
-            v = p / 10.0 ** idx
-            if abs(v - round(v)) < 1e-6 * max(1.0, v) and 1 <= round(v) <= 255:
-                out.append((int(round(v)), idx, p))
-        if out:
-            return out
-    raise BusError(f"[cycle] period_s = {period_s:g} s: no multiple up to x{max_multiple} can be written as "
-                   f"0x60C2 value (1..255) x 10^index with index {lo}..{hi}")
-
-
 def set_interpolation_period(m: "Master", period_s: float) -> dict:
     """Write 0x60C2 to every drive in the first format all of them accept, read it back.
 
@@ -123,6 +105,8 @@ def set_interpolation_period(m: "Master", period_s: float) -> dict:
             if back != (value, idx):
                 raise m.fail(nd, "interpolation period", f"0x60C2 written ({value}, {idx}), read back {back}")
         every = int(round(bus_period / period_s))
+        from .busload import check_layout
+        check_layout(m.bus_cfg, bus_period)       # the layout must fit the bus period the drives took
         log.info("0x60C2 interpolation period (%d, %d) = %g ms on every drive: the bus runs at %g ms%s",
                  value, idx, bus_period * 1e3, bus_period * 1e3,
                  "" if every == 1 else f", the loop computes at {period_s * 1e3:g} ms (SYNC every {every} cycles)")

@@ -176,9 +176,11 @@ class CyclicIO:
                  limits_inc: tuple[Sequence[int], Sequence[int]] | None = None,
                  controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005,
                  status: Sequence[int] | None = None, positions_inc: Sequence[int] | None = None,
-                 batch: bool | None = None):
+                 batch: bool | None = None, sync_every: int = 1):
         """``batch``: use the record batch interface (:mod:`drivers.framerec`); None: when every
-        bus offers it, False: never (python-can ``send``/``recv`` on every bus)."""
+        bus offers it, False: never (python-can ``send``/``recv`` on every bus).
+        ``sync_every``: bus cycles (RPDOs + SYNC) only on every n-th :meth:`send` (the drives' 0x60C2
+        is n loop periods, :attr:`drivers.master.Master.sync_every`); the other calls send nothing."""
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.plan = plan = plan_layout(bus_cfg)
@@ -208,6 +210,10 @@ class CyclicIO:
         self.controlword: list[int] = [int(controlword)] * n
         self._cw_sent: list[int] = [int(controlword)] * n
         self._sync_counter = 0
+        if not 1 <= int(sync_every) <= 100:
+            raise ValueError(f"CyclicIO: sync_every = {sync_every} must be 1..100")
+        self.sync_every = int(sync_every)
+        self._phase = 0
         self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
@@ -258,6 +264,12 @@ class CyclicIO:
         if controlwords is not None:
             for i in range(self.n):
                 cw[i] = controlwords[i]
+        if self.sync_every > 1:                  # bus period = n loop periods: frames every n-th call
+            self._phase += 1
+            if self._phase < self.sync_every:
+                self.cycles += 1
+                return SEND_LIMIT if limit else SEND_OK
+            self._phase = 0
         if self._sync_overflow:
             self._sync_counter = self._sync_counter % self._sync_overflow + 1
         now = time.monotonic()

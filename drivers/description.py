@@ -160,3 +160,40 @@ def identity_problems(found: dict, want_identity: tuple[int, int, int], desc: De
         out.append(f"0x6502 supported drive modes: expected cyclic synchronous position (bit 7), "
                    f"found 0x{modes:08X} ({modes_text(modes)})")
     return out
+
+
+def interpolation_candidates(period_s: float, index_range: tuple[int, int] = (-6, -3),
+                             max_multiple: int = 20) -> list[tuple[int, int, float]]:
+    """(value, index, bus period s) that 0x60C2 can express for whole multiples of ``period_s`` up to
+    ``max_multiple``: shortest bus period first, then coarsest index first (-3, whole ms, is the most
+    widely accepted). BusError when there is none."""
+    lo, hi = index_range
+    out = []
+    for mult in range(1, max_multiple + 1):
+        p = period_s * mult
+        for idx in range(min(hi, 0), max(lo, -9) - 1, -1):
+            v = p / 10.0 ** idx
+            if abs(v - round(v)) < 1e-6 * max(1.0, v) and 1 <= round(v) <= 255:
+                out.append((int(round(v)), idx, p))
+    if not out:
+        raise BusError(f"[cycle] period_s = {period_s:g} s: no multiple up to x{max_multiple} can be written as "
+                       f"0x60C2 value (1..255) x 10^index with index {lo}..{hi}")
+    return out
+
+
+def common_index_range(bus_cfg) -> tuple[int, int]:
+    """0x60C2 index range every node's description allows."""
+    descs = node_descriptions(bus_cfg)
+    return max(d.ip_index_range[0] for d in descs), min(d.ip_index_range[1] for d in descs)
+
+
+def bus_period_s(bus_cfg, period_s: float) -> float:
+    """The bus (SYNC) period the master will first try for a loop period: ``period_s`` when 0x60C2
+    can express it in the descriptions' index range, else the shortest multiple that it can
+    (e.g. 1 ms for 0.5 ms with drives that take only index -3)."""
+    if not hasattr(bus_cfg, "simulate"):       # a bare layout request (tests): no descriptions
+        return period_s
+    lo, hi = common_index_range(bus_cfg)
+    if lo > hi:
+        raise BusError(f"the drive descriptions allow no common 0x60C2 index ({node_paths(bus_cfg)})")
+    return interpolation_candidates(period_s, (lo, hi))[0][2]

@@ -27,7 +27,7 @@ from hexacnc.errors import BusError
 
 from . import cia402, commission
 from .cyclic import limits_inc
-from .description import node_descriptions, node_paths
+from .description import node_descriptions
 from .layout import (MASTER_NODE_ID, NodePlan, heartbeat_producer_ms, plan_layout, status_event_timer_ms,
                      status_inhibit_100us)
 

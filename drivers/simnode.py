@@ -10,15 +10,16 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from hexacnc.errors import BusError, ConfigError
+from hexacnc.errors import BusError
 
 from . import cia402
+from .simfaults import FaultSpec  # noqa: F401  (re-exported)
+from .simhooks import EXTENSIONS, OdHooks
 from .simreact import Reactions
 from .strutmodel import StrutModel
 
@@ -36,78 +37,6 @@ _DATA_NOT_TRANSFERRED = 0x08000022     #: "because of the present device state"
 _PDO_NOT_VALID = 1 << 31
 _STRUCT = {0x0002: "b", 0x0003: "h", 0x0004: "i", 0x0005: "B", 0x0006: "H", 0x0007: "I"}
 _DUMMIES = set(range(0x0001, 0x0008))
-
-
-# --------------------------------------------------------------------------------------------
-# fault specs
-# --------------------------------------------------------------------------------------------
-@dataclass
-class FaultSpec:
-    node_id: int
-    kind: str             #: emcy | heartbeat | stuck | refuse
-    code: int = 0x1000    #: EMCY code (kind emcy)
-    delay_s: float = 0.0  #: after the drive first reaches Operation enabled
-
-    KINDS = ("emcy", "heartbeat", "stuck", "refuse")
-
-    @classmethod
-    def parse(cls, text: str) -> "FaultSpec":
-        """``N:emcy:0x3210@1.5``, ``N:heartbeat@2``, ``N:stuck@0.5``, ``N:refuse``."""
-        body, _, delay = text.partition("@")
-        parts = body.split(":")
-        try:
-            node = int(parts[0], 0)
-            kind = parts[1]
-            if kind not in cls.KINDS:
-                raise ValueError(f"kind {kind!r} is not one of {', '.join(cls.KINDS)}")
-            code = int(parts[2], 0) if kind == "emcy" and len(parts) > 2 else 0x1000
-            if kind != "emcy" and len(parts) > 2 or len(parts) > 3:
-                raise ValueError("too many ':' fields")
-            d = float(delay) if delay else 0.0
-            if not (0 <= d < 1e6) or not (1 <= node <= 127) or not (0 < code <= 0xFFFF):
-                raise ValueError("node 1..127, code 1..0xFFFF, delay >= 0")
-        except (ValueError, IndexError) as exc:
-            raise ConfigError(f"--fault {text!r}: expected NODE:emcy:CODE@S, NODE:heartbeat@S, "
-                              f"NODE:stuck@S or NODE:refuse ({exc})") from None
-        return cls(node, kind, code, d)
-
-
-# --------------------------------------------------------------------------------------------
-# extension hooks (homing, touch probe, ... in their own modules)
-# --------------------------------------------------------------------------------------------
-class OdHooks:
-    """Object-dictionary callback registry of one simulated drive.
-
-    * ``on_read(index, fn)``: ``fn(subindex) -> int | None`` answers SDO reads of ``index`` (None:
-      fall through to the drive / the stored value); PDO getters use it too (sub 0);
-    * ``on_write(index, fn)``: ``fn(subindex, value)`` after an SDO or RPDO write of ``index`` (raise
-      ``canopen.sdo.SdoAbortedError(code)`` to refuse an SDO write);
-    * ``on_sync(fn)``: ``fn(drive, now_s)`` after each SYNC step; ``on_controlword(fn)``:
-      ``fn(drive, controlword)`` before the state machine sees a controlword (mode-specific bits).
-    """
-
-    def __init__(self):
-        self.read: dict[int, Callable] = {}
-        self.write: dict[int, list[Callable]] = {}
-        self.sync: list[Callable] = []
-        self.controlword: list[Callable] = []
-
-    def on_read(self, index: int, fn: Callable) -> None:
-        self.read[index] = fn
-
-    def on_write(self, index: int, fn: Callable) -> None:
-        self.write.setdefault(index, []).append(fn)
-
-    def on_sync(self, fn: Callable) -> None:
-        self.sync.append(fn)
-
-    def on_controlword(self, fn: Callable) -> None:
-        self.controlword.append(fn)
-
-
-#: ``fn(drive)`` called for every new :class:`SimDrive` (after its own set-up): register hooks here,
-#: e.g. ``simnode.EXTENSIONS.append(homing.attach)`` in the extension module (imported by simdrive)
-EXTENSIONS: list[Callable[["SimDrive"], None]] = []
 
 
 # --------------------------------------------------------------------------------------------

@@ -155,6 +155,7 @@ class SimRig:
     def cyclic(self, **kw):
         from .cyclic import CyclicIO, limits_inc
 
+        kw.setdefault("sync_every", self.master.sync_every)
         if self.master.attached:
             kw.setdefault("status", self.master.statuswords())
             kw.setdefault("positions_inc", self.master.positions_inc())

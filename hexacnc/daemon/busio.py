@@ -286,6 +286,8 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
     else:
         transport = cfg.bus.interface
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
+    from drivers.pcap import capture_buses
+    buses = capture_buses(buses)        # hexacnc run --capture FILE.pcap ($HEXACNC_CAPTURE): every frame
     try:
         m = Master(cfg, buses)
         for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
@@ -300,7 +302,8 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         pos = m.positions_inc()
         m.detach()
         cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
-                              controlword=cia402.CW_ENABLE_OPERATION, period_s=period_s)
+                              controlword=cia402.CW_ENABLE_OPERATION, period_s=period_s,
+                              sync_every=m.sync_every)   # bus period per 0x60C2 (drivers.commission)
         for i in range(6):
             cio.status[i] = sw[i]
             cio.pos_inc[i] = pos[i]
