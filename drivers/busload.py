@@ -135,7 +135,7 @@ def describe(report: dict[str, Any]) -> str:
             + (f" (FD data {report['data_bitrate'] / 1e6:g} Mbit/s)" if report["fd"] else "")
             + f" on {report['buses']} bus(es), feedback every {report['feedback_divider']} cycle(s): "
             f"{report['min_us']:.0f}-{report['max_us']:.0f} us per cycle on the busiest bus = "
-            f"{100 * report['load']:.1f} % of the {report['period_us']:.0f} us bus period "
+            f"{100 * report['load']:.1f} % of the {report['period_us']:.0f} us period "
             f"(limit [bus] max_load {100 * report['max_load']:.0f} %)"
             + (f"; the bus runs at {report['period_us'] / 1e3:g} ms (0x60C2) while the loop computes at "
                f"{report['loop_period_us'] / 1e3:g} ms" if report.get("sync_every", 1) > 1 else ""))
