@@ -509,6 +509,18 @@ class CyclicIO:
                 cw[i] = cia402.controlword_towards(state, wanted, cw[i])[0]
         return todo
 
+    def end_session(self) -> int:
+        """NMT "enter pre-operational" (0x80, all nodes) on every bus, once the drives are disabled: PDOs
+        and the drives' RPDO deadline monitoring stop, so a clean end is not reported as a silent master
+        (EMCY 0x8250). Drives still enabled react per 0x6007/0x605E (they stop). Returns buses failed."""
+        failed = 0
+        for bus in self.buses:
+            try:
+                bus.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 0]), is_extended_id=False))
+            except (can.CanError, OSError):
+                failed += 1
+        return failed
+
     def states(self) -> list[int]:
         """CiA 402 state per strut from the last statuswords (slow path: allocates)."""
         return [cia402.state_from_status(s) for s in self.status]

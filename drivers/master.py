@@ -269,7 +269,7 @@ class Master:
         lo, hi = limits_inc(cfg)
         window = max(1, round(cfg.cycle.following_error_mm * b.increments_per_mm))
         for nd in self.plan.nodes:
-            w = self._write
+            w = self._write_verified
             w(nd, "heartbeat producer", 0x1017, None, heartbeat_producer_ms(b.heartbeat_ms, nd.index))
             w(nd, "heartbeat consumer", 0x1016, 1, (MASTER_NODE_ID << 16) | min(0xFFFF, b.heartbeat_timeout_ms))
             w(nd, "SYNC counter", 0x1019, None, self.plan.sync_counter_overflow)
@@ -316,10 +316,41 @@ class Master:
                         m.cob_id = default_base + 0x100 * (n - 1) + nd.node_id
                         m.enabled = False
                     m.save()
+            self._verify_pdos(nd, rp, tp)
         except SdoAbortedError as exc:
             raise self._fail(nd, step, "drive refused the PDO configuration", exc) from exc
         except SdoCommunicationError as exc:
             raise self._fail(nd, step, "no SDO answer", exc) from exc
+
+    def _write_verified(self, nd: NodePlan, step: str, index: int, sub: int | None, value: int) -> None:
+        """SDO write, then read back: BusError naming the object when the drive holds another value."""
+        self._write(nd, step, index, sub, value)
+        back = self._read(nd, f"{step} read-back", index, sub)
+        if back != value:
+            raise self._fail(nd, step, f"0x{index:04X}:{sub or 0:02X} written {value}, read back {back}")
+
+    def _verify_pdos(self, nd: NodePlan, rp: list, tp: list) -> None:
+        """Read back every PDO communication and mapping parameter written by :meth:`_map_pdos`."""
+        r = self._read
+        for comm, mapi, wanted in ((0x1400, 0x1600, rp), (0x1800, 0x1A00, tp)):
+            for n in range(4):
+                cob = r(nd, "PDO read-back", comm + n, 1)
+                if n >= len(wanted):
+                    if not cob & 0x80000000:
+                        raise self._fail(nd, "PDO read-back", f"0x{comm + n:04X}:01 = 0x{cob:08X}: PDO still valid")
+                    continue
+                want_cob, trans, mapping, inhibit, event, start = wanted[n]
+                got = {"COB-ID": cob & 0x9FFFFFFF, "transmission type": r(nd, "PDO read-back", comm + n, 2),
+                       "mapping": tuple(r(nd, "PDO read-back", mapi + n, k)
+                                        for k in range(1, r(nd, "PDO read-back", mapi + n, 0) + 1))}
+                want = {"COB-ID": want_cob, "transmission type": trans,
+                        "mapping": tuple(i << 16 | s << 8 | b for i, s, b in mapping)}
+                for sub, name, v in ((3, "inhibit time", inhibit), (5, "event timer", event), (6, "SYNC start", start)):
+                    if v is not None:
+                        got[name], want[name] = r(nd, "PDO read-back", comm + n, sub), v
+                if got != want:
+                    bad = {k: (want[k], got[k]) for k in want if want[k] != got[k]}
+                    raise self._fail(nd, "PDO read-back", f"0x{comm + n:04X}/0x{mapi + n:04X} (expected, found): {bad}")
 
     def select_mode(self, nd: NodePlan, mode: int, timeout_s: float = 0.5) -> None:
         """Write 0x6060 and wait until 0x6061 shows it."""

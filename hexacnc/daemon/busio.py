@@ -254,6 +254,7 @@ class CyclicAdapter:
         return cia402.emcy_text(*e) if e else ""
 
     def close(self) -> None:
+        self.cio.end_session()          # NMT pre-operational: drives stop PDOs and RPDO deadline monitoring
         for b in self.cio.buses:
             try:
                 b.shutdown()
