@@ -1,6 +1,5 @@
 """Commissioning against the simulated drives: identity, 0x60C2 format, PDO layout without dummies,
 units, reactions read back, boot time-out - the 'strict' profile behaves like the strictest real drives."""
-import dataclasses
 import time
 
 import pytest
