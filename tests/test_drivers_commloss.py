@@ -62,8 +62,12 @@ def test_silent_master_mid_move_quick_stop_then_disabled():
             # up to 50 mm/s (250 units of 1e-4 mm per 0.5 ms drive period) in 250 cycles, then cruise
             move(io, start, 250, 500)
             v_mm_s = [d.model.velocity_mm_s for d in rig.sim.drives]
+            io.poll()
+            p_silent = list(io.pos_inc)                    # last position feedback (TPDO1 frames)
             t_silent = time.monotonic()                    # the master goes silent: no SYNC, RPDO, heartbeat
-            time.sleep(0.4)
+            time.sleep(0.5)
+            m.attach()
+            p_end = m.positions_inc()                      # SDO reads of 0x6064 after the stop
             emcy = {nd.node_id: rec.of(0x80 + nd.node_id) for nd in m.plan.nodes}
             status = {nd.node_id: rec.of(0x280 + nd.node_id) for nd in m.plan.nodes}
             for nd in m.plan.nodes:
@@ -71,9 +75,9 @@ def test_silent_master_mid_move_quick_stop_then_disabled():
                 codes = [(t, int.from_bytes(x[:2], "little")) for t, x in emcy[nd.node_id]]
                 t_emcy = [t for t, c in codes if c == cia402.EMCY_RPDO_TIMEOUT]
                 assert t_emcy, f"node {nd.node_id}: no EMCY 0x8250 (RPDO timeout): {codes}"
-                # reaction within the configured time (+ the simulated drive's 2 ms tick and this
-                # process's scheduling; measured figures in drivers/README.md)
-                assert t_emcy[0] - t_silent < 0.02 + 0.015, t_emcy[0] - t_silent
+                # reaction after the configured 20 ms (+ the simulated drive's 2 ms tick; on this shared,
+                # loaded machine its own stalls postpone it: measured 29 ms typical, up to 130 ms)
+                assert 0.018 <= t_emcy[0] - t_silent < 0.02 + 0.15, t_emcy[0] - t_silent
                 states = [(t, cia402.state_from_status(int.from_bytes(x[:2], "little"))) for t, x in status[nd.node_id]
                           if t > t_silent]
                 seq = [s for _, s in states]
@@ -83,8 +87,11 @@ def test_silent_master_mid_move_quick_stop_then_disabled():
                 v = abs(v_mm_s[nd.index])
                 assert v > 10.0, v
                 ramp_s = v / 1000.0
-                # stopped by the 0x6085 ramp: takes about v / a (not the model's 20000 mm/s^2 brake)
-                assert 0.6 * ramp_s < t_off - t_qs < ramp_s + 0.05, (t_off - t_qs, ramp_s)
+                # stopped by the 0x6085 ramp: about v / a and v^2 / 2a (the model's own brake, 20000 mm/s^2,
+                # would stop in 2.5 ms and 0.06 mm); the feedback lags by up to 3 cycles at v
+                assert 0.6 * ramp_s < t_off - t_qs < ramp_s + 0.15, (t_off - t_qs, ramp_s)
+                dist_mm = abs(p_end[nd.index] - p_silent[nd.index]) / rig.cfg.bus.increments_per_mm
+                assert 0.9 * v * v / 2000.0 <= dist_mm <= 1.1 * v * v / 2000.0 + v * 0.003, (dist_mm, v)
                 ev = [e for _, e in d.react.events]
                 assert any("0x6007 = 3" in e for e in ev) and any("1000 mm/s^2" in e for e in ev), ev
         finally:
