@@ -49,7 +49,8 @@ def move(io, start, v_inc_per_cycle, n, accel_inc_per_cycle2=1.0):
 
 
 def test_silent_master_mid_move_quick_stop_then_disabled():
-    with SimRig(comm_loss_timeout_s=0.02) as rig:
+    # 0.1 s: this test's process (master and drives) must not itself stall that long while moving
+    with SimRig(comm_loss_timeout_s=0.1) as rig:
         rec = Recorder(rig.cfg)
         try:
             m = rig.master
@@ -65,7 +66,7 @@ def test_silent_master_mid_move_quick_stop_then_disabled():
             io.poll()
             p_silent = list(io.pos_inc)                    # last position feedback (TPDO1 frames)
             t_silent = time.monotonic()                    # the master goes silent: no SYNC, RPDO, heartbeat
-            time.sleep(0.5)
+            time.sleep(0.6)
             m.attach()
             p_end = m.positions_inc()                      # SDO reads of 0x6064 after the stop
             emcy = {nd.node_id: rec.of(0x80 + nd.node_id) for nd in m.plan.nodes}
@@ -75,9 +76,9 @@ def test_silent_master_mid_move_quick_stop_then_disabled():
                 codes = [(t, int.from_bytes(x[:2], "little")) for t, x in emcy[nd.node_id]]
                 t_emcy = [t for t, c in codes if c == cia402.EMCY_RPDO_TIMEOUT]
                 assert t_emcy, f"node {nd.node_id}: no EMCY 0x8250 (RPDO timeout): {codes}"
-                # reaction after the configured 20 ms (+ the simulated drive's 2 ms tick; on this shared,
-                # loaded machine its own stalls postpone it: measured 29 ms typical, up to 130 ms)
-                assert 0.018 <= t_emcy[0] - t_silent < 0.02 + 0.15, t_emcy[0] - t_silent
+                # reaction after the configured 0.1 s (+ the simulated drive's 2 ms tick; on this shared,
+                # loaded machine its own stalls postpone it: drivers/README.md has the 20 ms figures)
+                assert 0.098 <= t_emcy[0] - t_silent < 0.1 + 0.15, t_emcy[0] - t_silent
                 states = [(t, cia402.state_from_status(int.from_bytes(x[:2], "little"))) for t, x in status[nd.node_id]
                           if t > t_silent]
                 seq = [s for _, s in states]

@@ -164,7 +164,7 @@ def test_stuck_strut_gives_following_error():
 
 
 def test_master_silence_stops_the_drives_per_0x6007():
-    with SimRig() as rig:
+    with SimRig(comm_loss_timeout_s=0.05) as rig:
         rig.master.bring_up()
         start = rig.master.positions_inc()
         io = rig.cyclic()
