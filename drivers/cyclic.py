@@ -509,6 +509,20 @@ class CyclicIO:
                 cw[i] = cia402.controlword_towards(state, wanted, cw[i])[0]
         return todo
 
+    def status_faults(self, csp: bool = True) -> int:
+        """Bitmask of struts (bit i) whose last statusword is not Operation enabled with remote (bit 9)
+        set and, in CSP, bit 12 ("drive follows the command value") set and bit 13 (following error)
+        clear - :func:`drivers.cia402.status_problem` names the cause. No allocation (hot loop)."""
+        want = cia402.SW_REMOTE | (cia402.SW_DRIVE_FOLLOWS if csp else 0)
+        bad13 = cia402.SW_FOLLOWING_ERROR if csp else 0
+        mask = 0
+        for i in range(self.n):
+            sw = self.status[i]
+            if (sw & cia402.SW_OP_ENABLED_MASK != cia402.SW_OP_ENABLED_VALUE or sw & want != want
+                    or sw & bad13):
+                mask |= 1 << i
+        return mask
+
     def end_session(self) -> int:
         """NMT "enter pre-operational" (0x80, all nodes) on every bus, once the drives are disabled: PDOs
         and the drives' RPDO deadline monitoring stop, so a clean end is not reported as a silent master
