@@ -21,7 +21,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from hexacnc.errors import BusError
 
 from . import cia402
-from .description import expected_identity, identity_problems, interpolation_candidates, modes_text
+from .description import bus_period_s, expected_identity, identity_problems, interpolation_candidates, modes_text
 
 if TYPE_CHECKING:
     from .master import Master
@@ -105,8 +105,9 @@ def set_interpolation_period(m: "Master", period_s: float) -> dict:
             if back != (value, idx):
                 raise m.fail(nd, "interpolation period", f"0x60C2 written ({value}, {idx}), read back {back}")
         every = int(round(bus_period / period_s))
-        from .busload import check_layout
-        check_layout(m.bus_cfg, bus_period)       # the layout must fit the bus period the drives took
+        if abs(bus_period - bus_period_s(m.bus_cfg, period_s)) > 1e-12:
+            from .busload import check_layout     # not the period checked before the boot: check again
+            check_layout(m.bus_cfg, bus_period)
         log.info("0x60C2 interpolation period (%d, %d) = %g ms on every drive: the bus runs at %g ms%s",
                  value, idx, bus_period * 1e3, bus_period * 1e3,
                  "" if every == 1 else f", the loop computes at {period_s * 1e3:g} ms (SYNC every {every} cycles)")

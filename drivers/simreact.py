@@ -6,7 +6,8 @@ supervision of the master, exactly as the master configured them by SDO.
   (position units/s^2). The ramp runs on the drive's own clock: on SYNC while the master sends
   them, on the housekeeping clock (every ``TICK_S``) once SYNC has stopped.
 * Communication loss: RPDO1 deadline monitoring (0x1400 sub 5 event timer, armed by the first
-  RPDO after NMT start) -> EMCY 0x8250; master heartbeat lost (0x1016) -> EMCY 0x8130. Either
+  RPDO after NMT start, supervised while the drive is enabled: Operation enabled / Quick stop
+  active) -> EMCY 0x8250; master heartbeat lost (0x1016) -> EMCY 0x8130. Either
   applies 0x1029 sub 1 (NMT state) and 0x6007 (1 fault -> 0x605E, 2 disable voltage, 3 quick
   stop -> 0x605A) while the power stage is on.
 
@@ -135,7 +136,8 @@ class Reactions:
             self.last_rpdo_s += now - self.last_tick_s
         self.last_tick_s = now
         if (self.rpdo_timer_s > 0 and self.last_rpdo_s is not None
-                and now - self.last_rpdo_s > self.rpdo_timer_s):
+                and now - self.last_rpdo_s > self.rpdo_timer_s
+                and d.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)):
             self.last_rpdo_s = None                 # once; re-armed by the next RPDO
             self.comm_loss(cia402.EMCY_RPDO_TIMEOUT, now,
                            f"no RPDO for {self.rpdo_timer_s * 1e3:g} ms (0x1400:05)")

@@ -25,7 +25,9 @@ CHANNEL = "239.74.163.20"
 
 def udp_cfg():
     cfg = load_config()
-    return cfg.replace(bus=dataclasses.replace(cfg.bus, interface="udp_multicast", channel=CHANNEL))
+    # loaded test machine: the drives' RPDO deadline (comm_loss_timeout_s) must outlast its stalls
+    return cfg.replace(bus=dataclasses.replace(cfg.bus, interface="udp_multicast", channel=CHANNEL,
+                                               comm_loss_timeout_s=0.5))
 
 
 def test_echo_filter_between_processes_and_buses(request):
