@@ -25,7 +25,8 @@ from typing import Any
 
 from .errors import BusError
 
-from .layout import plan_layout
+from .description import bus_period_s
+from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 ASYNC_RESERVE_BYTES = 2
 EMCY_BYTES = 8
@@ -62,6 +63,8 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
     """Report of the worst-case bus time per cycle (see module doc). Never raises for load."""
     plan = plan_layout(bus_cfg)
     br, dbr = bus_cfg.bitrate, bus_cfg.data_bitrate
+    loop_period_s = period_s
+    period_s = bus_period_s(bus_cfg, period_s)      # whole ms for drives that take only 0x60C2 index -3
     period_us = period_s * 1e6
 
     def row(name, cob_id, nbytes, fd, count=1):
@@ -95,12 +98,16 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
         })
     worst = max(per_bus, key=lambda p: p["max_us"])
     emcy = frame_time_us(EMCY_BYTES, br, False)
-    hb_rate = len(bus_cfg.node_ids) * 1000.0 / bus_cfg.heartbeat_ms + 1000.0 / bus_cfg.heartbeat_ms
-    status_rate = len(bus_cfg.node_ids) * 1000.0 / 50.0
+    n = len(bus_cfg.node_ids)
+    hb_rate = sum(1000.0 / heartbeat_producer_ms(bus_cfg.heartbeat_ms, i) for i in range(n)) \
+        + 1000.0 / bus_cfg.heartbeat_ms
+    status_rate = sum(1000.0 / status_event_timer_ms(i) for i in range(n))
     return {
-        "layout": bus_cfg.layout, "bitrate": br, "fd": bool(bus_cfg.fd), "data_bitrate": dbr,
+        "layout": plan.layout, "requested_layout": plan.requested_layout or bus_cfg.layout,
+        "layout_note": plan.note, "bitrate": br, "fd": bool(bus_cfg.fd), "data_bitrate": dbr,
         "buses": bus_cfg.buses, "feedback_divider": bus_cfg.feedback_divider,
         "period_us": round(period_us, 3), "max_load": bus_cfg.max_load,
+        "loop_period_us": round(loop_period_s * 1e6, 3), "sync_every": int(round(period_s / loop_period_s)),
         "min_us": worst["min_us"], "max_us": worst["max_us"],
         "load": round(worst["max_us"] / period_us, 4),
         "fits": worst["max_us"] <= bus_cfg.max_load * period_us + 1e-9,
@@ -121,12 +128,17 @@ def _split(cfg, period_s):
 
 def describe(report: dict[str, Any]) -> str:
     """One-line human summary of a :func:`bus_time` report."""
-    return (f"layout {report['layout']!r} at {report['bitrate'] / 1e6:g} Mbit/s"
+    return (f"layout {report['layout']!r}"
+            + (f" (instead of {report['requested_layout']!r}: no dummy mapping)"
+               if report.get("requested_layout", report["layout"]) != report["layout"] else "")
+            + f" at {report['bitrate'] / 1e6:g} Mbit/s"
             + (f" (FD data {report['data_bitrate'] / 1e6:g} Mbit/s)" if report["fd"] else "")
             + f" on {report['buses']} bus(es), feedback every {report['feedback_divider']} cycle(s): "
             f"{report['min_us']:.0f}-{report['max_us']:.0f} us per cycle on the busiest bus = "
             f"{100 * report['load']:.1f} % of the {report['period_us']:.0f} us period "
-            f"(limit [bus] max_load {100 * report['max_load']:.0f} %)")
+            f"(limit [bus] max_load {100 * report['max_load']:.0f} %)"
+            + (f"; the bus runs at {report['period_us'] / 1e3:g} ms (0x60C2) while the loop computes at "
+               f"{report['loop_period_us'] / 1e3:g} ms" if report.get("sync_every", 1) > 1 else ""))
 
 
 def check_layout(cfg, period_s: float | None = None) -> dict[str, Any]:
@@ -155,7 +167,7 @@ def suggest_layouts(cfg, period_s: float | None = None, max_load: float | None =
     limit = bus_cfg.max_load if max_load is None else max_load
     out = []
     for fd in ((False, True) if not bus_cfg.fd else (True,)):
-        for layout in ("single", "paired", "fd"):
+        for layout in ("single", "paired", "separate", "fd"):
             if layout == "fd" and not fd:
                 continue
             for buses in range(1, len(bus_cfg.node_ids) + 1):

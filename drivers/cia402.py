@@ -53,20 +53,36 @@ STATE_STATUS_BITS = {
     FAULT: 0x0008,
 }
 
+SW_READY_TO_SWITCH_ON = 1 << 0
+SW_SWITCHED_ON = 1 << 1
+SW_OPERATION_ENABLED = 1 << 2
+SW_FAULT = 1 << 3
 SW_VOLTAGE_ENABLED = 1 << 4
+SW_QUICK_STOP = 1 << 5            #: 0 = quick stop active
+SW_SWITCH_ON_DISABLED = 1 << 6
 SW_WARNING = 1 << 7
-SW_REMOTE = 1 << 9
+SW_REMOTE = 1 << 9                #: controlword processed (drive not in local mode)
 SW_TARGET_REACHED = 1 << 10
 SW_INTERNAL_LIMIT = 1 << 11
 SW_DRIVE_FOLLOWS = 1 << 12        #: CSP: drive follows the command value
 SW_FOLLOWING_ERROR = 1 << 13      #: CSP: following error
+#: statusword mask / value of Operation enabled (also in STATUS_TABLE)
+SW_OP_ENABLED_MASK = 0x006F
+SW_OP_ENABLED_VALUE = 0x0027
 
-# -- controlword commands ------------------------------------------------------------------------
+# -- controlword bits and commands (CiA 402 "device control commands") --------------------------
+CW_BIT_SWITCH_ON = 1 << 0
+CW_BIT_ENABLE_VOLTAGE = 1 << 1
+CW_BIT_QUICK_STOP = 1 << 2        #: 0 = quick stop
+CW_BIT_ENABLE_OPERATION = 1 << 3
+CW_BIT_FAULT_RESET = 1 << 7       #: rising edge
+CW_BIT_HALT = 1 << 8
+
 CW_SHUTDOWN = 0x0006
 CW_SWITCH_ON = 0x0007
 CW_DISABLE_VOLTAGE = 0x0000
 CW_QUICK_STOP = 0x0002
-CW_DISABLE_OPERATION = 0x0007
+CW_DISABLE_OPERATION = 0x0007     #: from Operation enabled: transition 5 (0x605C reaction, brake)
 CW_ENABLE_OPERATION = 0x000F
 CW_FAULT_RESET = 0x0080
 
@@ -117,15 +133,19 @@ T_QUICK_STOP_DONE = 12
 
 _TRANSITION_INDEX = {(frm, cmd): (num, to) for num, frm, cmd, to in TRANSITIONS}
 
-#: master side: (transition number, from state, wanted final state, controlword to send)
-ENABLE_PATH: tuple[tuple[int, int, int, int], ...] = (
+#: THE walk (master side, also the hot loop through :func:`next_controlword`):
+#: (transition number, from state, target state, controlword to send). A normal disable
+#: (target Switch on disabled) goes through transition 5 (0x0007, "disable operation": the drive
+#: stops per 0x605C and engages its holding brake) and then 10 (0x0000); never 9 from Operation
+#: enabled. Quick stop is transition 11 (controlword bit 2 cleared).
+WALK: tuple[tuple[int, int, int, int], ...] = (
     (15, FAULT, OPERATION_ENABLED, CW_FAULT_RESET),
     (2, SWITCH_ON_DISABLED, OPERATION_ENABLED, CW_SHUTDOWN),
     (3, READY_TO_SWITCH_ON, OPERATION_ENABLED, CW_SWITCH_ON),
     (4, SWITCHED_ON, OPERATION_ENABLED, CW_ENABLE_OPERATION),
     (16, QUICK_STOP_ACTIVE, OPERATION_ENABLED, CW_ENABLE_OPERATION),
     (15, FAULT, SWITCH_ON_DISABLED, CW_FAULT_RESET),
-    (9, OPERATION_ENABLED, SWITCH_ON_DISABLED, CW_DISABLE_VOLTAGE),
+    (5, OPERATION_ENABLED, SWITCH_ON_DISABLED, CW_DISABLE_OPERATION),
     (10, SWITCHED_ON, SWITCH_ON_DISABLED, CW_DISABLE_VOLTAGE),
     (7, READY_TO_SWITCH_ON, SWITCH_ON_DISABLED, CW_DISABLE_VOLTAGE),
     (12, QUICK_STOP_ACTIVE, SWITCH_ON_DISABLED, CW_DISABLE_VOLTAGE),
@@ -135,7 +155,8 @@ ENABLE_PATH: tuple[tuple[int, int, int, int], ...] = (
     (15, FAULT, SWITCHED_ON, CW_FAULT_RESET),
     (11, OPERATION_ENABLED, QUICK_STOP_ACTIVE, CW_QUICK_STOP),
 )
-_PATH_INDEX = {(frm, want): (num, cw) for num, frm, want, cw in ENABLE_PATH}
+ENABLE_PATH = WALK      #: former name
+_PATH_INDEX = {(frm, want): (num, cw) for num, frm, want, cw in WALK}
 
 
 def state_from_status(statusword: int) -> int:
@@ -192,6 +213,71 @@ def controlword_towards(state: int, wanted: int, previous_controlword: int = 0) 
     if cw & 0x80 and previous_controlword & 0x80:
         return previous_controlword & ~0x80, 0      # re-arm the rising edge
     return cw, num
+
+
+def next_controlword(statusword: int, target: int, previous_controlword: int) -> int:
+    """THE CiA 402 walk as one pure function: the controlword to send now so that a drive whose
+    last statusword is ``statusword`` moves one transition towards ``target`` (a state constant:
+    ``OPERATION_ENABLED``, ``SWITCH_ON_DISABLED``, ``SWITCHED_ON``, ``QUICK_STOP_ACTIVE``).
+
+    ``statusword < 0`` (none received yet), Not ready to switch on, Fault reaction active, or
+    already there: ``previous_controlword`` (with bit 7 cleared once there). Fault reset is a
+    rising edge: after a controlword with bit 7 the next call from Fault returns 0x0000 first.
+    No allocation; for the hot loop (``hexacnc/daemon/loop.py``), the master and the tests.
+    """
+    if statusword < 0:
+        return previous_controlword
+    return controlword_towards(state_from_status(statusword), target, previous_controlword)[0]
+
+
+def drive_statusword(state: int, remote: bool = True) -> int:
+    """Drive side: the statusword bits 0..6 (+ voltage enabled bit 4 where the power stage is on,
+    + remote bit 9) of a state; the simulated drives add the mode-specific bits 10..13."""
+    sw = STATE_STATUS_BITS.get(state, 0) | (SW_REMOTE if remote else 0)
+    if state in (READY_TO_SWITCH_ON, SWITCHED_ON, OPERATION_ENABLED, QUICK_STOP_ACTIVE):
+        sw |= SW_VOLTAGE_ENABLED
+    return sw
+
+
+def is_operation_enabled(statusword: int) -> bool:
+    return statusword >= 0 and statusword & SW_OP_ENABLED_MASK == SW_OP_ENABLED_VALUE
+
+
+def status_problem(statusword: int, csp: bool = True) -> str | None:
+    """What is wrong with the statusword of a drive that should be following in Operation
+    enabled: None when fine, else a short text (remote bit 9 lost, bit 12 "drive follows the
+    command value" clear in CSP, following error bit 13, not Operation enabled)."""
+    if not is_operation_enabled(statusword):
+        return f"left Operation enabled ({status_text(statusword)})"
+    if not statusword & SW_REMOTE:
+        return "remote (statusword bit 9) lost: the drive no longer processes the controlword"
+    if csp and not statusword & SW_DRIVE_FOLLOWS:
+        return "statusword bit 12 clear: the drive does not follow the command value"
+    if csp and statusword & SW_FOLLOWING_ERROR:
+        return "statusword bit 13: following error"
+    return None
+
+
+# -- option codes (0x605A quick stop, 0x605C disable operation, 0x605E fault reaction, 0x6007) ----
+QS_SLOW_DOWN_DISABLE = 1          #: 0x605A: slow down ramp (0x6084), then Switch on disabled
+QS_QUICK_RAMP_DISABLE = 2         #: 0x605A: quick stop ramp (0x6085), then Switch on disabled
+QS_SLOW_DOWN_STAY = 5             #: 0x605A: slow down ramp, stay in Quick stop active
+QS_QUICK_RAMP_STAY = 6            #: 0x605A: quick stop ramp, stay in Quick stop active
+DISABLE_OP_COAST = 0              #: 0x605C: disable the drive function at once
+DISABLE_OP_SLOW_DOWN = 1          #: 0x605C: slow down ramp (0x6084), then disable
+FAULT_REACTION_COAST = 0          #: 0x605E: disable drive, motor free
+FAULT_REACTION_SLOW_DOWN = 1      #: 0x605E: slow down ramp
+FAULT_REACTION_QUICK_RAMP = 2     #: 0x605E: quick stop ramp
+ABORT_NONE = 0                    #: 0x6007 abort connection option: no action
+ABORT_FAULT = 1                   #: 0x6007: fault (then 0x605E)
+ABORT_DISABLE_VOLTAGE = 2         #: 0x6007: disable voltage command
+ABORT_QUICK_STOP = 3              #: 0x6007: quick stop command (then 0x605A)
+COMM_ERROR_PRE_OPERATIONAL = 0    #: 0x1029:1 communication error: NMT pre-operational
+COMM_ERROR_NO_CHANGE = 1          #: 0x1029:1: NMT state unchanged
+COMM_ERROR_STOPPED = 2            #: 0x1029:1: NMT stopped
+
+EMCY_RPDO_TIMEOUT = 0x8250
+EMCY_SYNC_LOSS = 0x8700           #: "sync controller" (no SYNC within 0x1006 x 1.5 + margin)
 
 
 # -- modes of operation ---------------------------------------------------------------------------

@@ -176,9 +176,11 @@ class CyclicIO:
                  limits_inc: tuple[Sequence[int], Sequence[int]] | None = None,
                  controlword: int = cia402.CW_ENABLE_OPERATION, period_s: float = 0.0005,
                  status: Sequence[int] | None = None, positions_inc: Sequence[int] | None = None,
-                 batch: bool | None = None):
+                 batch: bool | None = None, sync_every: int = 1):
         """``batch``: use the record batch interface (:mod:`drivers.framerec`); None: when every
-        bus offers it, False: never (python-can ``send``/``recv`` on every bus)."""
+        bus offers it, False: never (python-can ``send``/``recv`` on every bus).
+        ``sync_every``: bus cycles (RPDOs + SYNC) only on every n-th :meth:`send` (the drives' 0x60C2
+        is n loop periods, :attr:`drivers.master.Master.sync_every`); the other calls send nothing."""
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.plan = plan = plan_layout(bus_cfg)
@@ -208,6 +210,10 @@ class CyclicIO:
         self.controlword: list[int] = [int(controlword)] * n
         self._cw_sent: list[int] = [int(controlword)] * n
         self._sync_counter = 0
+        if not 1 <= int(sync_every) <= 100:
+            raise ValueError(f"CyclicIO: sync_every = {sync_every} must be 1..100")
+        self.sync_every = int(sync_every)
+        self._phase = 0
         self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
@@ -258,6 +264,12 @@ class CyclicIO:
         if controlwords is not None:
             for i in range(self.n):
                 cw[i] = controlwords[i]
+        if self.sync_every > 1:                  # bus period = n loop periods: frames every n-th call
+            self._phase += 1
+            if self._phase < self.sync_every:
+                self.cycles += 1
+                return SEND_LIMIT if limit else SEND_OK
+            self._phase = 0
         if self._sync_overflow:
             self._sync_counter = self._sync_counter % self._sync_overflow + 1
         now = time.monotonic()
@@ -496,6 +508,32 @@ class CyclicIO:
                 todo |= 1 << i
                 cw[i] = cia402.controlword_towards(state, wanted, cw[i])[0]
         return todo
+
+    def status_faults(self, csp: bool = True) -> int:
+        """Bitmask of struts (bit i) whose last statusword is not Operation enabled with remote (bit 9)
+        set and, in CSP, bit 12 ("drive follows the command value") set and bit 13 (following error)
+        clear - :func:`drivers.cia402.status_problem` names the cause. No allocation (hot loop)."""
+        want = cia402.SW_REMOTE | (cia402.SW_DRIVE_FOLLOWS if csp else 0)
+        bad13 = cia402.SW_FOLLOWING_ERROR if csp else 0
+        mask = 0
+        for i in range(self.n):
+            sw = self.status[i]
+            if (sw & cia402.SW_OP_ENABLED_MASK != cia402.SW_OP_ENABLED_VALUE or sw & want != want
+                    or sw & bad13):
+                mask |= 1 << i
+        return mask
+
+    def end_session(self) -> int:
+        """NMT "enter pre-operational" (0x80, all nodes) on every bus, once the drives are disabled: PDOs
+        and the drives' RPDO deadline monitoring stop, so a clean end is not reported as a silent master
+        (EMCY 0x8250). Drives still enabled react per 0x6007/0x605E (they stop). Returns buses failed."""
+        failed = 0
+        for bus in self.buses:
+            try:
+                bus.send(can.Message(arbitration_id=0x000, data=bytes([0x80, 0]), is_extended_id=False))
+            except (can.CanError, OSError):
+                failed += 1
+        return failed
 
     def states(self) -> list[int]:
         """CiA 402 state per strut from the last statuswords (slow path: allocates)."""

@@ -10,6 +10,8 @@ Layouts (``[bus] layout``), per bus with ``k`` drives:
   ``[0x607A, dummy 0x0007]``, drive B ``[dummy 0x0007, 0x607A]`` (each skips the other's
   bytes); both listen on COB-ID 0x200 + node id of A. An odd drive out gets a 4-byte frame.
   Controlwords travel in RPDO2 (0x300 + id, 2 bytes, asynchronous) only when they change.
+* ``separate``: one 4-byte RPDO1 per drive, ``[0x607A target i32]``, controlwords as in ``paired``;
+  used instead of ``paired``/``fd`` when a drive description's ``[DummyUsage]`` forbids 0x0007.
 * ``fd``: one CAN FD RPDO1 per bus with all ``k`` int32 targets (24 bytes for six); drive j
   maps j leading and k-1-j trailing 32-bit dummies around 0x607A. Controlwords as in ``paired``.
 
@@ -37,9 +39,28 @@ OBJ_POSITION_ACTUAL = 0x6064
 OBJ_TARGET_POSITION = 0x607A
 DUMMY_U32 = 0x0007
 
-#: TPDO2 (statusword) inhibit time in 100 us units and event timer in ms
+#: TPDO2 (statusword) inhibit time in 100 us units and event timer in ms (strut 0; staggered per strut)
 STATUS_INHIBIT_100US = 10
 STATUS_EVENT_TIMER_MS = 50
+#: per-strut steps: distinct periods so the drives' asynchronous frames do not keep coinciding
+STATUS_EVENT_STEP_MS = 7
+STATUS_INHIBIT_STEP_100US = 2
+HEARTBEAT_STEP_MS = 3
+
+
+def status_event_timer_ms(strut: int) -> int:
+    """TPDO2 event timer of a strut: 50, 57, 64, 71, 78, 85 ms (distinct: no lasting coincidence)."""
+    return STATUS_EVENT_TIMER_MS + STATUS_EVENT_STEP_MS * strut
+
+
+def status_inhibit_100us(strut: int) -> int:
+    """TPDO2 inhibit time of a strut (100 us units): 1.0, 1.2, ... 2.0 ms."""
+    return STATUS_INHIBIT_100US + STATUS_INHIBIT_STEP_100US * strut
+
+
+def heartbeat_producer_ms(heartbeat_ms: int, strut: int) -> int:
+    """0x1017 of a strut: ``[bus] heartbeat_ms`` + 3 ms per strut (distinct periods)."""
+    return int(heartbeat_ms) + HEARTBEAT_STEP_MS * strut
 #: valid CAN FD payload lengths
 FD_LENGTHS = (0, 1, 2, 3, 4, 5, 6, 7, 8, 12, 16, 20, 24, 32, 48, 64)
 
@@ -78,7 +99,7 @@ class CyclicFrame:
 
 @dataclass(frozen=True)
 class BusPlan:
-    layout: str
+    layout: str                       #: the layout used ('separate' when dummies are not allowed)
     buses: int
     fd: bool
     feedback_divider: int
@@ -86,6 +107,8 @@ class BusPlan:
     bus_nodes: tuple[tuple[int, ...], ...]   #: strut indices per bus
     nodes: tuple[NodePlan, ...]
     frames: tuple[CyclicFrame, ...]
+    requested_layout: str = ""        #: [bus] layout
+    note: str = ""                    #: why the layout differs from the requested one
 
     @property
     def sync_length(self) -> int:
@@ -110,7 +133,12 @@ def split_nodes(n: int, buses: int) -> tuple[tuple[int, ...], ...]:
 
 def plan_layout(bus_cfg) -> BusPlan:
     """The PDO plan of a ``[bus]`` config (:class:`hexacnc.config.BusConfig`)."""
-    layout = bus_cfg.layout
+    requested = layout = bus_cfg.layout
+    note = ""
+    if layout in ("paired", "fd") and not _dummies_ok(bus_cfg):
+        layout = "separate"
+        note = (f"[bus] layout {requested!r} needs dummy mapping (0x0007), which a drive description's "
+                "[DummyUsage] does not allow: one 4-byte target RPDO per drive instead ('separate')")
     ids = tuple(int(i) for i in bus_cfg.node_ids)
     if MASTER_NODE_ID in ids:
         raise BusError(f"[bus] node_ids {list(ids)}: node id {MASTER_NODE_ID} is the master's heartbeat id")
@@ -147,6 +175,11 @@ def plan_layout(bus_cfg) -> BusPlan:
                 else:
                     rmap[pair[0]] = (cob, (T,), 0)
                     frames.append(CyclicFrame(b, cob, 4, bus_cfg.fd, ((pair[0], 0),), False))
+        elif layout == "separate":          # no dummies: one 4-byte target frame per drive
+            for i in group:
+                cob = 0x200 + ids[i]
+                rmap[i] = (cob, (T,), 0)
+                frames.append(CyclicFrame(b, cob, 4, bus_cfg.fd, ((i, 0),), False))
         elif layout == "fd":
             cob = 0x200 + ids[group[0]]
             length = 4 * k
@@ -157,7 +190,7 @@ def plan_layout(bus_cfg) -> BusPlan:
                 rmap[i] = (cob, (DU,) * j + (T,) + (DU,) * (k - 1 - j), 4 * j)
             frames.append(CyclicFrame(b, cob, length, True, tuple((i, 4 * j) for j, i in enumerate(group)), False))
         else:
-            raise BusError(f"[bus] layout {layout!r} is not one of 'single', 'paired', 'fd'")
+            raise BusError(f"[bus] layout {layout!r} is not one of 'single', 'paired', 'fd', 'separate'")
         for pos, i in enumerate(group):
             nid = ids[i]
             cob, mp, off = rmap[i]
@@ -172,4 +205,12 @@ def plan_layout(bus_cfg) -> BusPlan:
             )
     return BusPlan(layout=layout, buses=bus_cfg.buses, fd=bool(bus_cfg.fd), feedback_divider=d,
                    sync_counter_overflow=overflow, bus_nodes=groups, nodes=tuple(nodes),  # type: ignore[arg-type]
-                   frames=tuple(frames))
+                   frames=tuple(frames), requested_layout=requested, note=note)
+
+
+def _dummies_ok(bus_cfg) -> bool:
+    """Every node's description allows dummy 0x0007 (u32) in PDO mapping ([DummyUsage])."""
+    if not hasattr(bus_cfg, "simulate"):        # a bare layout request (tests): no descriptions
+        return True
+    from .description import dummies_allowed
+    return dummies_allowed(bus_cfg, DUMMY_U32)

@@ -25,10 +25,11 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .errors import BusError
 
-from . import EDS_PATH, cia402
+from . import cia402, commission
 from .cyclic import limits_inc
-from .layout import (MASTER_NODE_ID, STATUS_EVENT_TIMER_MS, STATUS_INHIBIT_100US, NodePlan,
-                     plan_layout)
+from .description import node_descriptions
+from .layout import (MASTER_NODE_ID, NodePlan, heartbeat_producer_ms, plan_layout, status_event_timer_ms,
+                     status_inhibit_100us)
 
 log = logging.getLogger("hexacnc.master")
 
@@ -45,8 +46,10 @@ def interpolation_period(period_s: float) -> tuple[int, int]:
 class Master:
     """Master of the six drives on ``buses`` (see module doc)."""
 
-    def __init__(self, cfg, buses: can.BusABC | Sequence[can.BusABC], *, eds_path=EDS_PATH,
+    def __init__(self, cfg, buses: can.BusABC | Sequence[can.BusABC], *, eds_path=None,
                  sdo_timeout_s: float = 0.5):
+        """``eds_path``: one description for every node (default: per node, see
+        :mod:`drivers.description`: ``[bus] nodes`` entries, else the bundled EDS)."""
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.cfg = cfg
@@ -62,8 +65,18 @@ class Master:
         self.bootup_s = [0.0] * len(self.plan.nodes)
         self.emcy_log: list[tuple[int, int, int, bytes, float]] = []   #: (strut, code, register, data, t_s)
         self._cw = [0] * len(self.plan.nodes)
+        if eds_path is not None:
+            from .description import load_description
+            self.descriptions = [load_description(str(eds_path))] * len(self.plan.nodes)
+        else:
+            self.descriptions = node_descriptions(cfg.bus)
+        paths = [d.path for d in self.descriptions]
+        #: boot report: identity, timing (0x60C2, bus period, sync_every), units, reactions
+        self.report: dict = {"descriptions": paths}
+        self.bus_period_s = cfg.cycle.period_s
+        self.sync_every = 1
         for nd in self.plan.nodes:
-            node = canopen.RemoteNode(nd.node_id, canopen.import_od(str(eds_path), nd.node_id))
+            node = canopen.RemoteNode(nd.node_id, canopen.import_od(paths[nd.index], nd.node_id))
             node.sdo.RESPONSE_TIMEOUT = sdo_timeout_s
             self.networks[nd.bus].add_node(node)
             node.nmt.add_heartbeat_callback(self._heartbeat_cb(nd.index))
@@ -117,11 +130,41 @@ class Master:
         self.detach()
 
     # -- helpers -------------------------------------------------------------------------------
-    def _who(self, nd: NodePlan) -> str:
+    def who(self, nd: NodePlan) -> str:
         return f"node {nd.node_id} (strut {nd.index + 1}, bus {nd.bus})"
 
-    def _fail(self, nd: NodePlan, step: str, msg: str, exc: Exception | None = None) -> BusError:
-        return BusError(f"{self._who(nd)}: {step}: {msg}" + (f": {exc}" if exc is not None else ""))
+    def fail(self, nd: NodePlan, step: str, msg: str, exc: Exception | None = None) -> BusError:
+        return BusError(f"{self.who(nd)}: {step}: {msg}" + (f": {exc}" if exc is not None else ""))
+
+    _who = who
+    _fail = fail
+
+    def sdo_read(self, nd: NodePlan, step: str, index: int, sub: int | None = None) -> int:
+        return self._read(nd, step, index, sub)
+
+    def sdo_write(self, nd: NodePlan, step: str, index: int, sub: int | None, value: int) -> None:
+        self._write(nd, step, index, sub, value)
+
+    def sdo_write_raw(self, nd: NodePlan, index: int, sub: int | None, value: int) -> None:
+        """SDO write that lets :class:`SdoAbortedError` through (callers try alternatives)."""
+        node = self.nodes[nd.index]
+        try:
+            (node.sdo[index] if sub is None else node.sdo[index][sub]).raw = value
+        except SdoCommunicationError as exc:
+            if isinstance(exc, SdoAbortedError):
+                raise
+            raise self.fail(nd, f"write 0x{index:04X}", "no SDO answer", exc) from exc
+
+    def sdo_read_optional(self, nd: NodePlan, index: int, sub: int | None = None):
+        """Value of an optional object, None when the drive or its description lacks it."""
+        node = self.nodes[nd.index]
+        try:
+            obj = node.sdo[index] if sub is None else node.sdo[index][sub]
+            return obj.raw
+        except (SdoAbortedError, KeyError):
+            return None
+        except SdoCommunicationError as exc:
+            raise self.fail(nd, f"read 0x{index:04X}", "no SDO answer", exc) from exc
 
     def _write(self, nd: NodePlan, step: str, index: int, sub: int | None, value: int) -> None:
         node = self.nodes[nd.index]
@@ -144,18 +187,33 @@ class Master:
             raise self._fail(nd, step, f"no SDO answer reading 0x{index:04X}:{sub or 0:02X}", exc) from exc
 
     # -- NMT ----------------------------------------------------------------------------------
-    def boot(self, timeout_s: float = 3.0) -> None:
-        """NMT reset node for every drive and wait for the six boot-up messages (then pre-operational)."""
+    def boot(self, timeout_s: float | None = None) -> None:
+        """NMT reset node for every drive and wait for the six boot-up messages (then pre-operational).
+
+        ``timeout_s`` default ``[bus] boot_timeout_s`` (real drives need 5-15 s after power-up);
+        progress (which nodes are still silent) is logged every second."""
+        if timeout_s is None:
+            timeout_s = float(getattr(self.bus_cfg, "boot_timeout_s", 15.0))
         t0 = time.monotonic()
         for nd in self.plan.nodes:
             self.nodes[nd.index].nmt.send_command(0x81)
+        log.info("NMT reset sent to nodes %s; waiting up to %g s for their boot-up messages",
+                 [nd.node_id for nd in self.plan.nodes], timeout_s)
         deadline = t0 + timeout_s
+        next_log = t0 + 1.0
         while time.monotonic() < deadline:
             if all(t > t0 for t in self.bootup_s):
+                log.info("all %d drives booted after %.2f s", len(self.plan.nodes), time.monotonic() - t0)
                 return
+            now = time.monotonic()
+            if now >= next_log:
+                next_log = now + 1.0
+                log.info("boot: %.0f s of %g s, waiting for nodes %s", now - t0, timeout_s,
+                         [nd.node_id for nd in self.plan.nodes if self.bootup_s[nd.index] <= t0])
             time.sleep(0.005)
         missing = [nd for nd in self.plan.nodes if self.bootup_s[nd.index] <= t0]
-        raise self._fail(missing[0], "boot", f"no boot-up message within {timeout_s:g} s after NMT reset"
+        raise self._fail(missing[0], "boot", f"no boot-up message within {timeout_s:g} s after NMT reset "
+                         "([bus] boot_timeout_s)"
                          + (f" (also silent: nodes {[n.node_id for n in missing[1:]]})" if len(missing) > 1 else ""))
 
     def start(self, timeout_s: float = 1.0) -> None:
@@ -198,34 +256,47 @@ class Master:
 
     # -- configuration -------------------------------------------------------------------------
     def configure(self) -> None:
-        """SDO configuration of every drive (pre-operational): heartbeats, limits, PDOs, mode 8."""
+        """SDO configuration of every drive (pre-operational), nothing enabled: identity check
+        (0x1000/0x1018/0x6502), 0x60C2 in a format the drives take, units (factor group),
+        heartbeats, limits, PDOs (RPDO event timers = ``[bus] comm_loss_timeout_s``), reactions
+        (0x1006, 0x6007, 0x1029, 0x605A, 0x605C, 0x605E, read back), mode 8. Results in ``report``."""
         cfg, b = self.cfg, self.bus_cfg
+        self.report["identity"] = commission.check_identity(self)
+        timing = commission.set_interpolation_period(self, cfg.cycle.period_s)
+        self.report["timing"] = timing
+        self.bus_period_s, self.sync_every = timing["bus_period_s"], timing["sync_every"]
+        self.report["units"] = commission.configure_units(self)
         lo, hi = limits_inc(cfg)
-        ipv, ipi = interpolation_period(cfg.cycle.period_s)
         window = max(1, round(cfg.cycle.following_error_mm * b.increments_per_mm))
         for nd in self.plan.nodes:
-            w = self._write
-            w(nd, "heartbeat producer", 0x1017, None, b.heartbeat_ms)
+            w = self._write_verified
+            w(nd, "heartbeat producer", 0x1017, None, heartbeat_producer_ms(b.heartbeat_ms, nd.index))
             w(nd, "heartbeat consumer", 0x1016, 1, (MASTER_NODE_ID << 16) | min(0xFFFF, b.heartbeat_timeout_ms))
             w(nd, "SYNC counter", 0x1019, None, self.plan.sync_counter_overflow)
             w(nd, "software position limits", 0x607D, 1, lo[nd.index])
             w(nd, "software position limits", 0x607D, 2, hi[nd.index])
             w(nd, "following error window", 0x6065, None, window)
-            w(nd, "interpolation period", 0x60C2, 1, ipv)
-            w(nd, "interpolation period", 0x60C2, 2, ipi)
             self._map_pdos(nd)
             self.select_mode(nd, cia402.MODE_CSP)
+        self.report["reactions"] = commission.configure_reactions(self, self.bus_period_s)
         self.start_heartbeat()
+
+    def comm_loss_ms(self) -> int:
+        """RPDO1 event timer (deadline monitoring) in ms: ``[bus] comm_loss_timeout_s``, at least
+        3 bus periods."""
+        t = float(getattr(self.bus_cfg, "comm_loss_timeout_s", 0.02))
+        return max(1, int(round(max(t, 3 * self.bus_period_s) * 1e3)))
 
     def _map_pdos(self, nd: NodePlan) -> None:
         node = self.nodes[nd.index]
         step = "PDO mapping"
-        rp = [(nd.rpdo1_cob_id, 1, nd.rpdo1_map, None, None, None)]
+        rp = [(nd.rpdo1_cob_id, 1, nd.rpdo1_map, None, self.comm_loss_ms(), None)]
         if nd.rpdo2_cob_id is not None:
             rp.append((nd.rpdo2_cob_id, 255, nd.rpdo2_map, None, None, None))
         tp = [(nd.tpdo1_cob_id, nd.tpdo1_trans_type, nd.tpdo1_map, None, None,
                nd.tpdo1_sync_start if self.plan.sync_counter_overflow else None),
-              (nd.tpdo2_cob_id, 255, nd.tpdo2_map, STATUS_INHIBIT_100US, STATUS_EVENT_TIMER_MS, None)]
+              (nd.tpdo2_cob_id, 255, nd.tpdo2_map, status_inhibit_100us(nd.index),
+               status_event_timer_ms(nd.index), None)]
         try:
             for maps, wanted, default_base in ((node.rpdo, rp, 0x200), (node.tpdo, tp, 0x180)):
                 for n in range(1, 5):
@@ -245,10 +316,41 @@ class Master:
                         m.cob_id = default_base + 0x100 * (n - 1) + nd.node_id
                         m.enabled = False
                     m.save()
+            self._verify_pdos(nd, rp, tp)
         except SdoAbortedError as exc:
             raise self._fail(nd, step, "drive refused the PDO configuration", exc) from exc
         except SdoCommunicationError as exc:
             raise self._fail(nd, step, "no SDO answer", exc) from exc
+
+    def _write_verified(self, nd: NodePlan, step: str, index: int, sub: int | None, value: int) -> None:
+        """SDO write, then read back: BusError naming the object when the drive holds another value."""
+        self._write(nd, step, index, sub, value)
+        back = self._read(nd, f"{step} read-back", index, sub)
+        if back != value:
+            raise self._fail(nd, step, f"0x{index:04X}:{sub or 0:02X} written {value}, read back {back}")
+
+    def _verify_pdos(self, nd: NodePlan, rp: list, tp: list) -> None:
+        """Read back every PDO communication and mapping parameter written by :meth:`_map_pdos`."""
+        r = self._read
+        for comm, mapi, wanted in ((0x1400, 0x1600, rp), (0x1800, 0x1A00, tp)):
+            for n in range(4):
+                cob = r(nd, "PDO read-back", comm + n, 1)
+                if n >= len(wanted):
+                    if not cob & 0x80000000:
+                        raise self._fail(nd, "PDO read-back", f"0x{comm + n:04X}:01 = 0x{cob:08X}: PDO still valid")
+                    continue
+                want_cob, trans, mapping, inhibit, event, start = wanted[n]
+                got = {"COB-ID": cob & 0x9FFFFFFF, "transmission type": r(nd, "PDO read-back", comm + n, 2),
+                       "mapping": tuple(r(nd, "PDO read-back", mapi + n, k)
+                                        for k in range(1, r(nd, "PDO read-back", mapi + n, 0) + 1))}
+                want = {"COB-ID": want_cob, "transmission type": trans,
+                        "mapping": tuple(i << 16 | s << 8 | b for i, s, b in mapping)}
+                for sub, name, v in ((3, "inhibit time", inhibit), (5, "event timer", event), (6, "SYNC start", start)):
+                    if v is not None:
+                        got[name], want[name] = r(nd, "PDO read-back", comm + n, sub), v
+                if got != want:
+                    bad = {k: (want[k], got[k]) for k in want if want[k] != got[k]}
+                    raise self._fail(nd, "PDO read-back", f"0x{comm + n:04X}/0x{mapi + n:04X} (expected, found): {bad}")
 
     def select_mode(self, nd: NodePlan, mode: int, timeout_s: float = 0.5) -> None:
         """Write 0x6060 and wait until 0x6061 shows it."""
@@ -291,6 +393,9 @@ class Master:
                     codes = [cia402.emcy_text(c, r) for s, c, r, _, _ in self.emcy_log if s == nd.index]
                     raise self._fail(nd, f"walk to {name!r}", "drive is in Fault"
                                      + (f" (last EMCY {codes[-1]})" if codes else "") + "; reset the fault first")
+                if wanted == cia402.OPERATION_ENABLED and not sw & cia402.SW_REMOTE:
+                    raise self._fail(nd, f"walk to {name!r}", f"statusword 0x{sw:04X} has bit 9 (remote) clear: "
+                                     "the drive is in local mode and ignores the controlword")
                 cw, t = cia402.controlword_towards(state, wanted, self._cw[nd.index])
                 if t == 4 or t == 16:
                     pos = self._read(nd, "hold position before enable", 0x6064)
@@ -335,8 +440,9 @@ class Master:
         self.walk(cia402.SWITCH_ON_DISABLED, timeout_s)
 
     def bring_up(self, enable: bool = True, timeout_s: float = 2.0) -> None:
-        """boot -> configure -> NMT start -> (enable). Raises BusError naming node and step."""
-        self.boot(timeout_s)
+        """boot (``[bus] boot_timeout_s``) -> configure -> NMT start -> (enable). Raises BusError
+        naming node and step, always before any drive is enabled when a check fails."""
+        self.boot()
         self.configure()
         self.start(timeout_s)
         if enable:

@@ -49,7 +49,9 @@ import canopen
 from .errors import BusError, ConfigError
 
 from . import EDS_PATH
+from .description import STRICT_EDS, load_description
 from .layout import plan_layout
+from .simreact import TICK_S
 from .simnode import FaultSpec, SimDrive
 from .strutmodel import (ModelFactory, SecondOrderStrut, StrutModel, config_model_factory, default_model_factory,
                          load_model_factory)
@@ -72,7 +74,9 @@ class SimDrives:
 
     def __init__(self, cfg, buses: can.BusABC | Sequence[can.BusABC], *,
                  model_factory: ModelFactory | None = None, faults: Sequence[FaultSpec] = (),
-                 start_positions_inc: Sequence[int] | None = None, eds_path=EDS_PATH):
+                 start_positions_inc: Sequence[int] | None = None, eds_path=None):
+        """``eds_path``: description of the simulated drives; default per ``[bus] simulate_profile``
+        (``permissive``: hexapod_drive.eds, ``strict``: strict_drive.eds)."""
         if isinstance(buses, can.BusABC):
             buses = [buses]
         self.cfg = cfg
@@ -80,6 +84,11 @@ class SimDrives:
         if len(buses) != self.plan.buses:
             raise ValueError(f"SimDrives: {len(buses)} bus objects for [bus] buses = {self.plan.buses}")
         self.buses = list(buses)
+        self.profile = getattr(cfg.bus, "simulate_profile", "permissive")
+        if eds_path is None:
+            eds_path = STRICT_EDS if self.profile == "strict" else EDS_PATH
+        self.eds_path = str(eds_path)
+        self.dummies = load_description(self.eds_path).dummies
         self.lock = threading.RLock()
         self.increments_per_mm = cfg.bus.increments_per_mm
         if start_positions_inc is None:
@@ -171,7 +180,7 @@ class SimDrives:
         return self
 
     def _housekeeping(self) -> None:
-        while not self._stop.wait(0.005):
+        while not self._stop.wait(TICK_S):
             now = time.monotonic()
             with self.lock:
                 for d in self.drives:

@@ -10,15 +10,17 @@ from __future__ import annotations
 import logging
 import struct
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Callable
 
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from .errors import BusError, ConfigError
+from .errors import BusError
 
 from . import cia402
+from .simfaults import FaultSpec  # noqa: F401  (re-exported)
+from .simhooks import EXTENSIONS, OdHooks
+from .simreact import Reactions
 from .strutmodel import StrutModel
 
 if TYPE_CHECKING:
@@ -27,44 +29,14 @@ if TYPE_CHECKING:
 log = logging.getLogger("hexacnc.simdrive")
 
 _VALUE_RANGE = 0x06090030
+_CANNOT_MAP = 0x06040041                #: "object cannot be mapped to the PDO"
+#: mechanical lead of the simulated struts (mm per driving-shaft revolution); the factory value of
+#: the feed constant 0x6092:1 is set so the default position unit is 1 / [bus] increments_per_mm
+SIM_LEAD_MM = 5.0
 _DATA_NOT_TRANSFERRED = 0x08000022     #: "because of the present device state"
 _PDO_NOT_VALID = 1 << 31
 _STRUCT = {0x0002: "b", 0x0003: "h", 0x0004: "i", 0x0005: "B", 0x0006: "H", 0x0007: "I"}
 _DUMMIES = set(range(0x0001, 0x0008))
-
-
-# --------------------------------------------------------------------------------------------
-# fault specs
-# --------------------------------------------------------------------------------------------
-@dataclass
-class FaultSpec:
-    node_id: int
-    kind: str             #: emcy | heartbeat | stuck | refuse
-    code: int = 0x1000    #: EMCY code (kind emcy)
-    delay_s: float = 0.0  #: after the drive first reaches Operation enabled
-
-    KINDS = ("emcy", "heartbeat", "stuck", "refuse")
-
-    @classmethod
-    def parse(cls, text: str) -> "FaultSpec":
-        """``N:emcy:0x3210@1.5``, ``N:heartbeat@2``, ``N:stuck@0.5``, ``N:refuse``."""
-        body, _, delay = text.partition("@")
-        parts = body.split(":")
-        try:
-            node = int(parts[0], 0)
-            kind = parts[1]
-            if kind not in cls.KINDS:
-                raise ValueError(f"kind {kind!r} is not one of {', '.join(cls.KINDS)}")
-            code = int(parts[2], 0) if kind == "emcy" and len(parts) > 2 else 0x1000
-            if kind != "emcy" and len(parts) > 2 or len(parts) > 3:
-                raise ValueError("too many ':' fields")
-            d = float(delay) if delay else 0.0
-            if not (0 <= d < 1e6) or not (1 <= node <= 127) or not (0 < code <= 0xFFFF):
-                raise ValueError("node 1..127, code 1..0xFFFF, delay >= 0")
-        except (ValueError, IndexError) as exc:
-            raise ConfigError(f"--fault {text!r}: expected NODE:emcy:CODE@S, NODE:heartbeat@S, "
-                              f"NODE:stuck@S or NODE:refuse ({exc})") from None
-        return cls(node, kind, code, d)
 
 
 # --------------------------------------------------------------------------------------------
@@ -122,8 +94,29 @@ class SimDrive:
         self._dt_s = 0.0005
         self._consumer = (0, 0.0)
         self.model.reset(start_inc / self.k)
+        self.hooks = OdHooks()
+        self.react = Reactions(self)
+        self.dummies = frozenset(getattr(sim, "dummies", frozenset(range(1, 8))))
+        self.disabling = False              #: transition 5 asked, ramping down first (0x605C = 1)
+        self._ip_index_range = (od[0x60C2][2].min, od[0x60C2][2].max) if 0x60C2 in od else (None, None)
+        if 0x6092 in od:                    # factory feed constant: default units = 1 / increments_per_mm
+            od[0x6092][1].default = int(round(self.k * SIM_LEAD_MM))
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
+        for ext in EXTENSIONS:
+            ext(self)
+
+    def raw_or(self, index: int, sub: int, default: int) -> int:
+        """Value of an object, ``default`` when this drive's description lacks it."""
+        od = self.node.object_dictionary
+        if index not in od:
+            return default
+        if not isinstance(od[index], canopen.objectdictionary.ODVariable) and sub not in od[index]:
+            return default
+        return self.raw(index, sub)
+
+    def model_amax(self) -> float:
+        return float(getattr(self.model, "amax", 20000.0))
 
     # -- object access ----------------------------------------------------------------------
     def raw(self, index: int, sub: int = 0) -> int:
@@ -133,10 +126,7 @@ class SimDrive:
         return self.node.sdo[index][sub].raw
 
     def statusword(self) -> int:
-        sw = cia402.STATE_STATUS_BITS[self.state] | cia402.SW_REMOTE
-        if self.state in (cia402.READY_TO_SWITCH_ON, cia402.SWITCHED_ON, cia402.OPERATION_ENABLED,
-                          cia402.QUICK_STOP_ACTIVE):
-            sw |= cia402.SW_VOLTAGE_ENABLED
+        sw = cia402.drive_statusword(self.state)
         if self.state == cia402.OPERATION_ENABLED and self.mode == cia402.MODE_CSP:
             sw |= cia402.SW_DRIVE_FOLLOWS
             if abs(self.ferr_inc) > self._window:
@@ -149,6 +139,11 @@ class SimDrive:
 
     # -- SDO callbacks ----------------------------------------------------------------------
     def _on_read(self, index, subindex, od):
+        hook = self.hooks.read.get(index)
+        if hook is not None:
+            v = hook(subindex)
+            if v is not None:
+                return v
         if index == 0x6041:
             return self.statusword()
         if index == 0x6064:
@@ -190,6 +185,16 @@ class SimDrive:
                 self.target_inc = value
             elif index == 0x2000:
                 self._sdo_injection(subindex, value)
+            elif index == 0x60C2 and subindex == 2:
+                lo, hi = self._ip_index_range
+                if (lo is not None and value < lo) or (hi is not None and value > hi):
+                    raise SdoAbortedError(_VALUE_RANGE)     # e.g. strict: only -3 (whole ms)
+            elif 0x1600 <= index <= 0x17FF and subindex >= 1 and value:
+                obj = value >> 16
+                if obj < 0x20 and obj not in self.dummies:
+                    raise SdoAbortedError(_CANNOT_MAP)      # dummy not allowed by [DummyUsage]
+            for fn in self.hooks.write.get(index, ()):
+                fn(subindex, value)
 
     def _sdo_injection(self, sub: int, value: int) -> None:
         now = time.monotonic()
@@ -227,11 +232,25 @@ class SimDrive:
 
     # -- state machine ----------------------------------------------------------------------
     def apply_controlword(self, cw: int) -> None:
+        for fn in self.hooks.controlword:
+            fn(self, cw)
         prev, self.cw = self.cw, cw
+        now = time.monotonic()
         for _ in range(3):                  # 0x0F from Ready to switch on: transitions 3 then 4
             new, num = cia402.drive_step(self.state, cw, prev)
             if not num:
                 break
+            if self.disabling:              # ramping down for transition 5: no other command
+                break
+            if num == 5 and self.react.disable_operation(now):
+                self.disabling = True       # stays Operation enabled until the ramp ends
+                break
+            if num == 11:
+                self.state = new
+                self.react.quick_stop_option(now, "quick stop (controlword bit 2)")
+                break
+            if num in (8, 9, 12):
+                self.react.ramp = None
             if num in (4, 16):
                 if self.refuse:
                     log.info("node %d: refusing transition %d (injected)", self.node_id, num)
@@ -255,17 +274,24 @@ class SimDrive:
             prev = cw
         self.status_changed()
 
-    def fault(self, code: int) -> None:
+    def fault(self, code: int, send_emcy: bool = True) -> None:
         if self.state in (cia402.FAULT, cia402.FAULT_REACTION_ACTIVE):
             return
+        was_moving = self.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)
         self.error_code = code
         reg = 0x01
         cls = code & 0xF000
         reg |= {0x2000: 0x02, 0x3000: 0x04, 0x4000: 0x08, 0x8000: 0x10 if code & 0xFF00 == 0x8100 else 0x20}.get(cls, 0)
         self.error_register = reg
         log.info("node %d: fault %s", self.node_id, cia402.emcy_text(code, reg))
-        self.node.emcy.send(code, reg)
+        if send_emcy:
+            self.node.emcy.send(code, reg)
         self.state = cia402.FAULT_REACTION_ACTIVE
+        self.disabling = False
+        if was_moving:
+            self.react.fault_reaction(time.monotonic())
+        else:
+            self.react.ramp = None
         self.status_changed()
 
     # -- NMT --------------------------------------------------------------------------------
@@ -284,6 +310,8 @@ class SimDrive:
                 for idx in [i for i in self.node.data_store if 0x1000 <= i < 0x2000]:
                     del self.node.data_store[idx]
             self.master_hb_s = None
+            self.react.ramp = None
+            self.disabling = False
             self.boot()
         elif cmd == 0x01:
             self.configure_pdos()
@@ -352,6 +380,8 @@ class SimDrive:
         self._ferr_timeout_s = self.raw(0x6066) * 1e-3
         self._limits = (self.raw(0x607D, 1), self.raw(0x607D, 2))
         self._dt_s = self.raw(0x60C2, 1) * 10.0 ** self.raw(0x60C2, 2)
+        self._set_units()
+        self.react.configure()
         hb = self.raw(0x1016, 1)
         self._consumer = ((hb >> 16) & 0x7F, (hb & 0xFFFF) * 1e-3)
         if self._consumer[1] > 0:
@@ -361,6 +391,20 @@ class SimDrive:
                 self.sim._hb_subs[self.bus_index].append(sub)
         self.last_status = -1
         self.status_changed()
+
+    def _set_units(self) -> None:
+        """Position units per mm from the feed constant 0x6092 (SIM_LEAD_MM per shaft revolution);
+        the strut stays where it is, its reading is rescaled."""
+        feed, revs = self.raw_or(0x6092, 1, 0), self.raw_or(0x6092, 2, 0)
+        if feed <= 0 or revs <= 0:
+            return
+        k = feed / revs / SIM_LEAD_MM
+        if abs(k - self.k) > 1e-12 * k:
+            x = self.pos_inc / self.k
+            log.info("node %d: position units %g per mm (0x6092 %d/%d, lead %g mm)", self.node_id, k, feed, revs,
+                     SIM_LEAD_MM)
+            self.k = k
+            self.pos_inc = self.demand_inc = self.target_inc = int(round(x * k))
 
     def unsubscribe_pdos(self) -> None:
         net = self.sim.networks[self.bus_index]
@@ -384,6 +428,7 @@ class SimDrive:
                 return
             values = st.unpack_from(data)
             with self.sim.lock:
+                self.react.rpdo_received(time.monotonic())
                 try:
                     for obj, v in zip(objs, values):
                         if synchronous:
@@ -431,9 +476,14 @@ class SimDrive:
             if tp.pending and now - tp.last_s >= tp.inhibit_s:
                 self.send_tpdo(tp, now)
 
-    def step(self, dt: float, now: float) -> None:
+    def step(self, dt: float, now: float, own_clock: bool = False) -> None:
+        """One interpolation period: follow the target (Operation enabled), a stop ramp (quick stop,
+        fault reaction, disable operation) or coast/brake (power stage off)."""
         st = self.state
-        enabled = st == cia402.OPERATION_ENABLED
+        enabled = st == cia402.OPERATION_ENABLED and not self.disabling
+        ramp = self.react.ramp
+        if not own_clock:
+            self.react.last_step_s = now
         if enabled:
             lo, hi = self._limits
             t = self.target_inc
@@ -444,6 +494,10 @@ class SimDrive:
                 self.model.reset(x)
             else:
                 x = self.model.step(self.demand_inc / self.k, dt, True)
+        elif ramp is not None:
+            demand_mm = self.react.ramp_demand(dt)
+            self.demand_inc = int(round(demand_mm * self.k))
+            x = self.model.step(demand_mm, dt, True)
         else:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
@@ -455,14 +509,29 @@ class SimDrive:
                 self.fault(cia402.EMCY_FOLLOWING_ERROR)
         else:
             self.ferr_time_s = 0.0
+        for fn in self.hooks.sync:
+            fn(self, now)
         self.settle(now)
 
     def settle(self, now: float) -> None:
-        """Automatic transitions once the strut stands still (12, 14)."""
-        if self.state in (cia402.FAULT_REACTION_ACTIVE, cia402.QUICK_STOP_ACTIVE):
+        """Automatic transitions once the strut stands still: 12 (quick stop per 0x605A), 14 (fault
+        reaction done), the end of transition 5 (disable operation per 0x605C)."""
+        ramp = self.react.ramp
+        if ramp is not None:
+            if not ramp.done or abs(self.model.velocity_mm_s) > 1e-3:
+                return
+            self.react.ramp = None
+            self.react.note(now, f"stopped at {self.pos_inc / self.k:.4f} mm")
+            if self.disabling:
+                self.disabling = False
+                self.state = cia402.SWITCHED_ON
+            elif ramp.then is not None and self.state in (cia402.QUICK_STOP_ACTIVE, cia402.FAULT_REACTION_ACTIVE):
+                self.state = ramp.then
+            self.status_changed(now)
+            return
+        if self.state == cia402.FAULT_REACTION_ACTIVE:
             if abs(self.model.velocity_mm_s) < 1e-9 or now - self.last_sync_s > 0.02:
-                self.state = cia402.FAULT if self.state == cia402.FAULT_REACTION_ACTIVE \
-                    else cia402.SWITCH_ON_DISABLED
+                self.state = cia402.FAULT
                 self.status_changed(now)
 
     def send_tpdo(self, tp: _Tpdo, now: float) -> None:
@@ -503,9 +572,8 @@ class SimDrive:
             cons_id, cons_s = self._consumer
             if cons_s > 0 and self.master_hb_s is not None and now - self.master_hb_s > cons_s:
                 self.master_hb_s = None     # report once, re-armed by the next heartbeat
-                if self.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCHED_ON,
-                                  cia402.READY_TO_SWITCH_ON):
-                    self.fault(cia402.EMCY_HEARTBEAT)
-                else:
-                    self.node.emcy.send(cia402.EMCY_HEARTBEAT, 0x11)
-        self.settle(now)
+                self.react.comm_loss(cia402.EMCY_HEARTBEAT, now, f"master heartbeat missing for {cons_s * 1e3:g} ms "
+                                     "(0x1016)")
+        self.react.supervise(now)
+        if self.react.ramp is None:
+            self.settle(now)

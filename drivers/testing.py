@@ -128,7 +128,8 @@ class SimRig:
     """Master and simulated drives on private ``virtual`` buses, in one process (unit tests).
 
     ``SimRig(cfg=None, faults=(), **bus_changes)``: ``cfg`` defaults to the embedded default machine;
-    ``bus_changes`` replace ``[bus]`` fields (``layout="single"``, ``buses=1`` ...). The channel is
+    ``bus_changes`` replace ``[bus]`` fields (``layout="single"``, ``buses=1`` ...; ``comm_loss_timeout_s``
+    defaults to 0.5 s here). The channel is
     made unique per rig. ``rig.master`` (attached), ``rig.sim`` (started), ``rig.cyclic()`` detaches
     the master and returns a :class:`drivers.cyclic.CyclicIO` on the master's buses.
     """
@@ -144,7 +145,10 @@ class SimRig:
         from .simdrive import SimDrives
 
         cfg = cfg if cfg is not None else load_config()
-        changes = {"interface": "virtual", "channel": f"rig-{uuid.uuid4().hex[:10]}", **bus_changes}
+        # master and drives share this process (and its GIL) on a shared test machine: the drives'
+        # master supervision (RPDO deadline) gets 0.5 s unless a test asks for less
+        changes = {"interface": "virtual", "channel": f"rig-{uuid.uuid4().hex[:10]}", "comm_loss_timeout_s": 0.5,
+                   **bus_changes}
         self.cfg = cfg.replace(bus=dataclasses.replace(cfg.bus, **changes))
         self.sim_buses = open_buses(self.cfg.bus)
         self.master_buses = open_buses(self.cfg.bus)
@@ -155,6 +159,7 @@ class SimRig:
     def cyclic(self, **kw):
         from .cyclic import CyclicIO, limits_inc
 
+        kw.setdefault("sync_every", self.master.sync_every)
         if self.master.attached:
             kw.setdefault("status", self.master.statuswords())
             kw.setdefault("positions_inc", self.master.positions_inc())

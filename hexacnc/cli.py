@@ -34,6 +34,7 @@ COMMANDS: dict[str, str] = {
     "jog": "hexacnc.commands.jog",
     "offsets": "hexacnc.commands.offsets:OFFSETS",
     "tools": "hexacnc.commands.offsets:TOOLS",
+    "bus": "hexacnc.commands.bus",
 }
 
 

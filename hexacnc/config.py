@@ -28,6 +28,7 @@ derived for the inside (``*_rad`` attributes).
 from __future__ import annotations
 
 import ipaddress
+import dataclasses
 import math
 import os
 import tomllib
@@ -54,6 +55,48 @@ def default_config_path() -> Path:
         return repo
     return Path(str(resources.files("hexacnc") / "data" / DEFAULT_CONFIG_NAME))
 
+
+
+def _bus_nodes(b: "Section", bus: "BusConfig") -> "BusConfig":
+    """``[bus] nodes``: a list of tables ``{node_id = N, eds = "file.eds|dcf", vendor_id = ...,
+    product_code = ..., revision = ...}`` (all but node_id optional), one per drive in strut order.
+    Sets node_ids (must agree with an explicit ``node_ids``), node_eds, node_identity."""
+    if not b.has("nodes"):
+        return bus
+    entries = b._get("nodes", None)
+    if not isinstance(entries, list) or len(entries) != 6 or not all(isinstance(e, dict) for e in entries):
+        raise b.error("nodes", "expected a list of 6 tables like {node_id = 1, eds = \"drive.eds\"}")
+    base = os.path.dirname(os.path.abspath(b.path)) if os.path.isfile(b.path) else os.getcwd()
+    ids, eds, idents = [], [], []
+    for k, e in enumerate(entries):
+        where = f"nodes[{k}]"
+        extra = set(e) - {"node_id", "eds", "vendor_id", "product_code", "revision"}
+        if extra:
+            raise b.error(where, f"unknown key(s) {sorted(extra)}")
+        nid = e.get("node_id")
+        if isinstance(nid, bool) or not isinstance(nid, int) or not 1 <= nid <= 127:
+            raise b.error(where, f"node_id must be an integer 1..127, got {nid!r}")
+        ids.append(nid)
+        path = e.get("eds", "")
+        if not isinstance(path, str):
+            raise b.error(where, f"eds must be a file name, got {path!r}")
+        if path:
+            path = os.path.join(base, os.path.expanduser(path))
+            if not os.path.isfile(path):
+                raise b.error(where, f"eds {path!r}: no such file")
+        eds.append(path)
+        ident = []
+        for key in ("vendor_id", "product_code", "revision"):
+            v = e.get(key, -1)
+            if isinstance(v, bool) or not isinstance(v, int) or not -1 <= v <= 0xFFFFFFFF:
+                raise b.error(where, f"{key} must be an integer 0..0xFFFFFFFF, got {v!r}")
+            ident.append(v)
+        idents.append(tuple(ident))
+    if len(set(ids)) != 6:
+        raise b.error("nodes", f"node ids must be 6 distinct integers, got {ids}")
+    if b.has("node_ids") and tuple(ids) != tuple(bus.node_ids):
+        raise b.error("nodes", f"node ids {ids} disagree with [bus] node_ids {list(bus.node_ids)}")
+    return dataclasses.replace(bus, node_ids=tuple(ids), node_eds=tuple(eds), node_identity=tuple(idents))
 
 class Section:
     """Range-checked getters over one TOML table; ``finish`` rejects leftovers."""
@@ -278,13 +321,20 @@ class BusConfig:
     data_bitrate: int = 2_000_000
     buses: int = 2                             #: 1 Mbit/s classic: 2 buses so feedback fits 0.5 ms
     node_ids: tuple[int, ...] = (1, 2, 3, 4, 5, 6)
-    layout: str = "paired"                     #: single | paired | fd
+    layout: str = "paired"                     #: single | paired | fd | separate (no dummies)
     feedback_divider: int = 3                  #: TPDO every n-th SYNC (staggered per drive)
     max_load: float = 0.95                     #: worst-case bus time / cycle
     increments_per_mm: float = 10000.0
     heartbeat_ms: int = 100
     heartbeat_timeout_ms: int = 350
     simulate: bool = True                      #: start the simulated drives process
+    simulate_profile: str = "permissive"       #: permissive | strict (simulated drives, see drivers/README.md)
+    node_eds: tuple = ()                       #: per node: EDS/DCF path ("" = bundled default), from [bus] nodes
+    node_identity: tuple = ()                  #: per node: (vendor, product, revision), -1 = from the EDS
+    boot_timeout_s: float = 15.0               #: boot-up messages after NMT reset
+    comm_loss_timeout_s: float = 0.02          #: drives stop themselves when the master is silent this long
+    feed_mm_per_rev: float = 0.0               #: strut travel per driving-shaft revolution (0: units unchecked)
+    write_factor_group: bool = False           #: write 0x6092 feed constant from increments_per_mm x feed_mm_per_rev
 
 
 @dataclass(frozen=True)
@@ -638,14 +688,20 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         data_bitrate=b.getint("data_bitrate", bd.data_bitrate, minval=10_000, maxval=8_000_000),
         buses=b.getint("buses", bd.buses, minval=1, maxval=6),
         node_ids=tuple(int(x) for x in node_ids),
-        layout=b.getchoice("layout", ("single", "paired", "fd"), bd.layout),
+        layout=b.getchoice("layout", ("single", "paired", "fd", "separate"), bd.layout),
         feedback_divider=b.getint("feedback_divider", bd.feedback_divider, minval=1, maxval=100),
         max_load=b.getfloat("max_load", bd.max_load, above=0.0, maxval=1.0),
         increments_per_mm=b.getfloat("increments_per_mm", bd.increments_per_mm, above=0.0, maxval=1e7),
         heartbeat_ms=b.getint("heartbeat_ms", bd.heartbeat_ms, minval=1, maxval=10000),
         heartbeat_timeout_ms=b.getint("heartbeat_timeout_ms", bd.heartbeat_timeout_ms, minval=1, maxval=60000),
         simulate=b.getbool("simulate", bd.simulate),
+        simulate_profile=b.getchoice("simulate_profile", ("permissive", "strict"), bd.simulate_profile),
+        boot_timeout_s=b.getfloat("boot_timeout_s", bd.boot_timeout_s, above=0.0, maxval=600.0),
+        comm_loss_timeout_s=b.getfloat("comm_loss_timeout_s", bd.comm_loss_timeout_s, minval=0.001, maxval=10.0),
+        feed_mm_per_rev=b.getfloat("feed_mm_per_rev", bd.feed_mm_per_rev, minval=0.0, maxval=1e4),
+        write_factor_group=b.getbool("write_factor_group", bd.write_factor_group),
     )
+    bus = _bus_nodes(b, bus)
 
     d = sec("daemon")
     daemon = _daemon_config(d, bus)

@@ -75,3 +75,29 @@ def test_emcy_texts():
     assert c.emcy_text(0xFF12) == "0xFF12 device specific"
     assert c.emcy_text(0x0000) == "0x0000 error reset or no error"
     assert c.emcy_text(0x1000, 1, b"\x01\x02\0\0\0").endswith("data 0102000000")
+
+
+def test_next_controlword_is_the_walk_from_statuswords():
+    sw = {s: c.drive_statusword(s) for s in c.STATE_STATUS_BITS}
+    assert c.next_controlword(-1, c.OPERATION_ENABLED, 0x1234) == 0x1234          # nothing heard yet
+    assert c.next_controlword(sw[c.SWITCH_ON_DISABLED], c.OPERATION_ENABLED, 0) == c.CW_SHUTDOWN
+    assert c.next_controlword(sw[c.READY_TO_SWITCH_ON], c.OPERATION_ENABLED, 6) == c.CW_SWITCH_ON
+    assert c.next_controlword(sw[c.SWITCHED_ON], c.OPERATION_ENABLED, 7) == c.CW_ENABLE_OPERATION
+    assert c.next_controlword(sw[c.OPERATION_ENABLED], c.OPERATION_ENABLED, 0x0F) == 0x0F
+    # normal disable: transition 5 (0x0007, ramp per 0x605C, brake) then 10 (0x0000), never 9
+    assert c.next_controlword(sw[c.OPERATION_ENABLED], c.SWITCH_ON_DISABLED, 0x0F) == c.CW_DISABLE_OPERATION == 0x0007
+    assert c.next_controlword(sw[c.SWITCHED_ON], c.SWITCH_ON_DISABLED, 0x07) == c.CW_DISABLE_VOLTAGE
+    assert c.next_controlword(sw[c.OPERATION_ENABLED], c.QUICK_STOP_ACTIVE, 0x0F) == c.CW_QUICK_STOP
+    assert not c.CW_QUICK_STOP & c.CW_BIT_QUICK_STOP                                 # bit 2 cleared
+    assert c.next_controlword(sw[c.FAULT], c.OPERATION_ENABLED, 0) == c.CW_FAULT_RESET
+    assert c.next_controlword(sw[c.FAULT], c.OPERATION_ENABLED, c.CW_FAULT_RESET) == 0   # re-arm the edge
+    assert c.next_controlword(sw[c.FAULT_REACTION_ACTIVE], c.OPERATION_ENABLED, 0x0F) == 0x0F   # wait
+
+
+def test_status_problem_names_bits_9_12_13():
+    ok = c.drive_statusword(c.OPERATION_ENABLED) | c.SW_DRIVE_FOLLOWS
+    assert c.status_problem(ok) is None
+    assert "bit 9" in c.status_problem(ok & ~c.SW_REMOTE)
+    assert "bit 12" in c.status_problem(ok & ~c.SW_DRIVE_FOLLOWS)
+    assert "bit 13" in c.status_problem(ok | c.SW_FOLLOWING_ERROR)
+    assert "left Operation enabled" in c.status_problem(c.drive_statusword(c.QUICK_STOP_ACTIVE))

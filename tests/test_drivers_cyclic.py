@@ -189,3 +189,38 @@ def test_statusword_heartbeat_emcy_and_short_frames_decode_alike_on_both_receive
     finally:
         for b in buses + inject + spare:
             b.shutdown()
+
+
+def test_status_faults_and_sync_every_without_a_rig():
+    import dataclasses
+    import uuid
+
+    from drivers.cyclic import CyclicIO
+    from hexacnc.config import load_config
+    cfg = load_config()
+    bus_cfg = dataclasses.replace(cfg.bus, interface="virtual", channel=f"sf-{uuid.uuid4().hex[:8]}")
+    tx, rx = open_buses(bus_cfg), open_buses(bus_cfg)
+    try:
+        ok = cia402.drive_statusword(cia402.OPERATION_ENABLED) | cia402.SW_DRIVE_FOLLOWS
+        io = CyclicIO(tx, bus_cfg, status=[ok] * 6, sync_every=2)
+        assert io.status_faults() == 0
+        io.status[1] = ok & ~cia402.SW_REMOTE
+        io.status[4] = ok & ~cia402.SW_DRIVE_FOLLOWS
+        io.status[5] = cia402.drive_statusword(cia402.QUICK_STOP_ACTIVE)
+        assert io.status_faults() == 0b110010
+        assert io.status_faults(csp=False) == 0b100010
+        got = []
+        for k in range(4):                                  # bus frames on every 2nd call only
+            assert io.send([0] * 6) == SEND_OK
+            time.sleep(0.01)
+            while (m := rx[0].recv(0)) is not None:
+                got.append((k, m.arbitration_id))
+        assert {k for k, c in got if c == 0x80} == {1, 3}
+        assert io.end_session() == 0
+        m = rx[1].recv(0.5)
+        while m is not None and m.arbitration_id != 0:
+            m = rx[1].recv(0.5)
+        assert m is not None and bytes(m.data) == b"\x80\x00"          # NMT pre-operational, all nodes
+    finally:
+        for b in tx + rx:
+            b.shutdown()

@@ -25,7 +25,9 @@ CHANNEL = "239.74.163.20"
 
 def udp_cfg():
     cfg = load_config()
-    return cfg.replace(bus=dataclasses.replace(cfg.bus, interface="udp_multicast", channel=CHANNEL))
+    # loaded test machine: the drives' RPDO deadline (comm_loss_timeout_s) must outlast its stalls
+    return cfg.replace(bus=dataclasses.replace(cfg.bus, interface="udp_multicast", channel=CHANNEL,
+                                               comm_loss_timeout_s=0.5))
 
 
 @pytest.mark.slow
@@ -71,8 +73,11 @@ def test_master_and_simulated_drives_process_reach_operation_enabled(request):
             assert io.send(tg) == SEND_OK
             time.sleep(0.001)
             io.poll()
-        time.sleep(0.1)
-        io.poll()
+        for _ in range(50):         # keep cycling: a silent master is stopped by the drives (0x1400:05)
+            assert io.send(tg) == SEND_OK
+            sent.append(tg)
+            time.sleep(0.002)
+            io.poll()
         assert not io.emcy, [cia402.emcy_text(e[1], e[2]) for e in io.emcy]
         for i in range(6):
             # every frame on the bus, decoded by canopen from the drives' own mapping, is what was sent

@@ -5,6 +5,8 @@ import time
 
 import pytest
 
+from drivers.layout import heartbeat_producer_ms
+
 from hexacnc.errors import BusError
 from drivers import cia402
 from drivers.cyclic import EV_BOOTUP, EV_EMCY, SEND_OK
@@ -48,7 +50,7 @@ def test_boot_six_nodes_to_operation_enabled_and_back():
         assert m.nmt_states == [5] * 6                      # heartbeats report OPERATIONAL
         for nd in m.plan.nodes:
             assert m._read(nd, "test", 0x6061) == cia402.MODE_CSP
-            assert m._read(nd, "test", 0x1017) == rig.cfg.bus.heartbeat_ms
+            assert m._read(nd, "test", 0x1017) == heartbeat_producer_ms(rig.cfg.bus.heartbeat_ms, nd.index)
         m.enable()
         assert [cia402.state_from_status(s) for s in m.statuswords()] == [cia402.OPERATION_ENABLED] * 6
         assert rig.sim.states() == [cia402.OPERATION_ENABLED] * 6
@@ -164,16 +166,19 @@ def test_stuck_strut_gives_following_error():
         assert cia402.state_from_status(io.status[0]) == cia402.OPERATION_ENABLED
 
 
-def test_master_heartbeat_loss_faults_the_drives():
-    with SimRig() as rig:
+def test_master_silence_stops_the_drives_per_0x6007():
+    with SimRig(comm_loss_timeout_s=0.05) as rig:
         rig.master.bring_up()
         start = rig.master.positions_inc()
         io = rig.cyclic()
         run(io, 10, lambda k: start)
         time.sleep(rig.cfg.bus.heartbeat_timeout_ms * 1e-3 + 0.15)     # the loop "dies": no SYNC, no heartbeat
         io.poll()
+        # RPDO deadline (0x1400:05 = comm_loss_timeout_s) first, then the heartbeat consumer (0x1016)
+        assert sorted(e[0] for e in io.emcy if e[1] == cia402.EMCY_RPDO_TIMEOUT) == list(range(6))
         assert sorted(e[0] for e in io.emcy if e[1] == cia402.EMCY_HEARTBEAT) == list(range(6))
-        assert rig.sim.states() == [cia402.FAULT] * 6
+        # 0x6007 = 3 quick stop, 0x605A = 2: quick stop ramp then Switch on disabled (not Fault)
+        assert rig.sim.states() == [cia402.SWITCH_ON_DISABLED] * 6
 
 
 def test_sdo_fault_injection_object():

@@ -34,7 +34,8 @@ def cfg():
     thermal = dataclasses.replace(base.thermal, source="sim", sim_time_scale=SCALE, probe_rate_hz=5.0,
                                   max_offset_rate_mm_s=RATE_MM_S, max_offset_mm=0.3)
     dyn = dataclasses.replace(base.dynamics, simulated_drives="coupled")
-    return base.replace(cycle=cycle, thermal=thermal, dynamics=dyn)
+    bus = dataclasses.replace(base.bus, comm_loss_timeout_s=0.5)     # as tests/e2e_fixtures.py: machine stalls
+    return base.replace(cycle=cycle, thermal=thermal, dynamics=dyn, bus=bus)
 
 
 @pytest.fixture(scope="module")

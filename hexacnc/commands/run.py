@@ -24,6 +24,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="run the embedded demo program (a small 5-axis part) and show its progress; "
                              "without --duration, exit when it has finished")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    parser.add_argument("--capture", metavar="FILE.pcap", help="write every CAN frame of the session to a "
+                        "SocketCAN pcap (Wireshark link type 227; more buses: FILE-bus1.pcap, ...)")
     parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
                         help="default: [daemon] log_level")
 
@@ -90,6 +92,9 @@ def main(args: argparse.Namespace) -> int:
     from ..daemon.server import SocketServer
 
     cfg = load_config(args.config)
+    if getattr(args, "capture", None):      # read by the hot process when it opens the buses (drivers.pcap)
+        import os
+        os.environ["HEXACNC_CAPTURE"] = os.path.abspath(args.capture)
     level = args.log_level or cfg.daemon.log_level
     logging.basicConfig(level=getattr(logging, level), format="%(asctime)s hexacnc %(levelname)s %(message)s")
     log = logging.getLogger("hexacnc.run")

@@ -254,6 +254,7 @@ class CyclicAdapter:
         return cia402.emcy_text(*e) if e else ""
 
     def close(self) -> None:
+        self.cio.end_session()          # NMT pre-operational: drives stop PDOs and RPDO deadline monitoring
         for b in self.cio.buses:
             try:
                 b.shutdown()
@@ -288,6 +289,8 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
     # [daemon] enable_at_start false: the drives stay disabled until a controller sends "enable"
     enable = bool(getattr(cfg.daemon, "enable_at_start", True))
+    from drivers.pcap import capture_buses
+    buses = capture_buses(buses)        # hexacnc run --capture FILE.pcap ($HEXACNC_CAPTURE): every frame
     try:
         m = Master(cfg, buses)
         for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
@@ -303,7 +306,8 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         m.detach()
         cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
                               controlword=cia402.CW_ENABLE_OPERATION if enable else cia402.CW_DISABLE_VOLTAGE,
-                              period_s=period_s)
+                              period_s=period_s,
+                              sync_every=m.sync_every)   # bus period per 0x60C2 (drivers.commission)
         for i in range(6):
             cio.status[i] = sw[i]
             cio.pos_inc[i] = pos[i]

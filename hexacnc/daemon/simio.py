@@ -8,6 +8,8 @@ can be told to fail: ``hb_lost``, ``emcy(code)``, ``stuck`` (stops following).
 """
 from __future__ import annotations
 
+from drivers import cia402
+
 
 class SimIO:
     def __init__(self, cfg, period_s: float | None = None, tau_s: float = 0.002, start_pos=None):
@@ -37,21 +39,16 @@ class SimIO:
         self.sent = []                          # (targets) history for tests, bounded by the test
 
     def set_controlword(self, i: int, cw: int) -> None:
-        self._cw[i] = cw
-        sw = self.statusword[i]
-        if cw == 0x80 and sw & 0x08:
-            self.statusword[i] = 0x0240
-        elif cw == 0x0000:
-            self.statusword[i] = 0x0240 | (sw & 0x08)
-        elif sw & 0x08:
-            return
-        elif cw == 0x06:
-            self.statusword[i] = 0x0221
-        elif cw == 0x07 and (sw & 0x6F) in (0x21, 0x27):
-            self.statusword[i] = 0x0233 if False else 0x0223
-        elif cw == 0x0F and (sw & 0x6F) in (0x23, 0x27):
-            self.statusword[i] = 0x0237
-            self._latched[i] = None
+        prev, self._cw[i] = self._cw[i], cw
+        state = cia402.state_from_status(self.statusword[i])
+        for _ in range(2):                      # 0x0F from Ready to switch on: transitions 3 then 4
+            new, num = cia402.drive_step(state, cw, prev)
+            if not num:
+                break
+            if num in (4, 16):
+                self._latched[i] = None
+            state, prev = new, cw
+        self.statusword[i] = cia402.drive_statusword(state)
 
     def emcy(self, i: int, code: int) -> None:
         self.emcy_code[i] = code

@@ -1,0 +1,172 @@
+"""Reactions of a simulated drive (:class:`drivers.simnode.SimDrive`): stop ramps and the
+supervision of the master, exactly as the master configured them by SDO.
+
+* Stop ramps: quick stop (controlword bit 2, transition 11) per 0x605A, fault reaction per 0x605E,
+  disable operation (transition 5) per 0x605C; slow-down ramp = 0x6084, quick-stop ramp = 0x6085
+  (position units/s^2). The ramp runs on the drive's own clock: on SYNC while the master sends
+  them, on the housekeeping clock (every ``TICK_S``) once SYNC has stopped.
+* Communication loss: RPDO1 deadline monitoring (0x1400 sub 5 event timer, armed by the first
+  RPDO after NMT start, supervised while the drive is enabled: Operation enabled / Quick stop
+  active) -> EMCY 0x8250; master heartbeat lost (0x1016) -> EMCY 0x8130. Either
+  applies 0x1029 sub 1 (NMT state) and 0x6007 (1 fault -> 0x605E, 2 disable voltage, 3 quick
+  stop -> 0x605A) while the power stage is on.
+
+Every reaction is appended to ``events`` as (monotonic s, text) for tests and the log.
+"""
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+from . import cia402
+
+if TYPE_CHECKING:
+    from .simnode import SimDrive
+
+log = logging.getLogger("hexacnc.simdrive")
+
+#: housekeeping period of the simulated drives (supervision resolution, ramp steps without SYNC)
+TICK_S = 0.002
+_POWERED = (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCHED_ON, cia402.READY_TO_SWITCH_ON)
+
+
+class Ramp:
+    """Demand decelerating from the strut's velocity to rest at ``decel_mm_s2``; ``then`` = state
+    after standstill (``None``: stay)."""
+    __slots__ = ("x_mm", "v_mm_s", "decel_mm_s2", "then", "done")
+
+    def __init__(self, x_mm: float, v_mm_s: float, decel_mm_s2: float, then: int | None):
+        self.x_mm, self.v_mm_s, self.decel_mm_s2, self.then = x_mm, v_mm_s, max(1e-9, decel_mm_s2), then
+        self.done = abs(v_mm_s) < 1e-12
+
+    def step(self, dt: float) -> float:
+        v = self.v_mm_s
+        dv = self.decel_mm_s2 * dt
+        nv = 0.0 if abs(v) <= dv else v - (dv if v > 0 else -dv)
+        self.x_mm += 0.5 * (v + nv) * dt
+        self.v_mm_s = nv
+        if nv == 0.0:
+            self.done = True
+        return self.x_mm
+
+
+class Reactions:
+    """Per drive; all calls with the drives' lock held."""
+
+    def __init__(self, drive: "SimDrive"):
+        self.d = drive
+        self.ramp: Ramp | None = None
+        self.events: list[tuple[float, str]] = []
+        self.rpdo_timer_s = 0.0
+        self.last_rpdo_s: float | None = None
+        self.abort_option = cia402.ABORT_FAULT
+        self.comm_error = cia402.COMM_ERROR_PRE_OPERATIONAL
+        self.last_step_s = 0.0
+        self.last_tick_s: float | None = None
+
+    # -- configuration (NMT start) -------------------------------------------------------------
+    def configure(self) -> None:
+        d = self.d
+        self.rpdo_timer_s = d.raw_or(0x1400, 5, 0) * 1e-3
+        self.abort_option = d.raw_or(0x6007, 0, cia402.ABORT_FAULT)
+        self.comm_error = d.raw_or(0x1029, 1, cia402.COMM_ERROR_PRE_OPERATIONAL)
+        self.last_rpdo_s = None
+
+    def note(self, now: float, text: str) -> None:
+        self.events.append((now, text))
+        if len(self.events) > 256:
+            del self.events[:128]
+        log.info("node %d: %s", self.d.node_id, text)
+
+    # -- ramps --------------------------------------------------------------------------------
+    def decel_mm_s2(self, quick: bool) -> float:
+        d = self.d
+        units = d.raw_or(0x6085, 0, 0) if quick else d.raw_or(0x6084, 0, 0) or d.raw_or(0x6085, 0, 0)
+        return units / d.k if units > 0 else d.model_amax()
+
+    def start_ramp(self, quick: bool, then: int | None, now: float, why: str) -> None:
+        d = self.d
+        a = self.decel_mm_s2(quick)
+        self.ramp = Ramp(d.pos_inc / d.k, d.model.velocity_mm_s, a, then)
+        self.last_step_s = now
+        self.note(now, f"{why}: {'quick stop' if quick else 'slow down'} ramp {a:g} mm/s^2 from "
+                       f"{d.model.velocity_mm_s:.3f} mm/s")
+
+    def quick_stop_option(self, now: float, why: str) -> None:
+        """Start the quick stop reaction per 0x605A (state already Quick stop active)."""
+        qs = self.d.raw_or(0x605A, 0, cia402.QS_QUICK_RAMP_DISABLE)
+        if qs <= 0:            # 0: disable drive function at once
+            self.d.state = cia402.SWITCH_ON_DISABLED
+            self.note(now, f"{why}: quick stop option {qs}: drive function disabled at once")
+            return
+        then = cia402.SWITCH_ON_DISABLED if qs in (1, 2) else None
+        self.start_ramp(qs in (2, 6), then, now, f"{why} (0x605A = {qs})")
+
+    def fault_reaction(self, now: float) -> None:
+        fr = self.d.raw_or(0x605E, 0, cia402.FAULT_REACTION_QUICK_RAMP)
+        if fr in (1, 2):
+            self.start_ramp(fr == 2, cia402.FAULT, now, f"fault reaction (0x605E = {fr})")
+        else:
+            self.ramp = None
+            self.note(now, f"fault reaction (0x605E = {fr}): drive disabled, motor free")
+
+    def disable_operation(self, now: float) -> bool:
+        """Transition 5 asked: True when the drive ramps first (0x605C = 1, still moving)."""
+        opt = self.d.raw_or(0x605C, 0, cia402.DISABLE_OP_SLOW_DOWN)
+        if opt == cia402.DISABLE_OP_SLOW_DOWN and abs(self.d.model.velocity_mm_s) > 1e-9:
+            self.start_ramp(False, cia402.SWITCHED_ON, now, "disable operation (0x605C = 1)")
+            return True
+        self.note(now, f"disable operation (0x605C = {opt}): brake engaged, Switched on")
+        return False
+
+    def ramp_demand(self, dt: float) -> float:
+        return self.ramp.step(dt)
+
+    # -- supervision ----------------------------------------------------------------------------
+    def rpdo_received(self, now: float) -> None:
+        self.last_rpdo_s = now
+
+    def supervise(self, now: float) -> None:
+        """Housekeeping: RPDO deadline; ramp steps on the drive's own clock when SYNC has stopped."""
+        d = self.d
+        # A simulated drive can be descheduled (a real one cannot): a gap in its own clock is not
+        # the master's silence, and frames queued meanwhile are still to be read. Extend the
+        # deadline by the drive's own stall.
+        if self.last_tick_s is not None and self.last_rpdo_s is not None and now - self.last_tick_s > 3 * TICK_S:
+            self.last_rpdo_s += now - self.last_tick_s
+        self.last_tick_s = now
+        if (self.rpdo_timer_s > 0 and self.last_rpdo_s is not None
+                and now - self.last_rpdo_s > self.rpdo_timer_s
+                and d.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)):
+            self.last_rpdo_s = None                 # once; re-armed by the next RPDO
+            self.comm_loss(cia402.EMCY_RPDO_TIMEOUT, now,
+                           f"no RPDO for {self.rpdo_timer_s * 1e3:g} ms (0x1400:05)")
+        if self.ramp is not None and now - max(d.last_sync_s, self.last_step_s) > 2 * d._dt_s:
+            n = 0
+            while self.last_step_s + d._dt_s <= now and n < 1000 and self.ramp is not None:
+                self.last_step_s += d._dt_s
+                d.step(d._dt_s, self.last_step_s, own_clock=True)
+                n += 1
+
+    def comm_loss(self, code: int, now: float, why: str) -> None:
+        """Communication error: EMCY, 0x1029 NMT reaction, 0x6007 drive reaction (when powered)."""
+        d = self.d
+        d.node.emcy.send(code, 0x11)
+        d.error_code = code
+        self.note(now, f"communication error 0x{code:04X}: {why}; 0x6007 = {self.abort_option}, "
+                       f"0x1029:1 = {self.comm_error}")
+        if d.state in _POWERED:
+            opt = self.abort_option
+            if opt == cia402.ABORT_FAULT:
+                d.fault(code, send_emcy=False)
+            elif opt == cia402.ABORT_DISABLE_VOLTAGE:
+                d.state = cia402.SWITCH_ON_DISABLED
+                self.ramp = None
+            elif opt == cia402.ABORT_QUICK_STOP and d.state == cia402.OPERATION_ENABLED:
+                d.state = cia402.QUICK_STOP_ACTIVE
+                self.quick_stop_option(now, "abort connection quick stop")
+            d.status_changed(now)
+        if self.comm_error == cia402.COMM_ERROR_PRE_OPERATIONAL:
+            d.node.nmt.state = "PRE-OPERATIONAL"
+        elif self.comm_error == cia402.COMM_ERROR_STOPPED:
+            d.node.nmt.state = "STOPPED"

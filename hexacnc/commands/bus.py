@@ -1,0 +1,75 @@
+"""``hexacnc bus scan``: list every node on the drive bus(es) and whether it matches the config.
+
+The commissioning command to run first: SDO reads only (no NMT command, nothing enabled). With
+``[bus] simulate`` the simulated drives are started for the scan (in-process on ``virtual``, as a
+process on udp_multicast/socketcan). Exit code 0 when every configured node is found and matches its
+description and ``[bus] nodes``, 1 when not, 2 on an error (bus cannot be opened, bad config).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+HELP = "drive bus commissioning: 'bus scan' lists every node found and whether it matches the config"
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="bus_command", metavar="SUBCOMMAND")
+    sub.required = True
+    p = sub.add_parser("scan", help="list the nodes on the bus: identity, device type, modes, versions, "
+                                    "heartbeat, match with the config")
+    p.add_argument("--config", metavar="F", help="machine description (TOML); default: the embedded default")
+    p.add_argument("--channel", help="override [bus] channel")
+    p.add_argument("--listen-s", type=float, default=0.5, metavar="S", help="time to collect answers (default 0.5)")
+    p.add_argument("--json", action="store_true", help="print the result as JSON")
+
+
+def _with_simulation(cfg, channel, fn):
+    """Run ``fn(buses)`` with the simulated drives present when ``[bus] simulate``."""
+    from drivers import simdrive
+    from drivers.canbus import open_buses
+
+    buses = open_buses(cfg.bus, channel=channel)
+    sim = proc = sim_buses = None
+    try:
+        if cfg.bus.simulate and cfg.bus.interface == "virtual":
+            sim_buses = open_buses(cfg.bus, channel=channel)
+            sim = simdrive.SimDrives(cfg, sim_buses).start()
+        elif cfg.bus.simulate:
+            proc = simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=channel or cfg.bus.channel)
+        return fn(buses)
+    finally:
+        if sim is not None:
+            sim.stop()
+        if proc is not None:
+            proc.terminate()
+            proc.wait(5)
+        for b in buses + (sim_buses or []):
+            b.shutdown()
+
+
+def main(args: argparse.Namespace) -> int:
+    from drivers.scan import format_scan, scan
+
+    from ..config import load_config
+    from ..errors import HexacncError
+
+    if not 0.05 <= args.listen_s <= 60:
+        print(f"hexacnc bus scan: --listen-s {args.listen_s} must be 0.05..60", file=sys.stderr)
+        return 2
+    try:
+        cfg = load_config(args.config)
+        result = _with_simulation(cfg, args.channel, lambda buses: scan(buses, cfg.bus, listen_s=args.listen_s))
+    except HexacncError as exc:
+        print(f"hexacnc bus scan: {exc}", file=sys.stderr)
+        return 2
+    if cfg.bus.simulate:
+        result["simulated"] = cfg.bus.simulate_profile
+    if args.json:
+        print(json.dumps(result, indent=1))
+    else:
+        if cfg.bus.simulate:
+            print(f"(simulated drives, profile {cfg.bus.simulate_profile!r}: [bus] simulate = true)")
+        print(format_scan(result))
+    return 0 if result["all_match"] else 1
