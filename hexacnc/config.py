@@ -372,6 +372,9 @@ class MachineConfig:
     tools: ToolTableConfig = field(default_factory=ToolTableConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
+    #: ``[simulation] truth``: true machine the simulated plant follows (path, "" = none); the
+    #: controller's model never reads it (hexacnc.sim.truth)
+    simulation_truth: str = ""
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -413,7 +416,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
-                   "dynamics", "calibration")
+                   "dynamics", "calibration", "simulation")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -635,6 +638,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     )
 
     calibration = _parse_calibration(sec("calibration"))
+    simulation_truth = _simulation_truth(sec("simulation"), path)
 
     for sct in sections:
         sct.finish()
@@ -649,11 +653,25 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         inertia_kg_mm2=_freeze(inertia),
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
-        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, raw=doc,
+        daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration,
+        simulation_truth=simulation_truth, raw=doc,
     )
     _check_geometry(cfg)
     _check_calibration(cfg)
     return cfg
+
+
+def _simulation_truth(ss: Section, path: str) -> str:
+    """``[simulation] truth``: a true machine file (relative to this file) for the simulated plant."""
+    t = ss.getstr("truth", "")
+    if not t:
+        return ""
+    p = Path(_expand_user_vars(t))
+    if not p.is_absolute() and not path.startswith("<"):
+        p = Path(path).parent / p
+    if not p.is_file():
+        raise ss.error("truth", f"{t!r}: no such file ({p})")
+    return str(p)
 
 
 def _parse_calibration(cs: Section) -> CalibrationConfig:
