@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "diagnose": "hexacnc.commands.diagnose",
     "simulate": "hexacnc.commands.simulate",
     "bench": "hexacnc.commands.bench",
+    "reload": "hexacnc.commands.reload",
 }
 
 

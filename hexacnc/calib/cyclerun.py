@@ -47,6 +47,7 @@ class RunOptions:
     retries: int = 2
     max_gap_s: float = 0.05
     outlier_mm: float = 2.0
+    outlier_deg: float = 0.5
     progress: bool = True
     wait_s: float = 5.0
 
@@ -170,7 +171,7 @@ def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -
     model = fk.pose if r.get("target") == "platform" else tip_of(cfg, fk.pose)
     dev = max([abs(vals[k] - model[i]) for i, k in enumerate(("x", "y", "z")) if k in vals] + [0.0])
     dev_deg = max([abs(vals[k] - model[3 + i]) for i, k in enumerate(("a", "b", "c")) if k in vals] + [0.0])
-    if dev > opts.outlier_mm or dev_deg > opts.outlier_mm * 0.01:
+    if dev > opts.outlier_mm or dev_deg > opts.outlier_deg:
         return f"outlier: {dev:.3f} mm / {dev_deg:.4f} deg from the model's pose"
     return ""
 
