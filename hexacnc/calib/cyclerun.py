@@ -50,6 +50,8 @@ class RunOptions:
     outlier_deg: float = 0.5
     progress: bool = True
     wait_s: float = 5.0
+    reset_faults: int = 0             #: faults reset (and the pose re-measured) per run, at most
+    faults_reset: int = 0
 
 
 @dataclass
@@ -179,12 +181,26 @@ def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -
 def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
     """Move to one pose (approach, settle) and take a checked reading."""
     from ..daemon.protocol import DaemonError
-    client.call("program", text=move_program(cfg, hx, X_deg, opts), name=f"calib-pose-{index + 1}",
-                reply_timeout_s=120.0)
-    st = client.call("wait", timeout_s=120.0)
-    if st.get("state") != "idle":
-        raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: "
-                        f"{(st.get('fault') or {}).get('message', '')})")
+    while True:
+        try:
+            client.call("program", text=move_program(cfg, hx, X_deg, opts), name=f"calib-pose-{index + 1}",
+                        reply_timeout_s=120.0)
+            st = client.call("wait", timeout_s=120.0)
+        except DaemonError as exc:
+            st = {"state": "refused", "fault": {"message": str(exc)}}
+        if st.get("state") == "idle":
+            break
+        why = (st.get("fault") or {}).get("message", "")
+        if st.get("state") in ("fault", "refused") and opts.faults_reset < opts.reset_faults:
+            opts.faults_reset += 1
+            sys.stderr.write(f"\npose {index + 1}: {why}: reset ({opts.faults_reset}/{opts.reset_faults}), "
+                             f"measuring the pose again\n")
+            if client.call("status").get("state") == "fault":
+                client.call("reset", reply_timeout_s=60.0)
+            client.call("wait", timeout_s=60.0)
+            continue
+        raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: {why}); "
+                        f"the rows taken so far are kept: run again to resume")
     time.sleep(opts.settle_s)
     t_rest = time.time() - 0.05
     why = []

@@ -29,7 +29,7 @@ def verify_poses(client, cfg, poses_deg: np.ndarray, opts: RunOptions) -> dict:
         Xc = np.r_[X[:3], np.radians(X[3:])]
         m = measured_tip(r.values, r.target, tip_mm, Xc)
         err = {ax: (m[ax] - r.tip_cmd_mm["xyz".index(ax)]) * 1e3 for ax in m}
-        rows.append({"pose": k + 1, "error_um": err, "flag": r.flag, "q_mm": r.q_mm})
+        rows.append({"pose": k + 1, "error_um": err, "flag": r.flag, "q_mm": r.q_mm, "tip_cmd_mm": r.tip_cmd_mm[:3]})
         opts.progress and _bar(k + 1, len(poses_deg))
     return summarize(rows, opts.instrument, cfg.path)
 

@@ -57,6 +57,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--outlier-mm", type=float, default=2.0,
                    help="a reading this far from the model's pose is an outlier (default 2 mm)")
     p.add_argument("--wait-s", type=float, default=5.0, help="how long to wait for an external reading")
+    p.add_argument("--reset-faults", type=int, default=0,
+                   help="reset a drive fault and measure that pose again, at most N times (default 0: stop; "
+                        "rows taken are kept either way)")
     p.add_argument("--quiet", "-q", action="store_true")
 
 
@@ -68,9 +71,11 @@ def _opts(args):
             raise DataError(f"--{nm.replace('_', '-')} {v}: expected 0..600")
     if not 0 <= args.retries <= 10:
         raise DataError(f"--retries {args.retries}: expected 0..10")
+    if not 0 <= args.reset_faults <= 100:
+        raise DataError(f"--reset-faults {args.reset_faults}: expected 0..100")
     return RunOptions(instrument=args.instrument, approach_mm=args.approach_mm, settle_s=args.settle_s,
                       retries=args.retries, outlier_mm=args.outlier_mm, wait_s=args.wait_s,
-                      progress=not args.quiet)
+                      progress=not args.quiet, reset_faults=args.reset_faults)
 
 
 def _synth_machine(args) -> int:
