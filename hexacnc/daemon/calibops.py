@@ -6,8 +6,8 @@
   ``measure``.  Refused: unknown coordinate, non-finite value, a time stamp outside the history
   (``late``) or in the future.
 * ``measure`` {instrument, wait_s?, after_t_s?}: one reading paired with drive readings.  With a
-  true machine (``hexacnc run --truth``) the simulated instrument reads the true pose at the
-  current readings; otherwise the first ``measurement`` of that instrument time-stamped after
+  true machine (``hexacnc run --truth``) a simulated instrument (tracker, probe, indicator) reads
+  the true pose at the current readings; for another name, or without a truth, the first ``measurement`` of that instrument time-stamped after
   ``after_t_s`` (default: now) is returned, waiting up to ``wait_s`` (default 5, max 60) -
   missing: error ``refused`` with "no reading".
 * ``reload`` {config}: load a machine description while idle: validated first (the loader's
@@ -168,7 +168,8 @@ def register(server_cls: Any) -> None:
         if getattr(d, "calib_history", None) is None:
             self._send(conn, P.error_reply(req.id, P.REFUSED, "this daemon keeps no drive readings for measurements"))
             return
-        if getattr(d, "calib_truth", None) is not None:
+        from ..sim.instruments import INSTRUMENTS
+        if getattr(d, "calib_truth", None) is not None and name in INSTRUMENTS:
             try:
                 self._send(conn, P.ok_reply(req.id, **P.plain(_simulated(d, name))))
             except ValueError as exc:
