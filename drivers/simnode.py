@@ -20,6 +20,7 @@ from hexacnc.errors import BusError, ConfigError
 
 from . import cia402
 from .strutmodel import StrutModel
+from .touchprobe import TouchProbe
 
 if TYPE_CHECKING:
     from .simdrive import SimDrives
@@ -122,6 +123,7 @@ class SimDrive:
         self._dt_s = 0.0005
         self._consumer = (0, 0.0)
         self.model.reset(start_inc / self.k)
+        self.touch = TouchProbe()             #: 0x60B8-0x60BB; input from ``sim.probe_signal(strut, now)``
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
 
@@ -173,6 +175,9 @@ class SimDrive:
             return self.target_inc
         if index == 0x2000 and subindex == 6:
             return self.injections
+        if 0x60B8 <= index <= 0x60BB:
+            tp = self.touch
+            return (tp.function, tp.status, tp.pos_value, tp.neg_value)[index - 0x60B8]
         return None
 
     def _on_write(self, index, subindex, od, data):
@@ -190,6 +195,8 @@ class SimDrive:
                 self.target_inc = value
             elif index == 0x2000:
                 self._sdo_injection(subindex, value)
+            elif index == 0x60B8:
+                self.touch.write_function(value)
 
     def _sdo_injection(self, sub: int, value: int) -> None:
         now = time.monotonic()
@@ -448,6 +455,10 @@ class SimDrive:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
         self.pos_inc = int(round(x * self.k))
+        if self.touch.function & 1:
+            sig = getattr(self.sim, "probe_signal", None)
+            if sig is not None:
+                self.touch.sample(self.pos_inc, sig(self.strut, now))
         self.ferr_inc = self.demand_inc - self.pos_inc if enabled else 0
         if enabled and abs(self.ferr_inc) > self._window:
             self.ferr_time_s += dt

@@ -106,6 +106,9 @@ def main(args: argparse.Namespace) -> int:
 
     cfg = load_config(args.config)
     truth = _load_truth(cfg, getattr(args, "truth", None))
+    if truth is not None and not cfg.simulation_truth:
+        from pathlib import Path
+        cfg = cfg.replace(simulation_truth=str(Path(truth.path).resolve()))      # the simulated drives' probe input reads it
     level = args.log_level or cfg.daemon.log_level
     logging.basicConfig(level=getattr(logging, level), format="%(asctime)s hexacnc %(levelname)s %(message)s")
     log = logging.getLogger("hexacnc.run")

@@ -240,6 +240,10 @@ def reload_daemon(server: Any, cfg: Any) -> dict:
     """Controlled stop of the running daemon, then the same daemon with ``cfg`` (old one on failure)."""
     from .core import Daemon
     old = server.daemon
+    t0 = getattr(old, "calib_truth", None)
+    from pathlib import Path
+    if t0 is not None and not cfg.simulation_truth and Path(t0.path).is_file():
+        cfg = cfg.replace(simulation_truth=str(Path(t0.path).resolve()))   # the drives' probe input keeps it
     if old.status().get("state") != "idle":
         raise HexacncError("reload refused: the machine started moving")
     kw = {"io_mode": old.io_mode, "realtime": old.realtime, "log_level": old.log_level}
