@@ -113,11 +113,44 @@ def test_external_measurement_is_paired_with_drive_readings_and_late_ones_refuse
         client.call("measurement", instrument="mytracker", t_s=t, values={"w": 1.0})
 
 
-def test_probe_reads_the_tool_tip_at_an_artefact_sphere(machine, client):
-    cfg = machine[1].daemon.cfg
-    X = retarget_probe(cfg, sample_poses(cfg, np.random.default_rng(8), 1), TouchProbe().spheres)
-    res = verify_poses(client, cfg, X, _opts("probe"))
-    assert res["measured"] == 1 and set(res["rows"][0]["error_um"]) == {"x", "y", "z"}
+def test_probing_stops_on_contact_and_reports_the_readings_at_the_edge(machine, client, work):
+    from hexacnc.calib.probing import probe_sphere
+    from hexacnc.sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM
+    cfg, srv, truth = machine
+    cur = srv.daemon.cfg
+    c = TouchProbe().spheres[13]                         # (0, 0, -1150)
+    log = os.path.join(work, "probes.jsonl")
+    for attempt in range(3):            # a stall of the loaded test VM can fault the drives: reset, again
+        try:
+            r = probe_sphere(client, c, [0.0, 0.0, 0.0], SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=log)
+            break
+        except Exception:
+            if attempt == 2 or client.call("status")["state"] != "fault":
+                raise
+            client.call("reset", reply_timeout_s=30.0)
+            os.remove(log)
+    assert len(r["contacts"]) == 5 and len(open(log).read().splitlines()) == 5
+    for k in r["contacts"]:
+        assert k["contact"] and k["params"]["5070"] == 1
+        assert [k["params"][str(5061 + i)] for i in range(6)] == pytest.approx(k["tip_pose"])
+        assert 0.0 < k["overtravel_mm"] < 2.0             # stopped after contact, within the stroke left
+        # the readings at the edge put the TRUE tool tip on the sphere (radius + stylus), to a micrometre
+        tip = truth.tool_tip_mm(truth.platform_pose_rad(np.asarray(k["q_mm"])))
+        art = TouchProbe(0)
+        assert abs(np.linalg.norm(tip - (c + art.sphere_error[13])) - 13.5) < 0.002
+    assert 0.02 < np.linalg.norm(r["centre_mm"] - c) < 3.0     # the uncalibrated machine sees it moved
+    assert r["residual_um"] < 5.0
+    # no contact: error for G38.2, none for G38.3 (#5070 = 0)
+    far = tip_of(cur, cur.home_pose)
+    start = [far[0] + 50.0, far[1] + 50.0, far[2], 0.0, 0.0, 0.0]
+    client.call("program", text="G53 G0 " + " ".join(f"{a}{v:.4f}" for a, v in zip("XYZABC", start)) + "\nM2\n",
+                name="away", reply_timeout_s=60.0)
+    client.call("wait", timeout_s=30.0)
+    end = list(start)
+    end[0] += 3.0
+    with pytest.raises(P.DaemonError, match="without the probe tripping"):
+        client.call("probe", tip_mm=end, feed_mm_min=600.0, mode="38.2", reply_timeout_s=60.0)
+    assert client.call("probe", tip_mm=start, feed_mm_min=600.0, mode="38.3", reply_timeout_s=60.0)["contact"] is False
 
 
 def test_reload_is_validated_and_refused_while_moving(machine, client, work):

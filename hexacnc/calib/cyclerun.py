@@ -50,6 +50,8 @@ class RunOptions:
     outlier_deg: float = 0.5
     progress: bool = True
     wait_s: float = 5.0
+    probe_cycle: str = "touch"        #: probe: "touch" (5 G38.2 touches per sphere) or "result" (simulated result)
+    probe_log: str | None = None      #: probe log (JSON lines), every contact
     reset_faults: int = 0             #: faults reset (and the pose re-measured) per run, at most
     faults_reset: int = 0
 
@@ -178,8 +180,23 @@ def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -
     return ""
 
 
-def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
-    """Move to one pose (approach, settle) and take a checked reading."""
+def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
+    """Probing cycle on the artefact sphere at the pose's tool tip, then the machine at the centre it saw."""
+    from ..sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM
+    from .probing import probe_sphere
+    c_nom = tip_of(cfg, X_deg)
+    abc = np.asarray(X_deg[3:], dtype=float)
+    res = probe_sphere(client, c_nom[:3], abc, SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=opts.probe_log)
+    Xc = platform_of_tip(cfg, np.r_[res["centre_mm"], abc])
+    _move_and_settle(client, cfg, hx, Xc, index, opts)
+    st = client.call("status")
+    q = (np.asarray(st["struts_act_mm"]) - np.asarray(cfg.strut_offset_mm)).tolist()
+    flag = "" if res["residual_um"] < 5.0 else f"probe sphere fit residual {res['residual_um']:.1f} um"
+    return PoseResult(index, q, {k: float(v) for k, v in zip("xyz", c_nom[:3])}, "tool", time.time(), flag,
+                      np.r_[res["centre_mm"], abc].tolist())
+
+
+def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> None:
     from ..daemon.protocol import DaemonError
     while True:
         try:
@@ -202,6 +219,23 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
         raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: {why}); "
                         f"the rows taken so far are kept: run again to resume")
     time.sleep(opts.settle_s)
+
+
+def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
+    """Move to one pose (approach, settle) and take a checked reading."""
+    from ..daemon.protocol import DaemonError
+    if opts.instrument == "probe" and opts.probe_cycle == "touch":
+        while True:
+            try:
+                return measure_probe_pose(client, cfg, hx, X_deg, index, opts)
+            except (DataError, DaemonError) as exc:
+                if client.call("status").get("state") != "fault" or opts.faults_reset >= opts.reset_faults:
+                    raise
+                opts.faults_reset += 1
+                sys.stderr.write(f"\npose {index + 1}: {exc}: reset, probing the sphere again\n")
+                client.call("reset", reply_timeout_s=60.0)
+                client.call("wait", timeout_s=60.0)
+    _move_and_settle(client, cfg, hx, X_deg, index, opts)
     t_rest = time.time() - 0.05
     why = []
     r: dict = {}

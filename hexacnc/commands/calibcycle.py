@@ -57,6 +57,9 @@ def _run_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--outlier-mm", type=float, default=2.0,
                    help="a reading this far from the model's pose is an outlier (default 2 mm)")
     p.add_argument("--wait-s", type=float, default=5.0, help="how long to wait for an external reading")
+    p.add_argument("--probe-cycle", choices=("touch", "result"), default="touch",
+                   help="probe: 5 G38.2 touches per artefact sphere (default), or the simulated cycle's result "
+                        "(op measure)")
     p.add_argument("--reset-faults", type=int, default=0,
                    help="reset a drive fault and measure that pose again, at most N times (default 0: stop; "
                         "rows taken are kept either way)")
@@ -75,7 +78,7 @@ def _opts(args):
         raise DataError(f"--reset-faults {args.reset_faults}: expected 0..100")
     return RunOptions(instrument=args.instrument, approach_mm=args.approach_mm, settle_s=args.settle_s,
                       retries=args.retries, outlier_mm=args.outlier_mm, wait_s=args.wait_s,
-                      progress=not args.quiet, reset_faults=args.reset_faults)
+                      progress=not args.quiet, reset_faults=args.reset_faults, probe_cycle=args.probe_cycle)
 
 
 def _synth_machine(args) -> int:
@@ -111,6 +114,8 @@ def _run(args) -> int:
     sig = {"tracker": (0.008, 0.0005), "probe": (0.0012, None), "indicator": (0.001, None)}[opts.instrument]
     meta = {"instrument": opts.instrument, "plan": str(args.plan), "config": cfg.path, "sigma_mm": sig[0],
             "sigma_deg": sig[1], "approach_mm": opts.approach_mm, "settle_s": opts.settle_s}
+    if opts.instrument == "probe":
+        opts.probe_log = str(args.out) + ".probes.jsonl"
     with connect(args, "hexacnc calib run") as client:
         res = run_plan(client, cfg, poses, args.out, opts, meta)
     flagged = [{"row": r.index + 1, "flag": r.flag} for r in res if r.flag]

@@ -114,6 +114,12 @@ def attach(daemon: Any, truth=None, seed: int = 0) -> None:
     daemon.calib_truth = truth
     daemon.calib_instruments = {}
     daemon.calib_seed = seed
+    daemon.calib_probe_signal = None
+    if truth is not None:        # the touch probe's input (op probe): the true tool tip against the artefact
+        from ..sim.instruments import TouchProbe
+        from ..sim.probesignal import ProbeSignal
+        art = TouchProbe(seed)
+        daemon.calib_probe_signal = ProbeSignal(truth, None, art.spheres + art.sphere_error)
 
 
 def _check_values(values: dict) -> dict:
@@ -161,6 +167,8 @@ def _external(daemon: Any, name: str, after: float, wait_s: float) -> dict | Non
 def register(server_cls: Any) -> None:
     """Add the ops to the protocol table and their handlers to the server class."""
     P.OPS.update(OPS)
+    from . import calibprobe
+    calibprobe.register(server_cls)
 
     def _op_measure(self, conn, req) -> None:
         d = self.daemon

@@ -4,7 +4,7 @@
 config names a ``[simulation] truth``): each armed drive (0x60B8 bit 0, :mod:`drivers.touchprobe`) asks
 it for the input signal every step - the distance (mm) from the true tool tip to the nearest artefact
 sphere's surface (sphere radius + stylus ball radius), ``<= 0`` in contact.  The true pose follows the
-drives' readings by one Newton step of the true machine's forward kinematics per SYNC from the last
+drives' readings by Newton steps of the true machine's forward kinematics per SYNC from the last
 pose (the readings move by micrometres per step), with the elastic elongation refreshed every 20 ms;
 the value is cached per SYNC time, so six drives cost one step.
 """
@@ -25,7 +25,7 @@ class ProbeSignal:
         self.sim = sim
         self.spheres = np.asarray(spheres_mm, dtype=float)
         self.radius = float(radius_mm)
-        self.ipm = float(sim.increments_per_mm)
+        self.ipm = float(sim.increments_per_mm) if sim is not None else 1.0
         self._t = None
         self._v = 1e9
         self._X: np.ndarray | None = None
@@ -47,8 +47,11 @@ class ProbeSignal:
             self._t_force = now
         L = tm.lengths_unloaded(q, np.ones(6)) + self._elong
         X = self._X
-        J = tm.hx.jacobian_rad(X)
-        X = X + np.linalg.solve(J, L - tm.hx.lengths_rad(X))
+        for _ in range(8):                 # one step per SYNC while following; more after a jump
+            dX = np.linalg.solve(tm.hx.jacobian_rad(X), L - tm.hx.lengths_rad(X))
+            X = X + dX
+            if float(np.max(np.abs(dX))) < 1e-7:
+                break
         self._X = X
         tip = X[:3] + matrix_from_euler(*X[3:6]) @ tm.tip
         return float(np.min(np.linalg.norm(self.spheres - tip[None], axis=1)) - self.radius)
