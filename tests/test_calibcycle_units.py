@@ -245,3 +245,19 @@ def test_apply_keeps_the_machine_and_the_old_file_and_refuses_a_bad_result(cfg, 
     with pytest.raises(DataError, match="strut_scale"):
         apply_result(rp, mach, out)
     assert out.read_text() == text
+
+
+def test_probe_op_fields_are_checked_and_the_model_pose_inverts_the_commands(cfg, tmp_path):
+    from hexacnc.daemon.calibprobe import _check, model_tip_pose
+    tip, feed, mode = _check({"tip_mm": [1, 2, 3, 0, 0, 0], "feed_mm_min": 300})
+    assert mode == "38.2" and feed == 300.0
+    for bad in ({"tip_mm": [1, 2, 3], "feed_mm_min": 300}, {"tip_mm": [1, 2, 3, 0, 0, float("inf")], "feed_mm_min": 1},
+                {"tip_mm": [0] * 6, "feed_mm_min": 0}, {"tip_mm": [0] * 6, "feed_mm_min": 1e6},
+                {"tip_mm": [0] * 6, "feed_mm_min": 10, "mode": "38.6"}):
+        with pytest.raises(ValueError):
+            _check(bad)
+    doc = synth_truth_doc(cfg, 6)              # a calibrated-looking config: strut scale, per-strut stiffness
+    doc.pop("truth")
+    c = parse_config(doc, "<cal>")
+    for X in sample_poses(c, np.random.default_rng(3), 4):
+        assert model_tip_pose(c, commanded_readings(c, X)) == pytest.approx(tip_of(c, X), abs=1e-6)
