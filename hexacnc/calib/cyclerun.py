@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import DataError
+from ..errors import DataError, ProtocolError
 from ..kinematics import Hexapod
 from ..pose import matrix_from_euler
 from .measurements import atomic_write_text
@@ -196,14 +196,20 @@ def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOpt
                       np.r_[res["centre_mm"], abc].tolist())
 
 
+def _refused(exc: BaseException) -> bool:
+    """A daemon's error reply (it carries a code), not a lost connection."""
+    return isinstance(exc, ProtocolError) and getattr(exc, "code", None) is not None
+
+
 def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> None:
-    from ..daemon.protocol import DaemonError
     while True:
         try:
             client.call("program", text=move_program(cfg, hx, X_deg, opts), name=f"calib-pose-{index + 1}",
                         reply_timeout_s=120.0)
             st = client.call("wait", timeout_s=120.0)
-        except DaemonError as exc:
+        except ProtocolError as exc:
+            if not _refused(exc):
+                raise
             st = {"state": "refused", "fault": {"message": str(exc)}}
         if st.get("state") == "idle":
             break
@@ -223,13 +229,12 @@ def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptio
 
 def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
     """Move to one pose (approach, settle) and take a checked reading."""
-    from ..daemon.protocol import DaemonError
     if opts.instrument == "probe" and opts.probe_cycle == "touch":
         while True:
             try:
                 return measure_probe_pose(client, cfg, hx, X_deg, index, opts)
-            except (DataError, DaemonError) as exc:
-                if client.call("status").get("state") != "fault" or opts.faults_reset >= opts.reset_faults:
+            except (DataError, ProtocolError) as exc:
+                if (isinstance(exc, ProtocolError) and not _refused(exc)) or client.call("status").get("state") != "fault" or opts.faults_reset >= opts.reset_faults:
                     raise
                 opts.faults_reset += 1
                 sys.stderr.write(f"\npose {index + 1}: {exc}: reset, probing the sphere again\n")
@@ -243,7 +248,9 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
         try:
             r = client.call("measure", instrument=opts.instrument, wait_s=opts.wait_s, after_t_s=t_rest,
                             reply_timeout_s=opts.wait_s + 30.0)
-        except DaemonError as exc:
+        except ProtocolError as exc:
+            if not _refused(exc):
+                raise
             r = {"values": {}, "q_mm": None}
             why.append(f"missing: {exc}")
             continue

@@ -105,6 +105,11 @@ def _plan(args) -> int:
     return 0
 
 
+def _is_run_file(args) -> bool:
+    from pathlib import Path
+    return Path(str(args.data) + ".json").exists() and args.frame == "auto" and not args.map
+
+
 def _fit(args) -> int:
     from ..calib.diagnose import Options, check_readings, fit_model, nominal_rms, noise_defaults, use_frame
     from ..calib.identify import parameter_table, strongest_correlations, unidentifiable_directions
@@ -116,8 +121,7 @@ def _fit(args) -> int:
     from ..config import load_config
     from .diagnose import parse_causes
     cfg = load_config(args.config)
-    from pathlib import Path
-    if Path(str(args.data) + ".json").exists() and args.frame == "auto" and not args.map:
+    if _is_run_file(args):
         from .calibcycle import fit_from_run       # a calib run file: base frame, its target
         return fit_from_run(args, cfg)
     meas = load_measurements(args.data, args.map, min_rows=3)
