@@ -15,6 +15,7 @@ BENCHES: dict[str, str] = {
     "calib": "hexacnc.bench.calib",
     "simulate": "hexacnc.bench.simulate",
     "hold": "hexacnc.bench.hold",
+    "arch": "hexacnc.bench.arch",
     "calib-cycle": "hexacnc.bench.calibcycle",
 }
 
