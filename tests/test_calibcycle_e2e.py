@@ -70,7 +70,7 @@ def client(machine):
 
 
 def _opts(inst="tracker"):
-    return RunOptions(instrument=inst, settle_s=0.1, progress=False, reset_faults=3)
+    return RunOptions(instrument=inst, settle_s=0.1, progress=False, reset_faults=20)
 
 
 def test_closed_cycle_measure_resume_fit_apply_reload_verify(machine, client, work, machine_file):
