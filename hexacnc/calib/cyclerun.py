@@ -196,6 +196,19 @@ def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOpt
                       np.r_[res["centre_mm"], abc].tolist())
 
 
+def _reset(client) -> None:
+    """Reset a fault; a reset the drives refuse (still settling after the stall) is tried again."""
+    for attempt in range(3):
+        try:
+            client.call("reset", reply_timeout_s=60.0)
+            break
+        except ProtocolError as exc:
+            if not _refused(exc) or attempt == 2:
+                raise
+            time.sleep(1.0)
+    client.call("wait", timeout_s=60.0)
+
+
 def _refused(exc: BaseException) -> bool:
     """A daemon's error reply (it carries a code), not a lost connection."""
     return isinstance(exc, ProtocolError) and getattr(exc, "code", None) is not None
@@ -219,8 +232,7 @@ def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptio
             sys.stderr.write(f"\npose {index + 1}: {why}: reset ({opts.faults_reset}/{opts.reset_faults}), "
                              f"measuring the pose again\n")
             if client.call("status").get("state") == "fault":
-                client.call("reset", reply_timeout_s=60.0)
-            client.call("wait", timeout_s=60.0)
+                _reset(client)
             continue
         raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: {why}); "
                         f"the rows taken so far are kept: run again to resume")
@@ -238,8 +250,7 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
                     raise
                 opts.faults_reset += 1
                 sys.stderr.write(f"\npose {index + 1}: {exc}: reset, probing the sphere again\n")
-                client.call("reset", reply_timeout_s=60.0)
-                client.call("wait", timeout_s=60.0)
+                _reset(client)
     _move_and_settle(client, cfg, hx, X_deg, index, opts)
     t_rest = time.time() - 0.05
     why = []
