@@ -22,6 +22,7 @@ from .simfaults import FaultSpec  # noqa: F401  (re-exported)
 from .simhooks import EXTENSIONS, OdHooks
 from .simreact import Reactions
 from .strutmodel import StrutModel
+from .touchprobe import TouchProbe
 
 if TYPE_CHECKING:
     from .simdrive import SimDrives
@@ -101,6 +102,7 @@ class SimDrive:
         self._ip_index_range = (od[0x60C2][2].min, od[0x60C2][2].max) if 0x60C2 in od else (None, None)
         if 0x6092 in od:                    # factory feed constant: default units = 1 / increments_per_mm
             od[0x6092][1].default = int(round(self.k * SIM_LEAD_MM))
+        self.touch = TouchProbe()             #: 0x60B8-0x60BB; input from ``sim.probe_signal(strut, now)``
         self.node.add_read_callback(self._on_read)
         self.node.add_write_callback(self._on_write)
         for ext in EXTENSIONS:
@@ -168,6 +170,9 @@ class SimDrive:
             return self.target_inc
         if index == 0x2000 and subindex == 6:
             return self.injections
+        if 0x60B8 <= index <= 0x60BB:
+            tp = self.touch
+            return (tp.function, tp.status, tp.pos_value, tp.neg_value)[index - 0x60B8]
         return None
 
     def _on_write(self, index, subindex, od, data):
@@ -193,6 +198,8 @@ class SimDrive:
                 obj = value >> 16
                 if obj < 0x20 and obj not in self.dummies:
                     raise SdoAbortedError(_CANNOT_MAP)      # dummy not allowed by [DummyUsage]
+            elif index == 0x60B8:
+                self.touch.write_function(value)
             for fn in self.hooks.write.get(index, ()):
                 fn(subindex, value)
 
@@ -502,6 +509,10 @@ class SimDrive:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
         self.pos_inc = int(round(x * self.k))
+        if self.touch.function & 1:
+            sig = getattr(self.sim, "probe_signal", None)
+            if sig is not None:
+                self.touch.sample(self.pos_inc, sig(self.strut, now))
         self.ferr_inc = self.demand_inc - self.pos_inc if enabled else 0
         if enabled and abs(self.ferr_inc) > self._window:
             self.ferr_time_s += dt

@@ -35,6 +35,7 @@ COMMANDS: dict[str, str] = {
     "offsets": "hexacnc.commands.offsets:OFFSETS",
     "tools": "hexacnc.commands.offsets:TOOLS",
     "bus": "hexacnc.commands.bus",
+    "reload": "hexacnc.commands.reload",
 }
 
 

@@ -450,6 +450,9 @@ class MachineConfig:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/opconfig.py
     gcode: GcodeConfig = field(default_factory=GcodeConfig)
+    #: ``[simulation] truth``: true machine the simulated plant follows (path, "" = none); the
+    #: controller's model never reads it (hexacnc.sim.truth)
+    simulation_truth: str = ""
     raw: dict = field(repr=False, default_factory=dict)
 
     @property
@@ -534,7 +537,7 @@ def _section(path: str, doc: dict, name: str, required: bool) -> Section:
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
                    "homing", "jog",
-                   "dynamics", "calibration", "gcode")
+                   "dynamics", "calibration", "gcode", "simulation")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -753,6 +756,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     calibration = _parse_calibration(sec("calibration"))
     operator = parse_operator(w, p, d, sec("homing"), sec("jog"))
     gcode = _parse_gcode(sec("gcode"), path)
+    simulation_truth = _simulation_truth(sec("simulation"), path)
 
     for sct in sections:
         sct.finish()
@@ -768,12 +772,14 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
         daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, operator=operator,
-        gcode=gcode,
+        gcode=gcode, simulation_truth=simulation_truth,
         raw=doc,
     )
     _check_geometry(cfg)
     _check_calibration(cfg)
     return cfg
+
+
 
 
 def _parse_gcode(gs: Section, path: str) -> GcodeConfig:
@@ -787,6 +793,19 @@ def _parse_gcode(gs: Section, path: str) -> GcodeConfig:
     base = os.path.dirname(os.path.abspath(path)) if not path.startswith("<") else os.getcwd()
     dirs = tuple(d if os.path.isabs(d) else os.path.normpath(os.path.join(base, d)) for d in raw)
     return GcodeConfig(subroutine_path=dirs, require_end=gs.getbool("require_end", False))
+
+
+def _simulation_truth(ss: Section, path: str) -> str:
+    """``[simulation] truth``: a true machine file (relative to this file) for the simulated plant."""
+    t = ss.getstr("truth", "")
+    if not t:
+        return ""
+    p = Path(_expand_user_vars(t))
+    if not p.is_absolute() and not path.startswith("<"):
+        p = Path(path).parent / p
+    if not p.is_file():
+        raise ss.error("truth", f"{t!r}: no such file ({p})")
+    return str(p)
 
 
 def _parse_calibration(cs: Section) -> CalibrationConfig:

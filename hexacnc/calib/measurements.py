@@ -33,7 +33,7 @@ Q_COLS = tuple(f"q{i}" for i in range(1, 7))
 POSE_COLS = ("x", "y", "z", "a", "b", "c")
 QUAT_COLS = ("qx", "qy", "qz", "qw")
 TSTRUT_COLS = tuple(f"T_strut{i}" for i in range(1, 7))
-OPTIONAL_COLS = ("t_s", "session", "T_frame") + TSTRUT_COLS + ("T_spindle", "payload_kg")
+OPTIONAL_COLS = ("t_s", "session", "T_frame") + TSTRUT_COLS + ("T_spindle", "payload_kg", "flag")
 #: every column the contract knows
 KNOWN_COLS = Q_COLS + POSE_COLS + QUAT_COLS + OPTIONAL_COLS
 #: mapping-file keys that are not columns

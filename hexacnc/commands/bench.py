@@ -17,6 +17,7 @@ BENCHES: dict[str, str] = {
     "hold": "hexacnc.bench.hold",
     "arch": "hexacnc.bench.arch",
     "operator": "hexacnc.bench.operator",
+    "calib-cycle": "hexacnc.bench.calibcycle",
 }
 
 

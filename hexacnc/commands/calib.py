@@ -10,7 +10,8 @@ import numpy as np
 
 from ..errors import DataError
 
-HELP = "calibration: plan measurement poses, identify the 42 geometric parameters, write a calibrated config"
+HELP = ("calibration: plan measurement poses, run them on the machine, identify the 42 geometric parameters, "
+        "apply and verify a calibrated config")
 
 
 def configure(p: argparse.ArgumentParser) -> None:
@@ -73,6 +74,9 @@ def configure(p: argparse.ArgumentParser) -> None:
     sy.add_argument("--truth", help="JSON with the hidden effect and its parameters")
     sy.set_defaults(_calib=_synth)
 
+    from . import calibcycle
+    calibcycle.configure(sub)
+
 
 def main(args: argparse.Namespace) -> int:
     from ..calib import limit_blas_threads
@@ -101,6 +105,11 @@ def _plan(args) -> int:
     return 0
 
 
+def _is_run_file(args) -> bool:
+    from pathlib import Path
+    return Path(str(args.data) + ".json").exists() and args.frame == "auto" and not args.map
+
+
 def _fit(args) -> int:
     from ..calib.diagnose import Options, check_readings, fit_model, nominal_rms, noise_defaults, use_frame
     from ..calib.identify import parameter_table, strongest_correlations, unidentifiable_directions
@@ -112,6 +121,9 @@ def _fit(args) -> int:
     from ..config import load_config
     from .diagnose import parse_causes
     cfg = load_config(args.config)
+    if _is_run_file(args):
+        from .calibcycle import fit_from_run       # a calib run file: base frame, its target
+        return fit_from_run(args, cfg)
     meas = load_measurements(args.data, args.map, min_rows=3)
     causes = list(parse_causes(args.causes)) if args.causes.strip() else []
     noise_mm, noise_deg, known = noise_defaults(cfg, args.noise_mm, args.noise_deg)

@@ -23,6 +23,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="run the embedded demo program (a small 5-axis part) and show its progress; "
                              "without --duration, exit when it has finished")
+    parser.add_argument("--truth", metavar="TRUE.toml",
+                        help="simulated drives only: the plant and the simulated instruments follow this true "
+                             "machine (hexacnc calib synth-machine); overrides [simulation] truth")
     parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     parser.add_argument("--capture", metavar="FILE.pcap", help="write every CAN frame of the session to a "
                         "SocketCAN pcap (Wireshark link type 227; more buses: FILE-bus1.pcap, ...)")
@@ -85,6 +88,19 @@ def _demo_progress(daemon, log) -> bool:
     return True
 
 
+def _load_truth(cfg, path):
+    """The true machine of ``--truth`` or ``[simulation] truth`` (simulated drives only), else None."""
+    from ..errors import ConfigError
+    path = path or cfg.simulation_truth
+    if not path:
+        return None
+    if not cfg.bus.simulate:
+        raise ConfigError(f"--truth {path}: a true machine is for simulated drives ([bus] simulate = true "
+                          f"in {cfg.path})")
+    from ..sim.truth import load_truth
+    return load_truth(path)
+
+
 def main(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..daemon.core import Daemon
@@ -95,6 +111,10 @@ def main(args: argparse.Namespace) -> int:
     if getattr(args, "capture", None):      # read by the hot process when it opens the buses (drivers.pcap)
         import os
         os.environ["HEXACNC_CAPTURE"] = os.path.abspath(args.capture)
+    truth = _load_truth(cfg, getattr(args, "truth", None))
+    if truth is not None and not cfg.simulation_truth:
+        from pathlib import Path
+        cfg = cfg.replace(simulation_truth=str(Path(truth.path).resolve()))      # the simulated drives' probe input reads it
     level = args.log_level or cfg.daemon.log_level
     logging.basicConfig(level=getattr(logging, level), format="%(asctime)s hexacnc %(levelname)s %(message)s")
     log = logging.getLogger("hexacnc.run")
@@ -111,6 +131,10 @@ def main(args: argparse.Namespace) -> int:
         from ..daemon.admission import preflight
         preflight(cfg, args.socket)      # socket directory, token, TLS: refused before the drives boot
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
+        from ..daemon.calibops import attach
+        attach(daemon, truth)
+        if truth is not None:
+            log.info("simulated plant follows the true machine %s (the controller uses %s)", truth.path, cfg.path)
         info = daemon.info
         io_info = info.get("io_info", {})
         log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
@@ -136,6 +160,10 @@ def main(args: argparse.Namespace) -> int:
             if t_end is not None and time.monotonic() >= t_end:
                 break
             stop.wait(0.1)
+            if server is not None and server.daemon is not daemon:     # reloaded (op reload)
+                daemon = server.daemon
+            if getattr(server, "calib_reloading", False):
+                continue
             if not daemon.alive:
                 log.error("hot loop process ended: %s", (daemon.status().get("fault") or {}).get("message"))
                 return 1
@@ -164,6 +192,8 @@ def main(args: argparse.Namespace) -> int:
             wd.stop_event.set()
         if server is not None:
             server.close()
+        if server is not None and server.daemon is not daemon:
+            server.daemon.close()
         if daemon is not None:
             daemon.close()
         for s, h in old.items():

@@ -797,4 +797,9 @@ def make_server(daemon: Any, cfg: Any, socket_path: str | None = None) -> Socket
     return SocketServer(daemon, cfg, socket_path)
 
 
+# calibration-cycle ops (measure, measurement, reload): hexacnc.daemon.calibops
+from . import calibops as _calibops  # noqa: E402
+
+_calibops.register(SocketServer)
+
 __all__ = ["SocketServer", "check_socket_path", "make_server"]

@@ -48,6 +48,12 @@ def main() -> int:
     signal.signal(signal.SIGINT, lambda *a: stop.set())
     ppid = os.getppid()
     sim = SimDrives(cfg, buses, faults=faults)
+    if getattr(cfg, "simulation_truth", ""):     # touch-probe input from the true machine (hexacnc.sim.probesignal)
+        from ..sim.probesignal import attach_probe_signal
+        try:
+            attach_probe_signal(sim, cfg.simulation_truth)
+        except Exception as exc:   # the drives run without a probe input rather than not at all
+            logging.getLogger("hexacnc.simhost").warning("no touch-probe input: %s", exc)
     try:
         sim.start()
         print("READY", flush=True)

@@ -1,0 +1,78 @@
+"""Probing cycle on a sphere of the reference artefact (``calib run --instrument probe``).
+
+Five G38.2 touches through the daemon's ``probe`` op - four around the equator (+-x, +-y of the base
+frame) and one on top - each from ``clearance_mm`` outside the surface towards the centre, retracting
+over the sphere between touches.  The contact points (the controller's tool tip at the readings
+latched at contact) give the sphere centre as the controller sees it (least squares, known radius).
+The machine then goes to that centre with the usual approach and settles; its readings there are the
+row, and the artefact's calibrated centre is the measured tool tip: where the controller believes
+the tip is at the centre, the true tip is at the true centre (the machine's error is the same over
+the few mm of the cycle).  Every contact goes to the probe log.
+"""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ..errors import DataError
+
+DIRECTIONS = np.array([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0], [0, 0, 1.0]])
+
+
+def fit_sphere_centre(points: np.ndarray, radius: float, c0: np.ndarray) -> np.ndarray:
+    """Centre of a sphere of known radius through the points (Gauss-Newton)."""
+    c = np.asarray(c0, dtype=float).copy()
+    for _ in range(20):
+        d = points - c[None]
+        n = np.linalg.norm(d, axis=1)
+        r = n - radius
+        J = -d / n[:, None]
+        step = np.linalg.lstsq(J, -r, rcond=None)[0]
+        c += step
+        if np.max(np.abs(step)) < 1e-9:
+            break
+    return c
+
+
+def _go(client, text: str, name: str) -> None:
+    client.call("program", text=text, name=name, reply_timeout_s=120.0)
+    st = client.call("wait", timeout_s=120.0)
+    if st.get("state") != "idle":
+        raise DataError(f"{name}: the machine did not come to rest ({st.get('state')}: "
+                        f"{(st.get('fault') or {}).get('message', '')})")
+
+
+def _words(p, abc) -> str:
+    return " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", list(p) + list(abc)))
+
+
+def probe_sphere(client, centre_mm, abc_deg, radius_mm: float, clearance_mm: float = 2.0,
+                 overtravel_mm: float = 2.0, feed_mm_min: float = 300.0, log_path=None) -> dict:
+    """Touch the sphere 5 times; the centre the controller sees and the contacts."""
+    c = np.asarray(centre_mm, dtype=float)
+    safe_z = c[2] + radius_mm + clearance_mm + 3.0
+    contacts = []
+    here = None                                   # retract point of the last touch
+    for k, n in enumerate(DIRECTIONS):
+        start = c + (radius_mm + clearance_mm) * n
+        end = c + (radius_mm - overtravel_mm) * n
+        path = [] if here is None else [here, [here[0], here[1], safe_z]]
+        path += [[start[0], start[1], safe_z], start]
+        _go(client, "G21 G90 G94\n" + "".join(f"G53 G0 {_words(p, abc_deg)}\n" for p in path) + "M2\n",
+            f"probe approach {k + 1}")
+        r = client.call("probe", tip_mm=[float(v) for v in end] + [float(v) for v in abc_deg],
+                        feed_mm_min=feed_mm_min, mode="38.2", reply_timeout_s=120.0)
+        contacts.append(r)
+        here = start
+        if log_path is not None:
+            with open(log_path, "a", encoding="utf-8") as f:
+                f.write(json.dumps({"sphere_mm": c.tolist(), "direction": n.tolist(), "t_s": r["t_s"],
+                                    "q_mm": r["q_mm"], "tip_pose": r["tip_pose"],
+                                    "overtravel_mm": r["overtravel_mm"]}) + "\n")
+    _go(client, f"G21 G90 G94\nG53 G0 {_words(here, abc_deg)}\nG53 G0 {_words([here[0], here[1], safe_z], abc_deg)}"
+                f"\nM2\n", "probe retract")
+    pts = np.array([r["tip_pose"][:3] for r in contacts])
+    centre = fit_sphere_centre(pts, radius_mm, c)
+    resid = np.linalg.norm(pts - centre[None], axis=1) - radius_mm
+    return {"centre_mm": centre, "contacts": contacts, "residual_um": float(1e3 * np.sqrt(np.mean(resid ** 2)))}
