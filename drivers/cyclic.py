@@ -91,6 +91,15 @@ def limits_inc(cfg) -> tuple[list[int], list[int]]:
     return lo, hi
 
 
+def master_heartbeat_s(bus_cfg) -> float:
+    """Period of the master heartbeat (0x700 + 0x7F) while cycling: ``[bus] heartbeat_ms``, at most a
+    quarter of ``[bus] comm_loss_timeout_s`` (the drives' heartbeat consumer time, 0x1016), so a
+    drive sees a silent master within that time and never a live one as silent."""
+    hb = bus_cfg.heartbeat_ms * 1e-3
+    loss = getattr(bus_cfg, "comm_loss_timeout_s", 0.0)
+    return min(hb, loss / 4.0) if loss > 0 else hb
+
+
 def event_text(ev: int) -> str:
     return ", ".join(name for bit, name in EVENT_NAMES.items() if ev & bit) or "none"
 
@@ -211,7 +220,7 @@ class CyclicIO:
         self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
-        self._hb_period_s = bus_cfg.heartbeat_ms * 1e-3
+        self._hb_period_s = master_heartbeat_s(bus_cfg)
         self._hb_next_s = 0.0                    # first heartbeat with the first send()
         # receive dispatch
         self._rx: dict[int, tuple[int, int]] = {}
@@ -229,6 +238,7 @@ class CyclicIO:
         # struts whose controlword travels inside RPDO1 (single layout): no event frame
         with_event = {nd.index for nd in plan.nodes if nd.rpdo2_cob_id is not None}
         self._cw_inline = [i for i in range(n) if i not in with_event]
+        self._init_sync_tags()
 
     # -- transmit -----------------------------------------------------------------------------
     def set_controlword(self, strut: int, controlword: int) -> None:
@@ -372,6 +382,7 @@ class CyclicIO:
                     self.pos_inc[i] = _I32.unpack_from(data)[0]
                     self.pos_time_s[i] = now
                     self.pos_count[i] += 1
+                    self._tag_sample(i)
                     ev |= EV_FEEDBACK
                 else:
                     ev |= self._decode_event(kind, i, data, 0, len(data), now)
@@ -446,6 +457,7 @@ class CyclicIO:
                         pos_inc[i] = unpack_i32(buf, d)[0]
                         pos_time[i] = now
                         pos_count[i] += 1
+                        self._tag_sample(i)
                         ev |= EV_FEEDBACK
                     else:
                         ev |= self._decode_event(kind, i, buf, d, length, now)
@@ -457,6 +469,40 @@ class CyclicIO:
             count += max_frames - left
         self.frames_received += count
         return ev
+
+    # -- SYNC tag of each position sample ------------------------------------------------------
+    def _init_sync_tags(self) -> None:
+        """``pos_sync[i]``: the SYNC (ordinal: 1 = the first :meth:`send`) that drive ``i``'s last
+        TPDO1 answers, for a following-error check against the command of that very SYNC.
+
+        Drive ``i`` answers every ``feedback_divider``-th SYNC from its SYNC start value, so the
+        SYNCs it answers are ``k = phase_i (mod divider)``; each drive's samples come in SYNC order,
+        and the drives of one bus answer in SYNC order too (one receive queue), so a sample answers
+        the first such SYNC after its drive's previous sample and not before the bus's last tag.
+        A stall of the drives therefore shifts nothing; TPDO1s lost on the wire are bridged by the
+        other drives of the bus (a run of lost frames as long as the divider on one bus, or SYNCs
+        lost before a drive, can mistag by whole divider periods). A tag never names a SYNC not yet
+        sent."""
+        plan = self.plan
+        d = max(1, int(plan.feedback_divider))
+        self._fb_div = d
+        self._fb_phase = [(nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0 for nd in plan.nodes]
+        self._fb_bus = [nd.bus for nd in plan.nodes]
+        self._bus_tag = [0] * plan.buses
+        self.pos_sync: list[int] = [0] * self.n
+
+    def _tag_sample(self, i: int) -> None:
+        b = self._fb_bus[i]
+        d = self._fb_div
+        lo = self._bus_tag[b]
+        k = self.pos_sync[i] + 1
+        if lo > k:
+            k = lo
+        k += (self._fb_phase[i] - k) % d
+        if k > self.cycles:
+            k = self.cycles - (self.cycles - self._fb_phase[i]) % d
+        self.pos_sync[i] = k
+        self._bus_tag[b] = k
 
     # -- supervision helpers (cheap, for the cycle) --------------------------------------------
     def heartbeat_lost(self, now: float | None = None) -> int:

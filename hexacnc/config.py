@@ -263,6 +263,9 @@ class CycleConfig:
     following_error_mm: float = 1.0
     watchdog_s: float = 2.0
     spin_s: float = 0.0002                     #: the hot loop spins this long before each deadline
+    #: a drive without a fresh position sample this long faults (stale feedback), heartbeat or not; also
+    #: the longest stall of the feedback the following-error check still matches to its SYNC
+    feedback_timeout_s: float = 0.35
 
 
 @dataclass(frozen=True)
@@ -280,6 +283,9 @@ class BusConfig:
     increments_per_mm: float = 10000.0
     heartbeat_ms: int = 100
     heartbeat_timeout_ms: int = 350
+    #: drives stop on their own (quick stop) when the master is silent this long (configured at boot:
+    #: heartbeat consumer 0x1016, RPDO/SYNC time-outs); the hot loop's master heartbeat comes 4x as often
+    comm_loss_timeout_s: float = 0.02
     simulate: bool = True                      #: start the simulated drives process
 
 
@@ -373,6 +379,8 @@ class MachineConfig:
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     raw: dict = field(repr=False, default_factory=dict)
+    #: ``[struts] max_following_error_mm`` (6,); None: ``[cycle] following_error_mm`` for every strut
+    max_following_error_mm: np.ndarray | None = None
 
     @property
     def max_angle_rad(self) -> np.ndarray:
@@ -549,7 +557,10 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         following_error_mm=cy.getfloat("following_error_mm", cd.following_error_mm, above=0.0),
         watchdog_s=cy.getfloat("watchdog_s", cd.watchdog_s, above=0.0, maxval=600.0),
         spin_s=cy.getfloat("spin_s", cd.spin_s, minval=0.0, maxval=0.1),
+        feedback_timeout_s=cy.getfloat("feedback_timeout_s", cd.feedback_timeout_s, above=0.0, maxval=10.0),
     )
+    ferr = (s.getvec("max_following_error_mm", 6, above=0.0, maxval=1000.0, allow_scalar=True)
+            if s.has("max_following_error_mm") else None)
     if cycle.spin_s > 0.8 * cycle.period_s:
         raise cy.error("spin_s", f"{cycle.spin_s:g} s is more than 80 % of period_s = {cycle.period_s:g} s: "
                                  "the hot loop must sleep part of every period (SCHED_FIFO throttling)")
@@ -573,6 +584,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         increments_per_mm=b.getfloat("increments_per_mm", bd.increments_per_mm, above=0.0, maxval=1e7),
         heartbeat_ms=b.getint("heartbeat_ms", bd.heartbeat_ms, minval=1, maxval=10000),
         heartbeat_timeout_ms=b.getint("heartbeat_timeout_ms", bd.heartbeat_timeout_ms, minval=1, maxval=60000),
+        comm_loss_timeout_s=b.getfloat("comm_loss_timeout_s", bd.comm_loss_timeout_s, minval=0.002, maxval=10.0),
         simulate=b.getbool("simulate", bd.simulate),
     )
 
@@ -650,6 +662,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         home_pose=_freeze(home), workspace_min=_freeze(wmin), workspace_max=_freeze(wmax),
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
         daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, raw=doc,
+        max_following_error_mm=None if ferr is None else _freeze(ferr),
     )
     _check_geometry(cfg)
     _check_calibration(cfg)

@@ -13,12 +13,18 @@ F_SUPERVISOR = 8        #: arg = ms since the supervisor's last sign of life
 F_BUS = 9               #: arg = errno-like code of the failed send
 F_ENABLE = 10           #: drives did not reach Operation Enabled; strut = node, arg = statusword
 F_TEST = 11             #: injected by a test command
+F_FEEDBACK = 12         #: strut = node index, arg = ms since its last fresh position sample (stale feedback)
+F_NMT = 13              #: strut = node index, arg = NMT state from its heartbeat (0: boot-up, the drive was reset)
+F_REMOTE = 14           #: strut = node index, arg = statusword (bit 9 "remote" lost: not under bus control)
+F_NOT_FOLLOWING = 15    #: strut = node index, arg = statusword (CSP bit 12 "follows command value" cleared)
+F_SIGNAL = 16           #: arg = signal number (a signal ended the hot loop: controlled stop, not a fault)
 
 CODES = {
     F_NONE: "none", F_HEARTBEAT: "heartbeat_lost", F_EMCY: "emcy", F_FOLLOWING: "following_error",
     F_LIMIT: "setpoint_limit", F_DEADLINE: "deadline_burst", F_SETPOINT: "setpoint_source_dead",
     F_DRIVE: "drive_fault", F_SUPERVISOR: "supervisor_lost", F_BUS: "bus_error",
-    F_ENABLE: "enable_failed", F_TEST: "test",
+    F_ENABLE: "enable_failed", F_TEST: "test", F_FEEDBACK: "feedback_stale", F_NMT: "nmt_state",
+    F_REMOTE: "remote_lost", F_NOT_FOLLOWING: "target_not_followed", F_SIGNAL: "signal",
 }
 
 

@@ -14,6 +14,12 @@ import sys
 
 
 def main() -> int:
+    import signal
+    from .loop import install_signal_handlers, set_parent_death_signal
+    # before anything slow: Ctrl-C in the terminal reaches the whole process group, and the hot loop
+    # must not die before the supervisor orders the stop; the kernel tells us when the supervisor dies
+    install_signal_handlers(signal.SIGUSR1)
+    set_parent_death_signal(signal.SIGUSR1)
     fd = int(sys.argv[1])
     args = pickle.load(sys.stdin.buffer)
     sys.stdin.close()
@@ -26,7 +32,7 @@ def main() -> int:
 
     from .loop import hot_main
     hot_main(args["cfg"], args["shm"], args["io_mode"], args["period_s"], args["realtime"],
-             args["log_level"], report, args.get("sim_args"), args.get("cpu"))
+             args["log_level"], report, args.get("sim_args"), args.get("cpu"), signal.SIGUSR1)
     return 0
 
 

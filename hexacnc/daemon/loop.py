@@ -28,11 +28,16 @@ import os
 import time
 from typing import Protocol
 
+from drivers.cia402 import (CW_DISABLE_VOLTAGE, CW_ENABLE_OPERATION, CW_FAULT_RESET, CW_SHUTDOWN,
+                            CW_SWITCH_ON)
+
 from ..transform import CycleTransform, OK as CT_OK
 from . import shm as S
-from .faults import (F_DEADLINE, F_DRIVE, F_EMCY, F_ENABLE, F_FOLLOWING, F_HEARTBEAT, F_LIMIT,
-                     F_NONE, F_SETPOINT, F_SUPERVISOR, F_BUS, F_TEST, fault_code_name)
+from .faults import (F_DEADLINE, F_DRIVE, F_EMCY, F_ENABLE, F_FEEDBACK, F_FOLLOWING, F_HEARTBEAT, F_LIMIT,
+                     F_NMT, F_NONE, F_NOT_FOLLOWING, F_REMOTE, F_SETPOINT, F_SIGNAL, F_SUPERVISOR, F_BUS,
+                     F_TEST, fault_code_name)
 from .stopgen import StrutStop
+from .supervise import DriveSupervisor, following_limits_mm
 
 log = logging.getLogger("hexacnc.loop")
 
@@ -54,15 +59,50 @@ STANDSTILL_MM = 1e-7
 THERMAL_SLEW_MM_S = 0.002
 THERMAL_EVERY = 16
 
-# CiA 402 controlwords / statusword masks (values from CiA 402-2; the tables live in drivers.cia402)
-CW_DISABLE_VOLTAGE = 0x0000
-CW_SHUTDOWN = 0x0006
-CW_SWITCH_ON = 0x0007
-CW_ENABLE_OPERATION = 0x000F
-CW_FAULT_RESET = 0x0080
-
-# test-only command: stall the loop for arg microseconds once (deadline-burst test)
+# test-only commands: stall the loop for arg microseconds once (deadline-burst test); raise in the
+# cycle (a crashing hot loop: the drives must stop on their own, the supervisor must notice)
 CMD_STALL = 16
+CMD_CRASH = 17
+#: the supervisor's presence is checked every this many cycles (getppid) besides the parent-death signal
+SUPERVISOR_CHECK_EVERY = 32
+#: the history of commands the following-error check matches samples to covers the feedback
+#: time-out plus this margin (s)
+HISTORY_MARGIN_S = 0.05
+
+#: set by the signal handlers of the hot process (:func:`install_signal_handlers`): [0] the signal
+#: that asks for a controlled stop (SIGTERM, SIGHUP), [1] 1 once the parent-death signal came
+SIGNALS = [0, 0]
+
+
+def install_signal_handlers(pdeath_signal: int | None = None) -> None:
+    """Hot process: SIGINT ignored (Ctrl-C reaches the whole process group: the supervisor orders
+    the stop), SIGTERM/SIGHUP ask the loop for a controlled stop and exit, ``pdeath_signal`` (the
+    kernel sends it when the supervisor dies, see :func:`set_parent_death_signal`) marks it gone.
+    The handlers only set :data:`SIGNALS`; the cycle acts on them."""
+    import signal
+
+    def ask_stop(signum, frame):
+        SIGNALS[0] = signum
+
+    def parent_died(signum, frame):
+        SIGNALS[1] = 1
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, ask_stop)
+    signal.signal(signal.SIGHUP, ask_stop)
+    if pdeath_signal:
+        signal.signal(pdeath_signal, parent_died)
+
+
+def set_parent_death_signal(signum: int) -> bool:
+    """``prctl(PR_SET_PDEATHSIG, signum)``: the kernel signals this process when its parent dies
+    (Linux; False where unavailable - the periodic ``getppid`` check remains)."""
+    try:
+        import ctypes
+        libc = ctypes.CDLL(None, use_errno=True)
+        return libc.prctl(1, int(signum), 0, 0, 0) == 0     # PR_SET_PDEATHSIG = 1
+    except (OSError, AttributeError):
+        return False
 
 
 class IOProtocol(Protocol):
@@ -128,7 +168,9 @@ class HotLoop:
         self.ipm = float(bus.increments_per_mm)
         self.off = [float(v) for v in cfg.strut_offset_mm]
         self.hb_timeout_ns = int(bus.heartbeat_timeout_ms * 1_000_000)
-        self.follow_mm = float(cy.following_error_mm)
+        fb_to = float(getattr(cy, "feedback_timeout_s", 0.35))
+        self.sup = DriveSupervisor(io, self.dt, following_limits_mm(cfg), bus.heartbeat_timeout_ms * 1e-3,
+                                   fb_to, fb_to + HISTORY_MARGIN_S)
         self.max_in_row = int(cy.max_overruns_in_row)
         self.sp_timeout_ns = int(cy.setpoint_timeout_s * 1e9)
         self.stop = StrutStop(cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,
@@ -143,8 +185,8 @@ class HotLoop:
         self.act = [0.0] * 6          # measured lengths, mm
         self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
         self.cw = [-1] * 6            # last controlword requested per drive
-        self.emcy_seen = list(io.emcy_count)
-        self.follow_max = [0.0] * 6
+        self.follow_max = self.sup.follow_max
+        self.exit_signal = 0          # signal that ordered the stop and exit (0: none)
         self.state = S.ST_BOOT
         self.fault = F_NONE
         self.fault_strut = 0
@@ -159,8 +201,8 @@ class HotLoop:
         self.exit_after = -1
         self.resync = False
         self.stats_reset = False
-        self.hist_cmd = [[0.0] * 2 for _ in range(6)]
         self.travel = [0.0] * 6
+        self.sends = 0
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -179,7 +221,7 @@ class HotLoop:
         res = hx.forward(geo)
         X = [float(res.pose[0]), float(res.pose[1]), float(res.pose[2]),
              math.radians(res.pose[3]), math.radians(res.pose[4]), math.radians(res.pose[5])]
-        ct._have_prev = 0
+        ct.forget_motion()
         code = ct.command(*X)
         if code != CT_OK:
             log.error("hot loop: measured position is outside the limits: %s", ct.describe(code))
@@ -187,7 +229,7 @@ class HotLoop:
         ct.reset_pose(X)
         ct.feedback(self.act)
         X = list(ct.pose_act)
-        ct._have_prev = 0
+        ct.forget_motion()
         ct.command(*X)
         ct.reset(ct.cmd_mm)
         ct.reset_pose(X)
@@ -195,14 +237,8 @@ class HotLoop:
             self.hold[i] = X[i]
             self.out[i] = ct.cmd_mm[i]
             self.l0[i] = self.l1[i] = self.l2[i] = ct.cmd_mm[i]
-        self._fill_hist(self.l0)
+        self.sup.fill(self.l0)
         self.streaming = False
-
-    def _fill_hist(self, lengths) -> None:
-        for i, h in enumerate(self.hist_cmd):
-            v = lengths[i]
-            for k in range(len(h)):
-                h[k] = v
 
     def _rehold_from(self, lengths) -> None:
         """After a stop: hold the pose whose commands are ``lengths`` (FK), guards at standstill."""
@@ -224,6 +260,7 @@ class HotLoop:
             self.fault_strut = strut
             self.fault_arg = arg
             self.fault_text = ""
+            self.sh.h[S.H_FAULT_NS] = time.monotonic_ns()
         if self.state in (S.ST_IDLE, S.ST_RUNNING):
             self.stop.start(self.l0, self.l1, self.l2)
             self.state = S.ST_STOPPING
@@ -249,14 +286,14 @@ class HotLoop:
                 self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
                 self.state = S.ST_BOOT
                 self.enable_t0 = now
-                for i in range(6):
-                    self.emcy_seen[i] = self.io.emcy_count[i]
-                    self.follow_max[i] = 0.0
+                self.sup.arm(now)
         elif code in (S.CMD_SHUTDOWN, S.CMD_DISABLE):
             self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
             if st in (S.ST_IDLE, S.ST_RUNNING):
                 self.stop.start(self.l0, self.l1, self.l2)
                 self.state = S.ST_STOPPING
+                self.after_stop = S.ST_DISABLED
+            elif st == S.ST_STOPPING and self.after_stop == S.ST_IDLE:
                 self.after_stop = S.ST_DISABLED
             elif st in (S.ST_BOOT,):
                 self._disable()
@@ -269,6 +306,15 @@ class HotLoop:
             self.stats_reset = True
         elif code == CMD_STALL:
             time.sleep(arg * 1e-6)
+        elif code == CMD_CRASH:
+            raise RuntimeError("hot loop crash requested by a test command")
+
+    def _on_signal(self, signum: int) -> None:
+        """SIGTERM/SIGHUP to the hot process: controlled stop, drives disabled, exit (as
+        CMD_SHUTDOWN; the signal is reported in ``H_EXIT_SIGNAL``)."""
+        self.exit_signal = signum
+        self.sh.h[S.H_EXIT_SIGNAL] = signum
+        self._command(S.CMD_SHUTDOWN, 0, 0)
 
     def publish(self, t0: int) -> None:
         sh = self.sh
@@ -329,38 +375,20 @@ class HotLoop:
         inv_ipm = 1.0 / ipm
         target = io.target
         pos = io.pos
-        hb_ns = io.hb_ns
-        emcy_count = io.emcy_count
-        emcy_seen = self.emcy_seen
         pos_count = io.pos_count
-        pos_seen = [0] * 6
         travel = self.travel
         shs = sh.s
         th_step = float(getattr(self.cfg.thermal, "max_offset_rate_mm_s", THERMAL_SLEW_MM_S)) * self.dt * THERMAL_EVERY
         th_app = ct.thermal_mm
-        # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check: a
-        # fresh sample is compared with the commands sent within its transport allowance, which is
-        # 2 feedback periods + 2 cycles (at least 5 ms) plus the feedback backlog measured per drive
-        # (SYNCs sent / divider - samples received since enabling), capped at n_hist cycles: 256
-        # (128 ms at 0.5 ms; was 64: a loaded VM stalls the drives' process for 30-50 ms, which the
-        # measured backlog covers but the old cap did not - a spurious fault). The drives check
-        # their following error exactly (0x6065/0x6066); a drive that stops answering altogether
-        # is caught by its heartbeat time-out.
-        div = max(1, int(getattr(self.cfg.bus, "feedback_divider", 1)))
-        n_hist = 256
-        min_w = min(n_hist, max(2 * div + 2, int(math.ceil(0.005 / self.dt))))
-        # per strut, written twice (slot k and k + n_hist): any window of the last w <= n_hist
-        # commands is one contiguous slice ending at h_slot + n_hist (min/max in C, no Python scan)
-        hist_cmd = self.hist_cmd = [[0.0] * (2 * n_hist) for _ in range(6)]
-        self._fill_hist(self.l0)
-        sends = 0
-        fb_base = 0
-        fb_cnt = list(pos_count)
-        h_slot = 0
+        # drive supervision (heartbeat, EMCY, NMT, statusword, following error matched to the SYNC
+        # each sample answers, stale feedback): hexacnc.daemon.supervise
+        sup = self.sup
+        sup.fill(self.l0)
+        record = sup.record
+        supervise = sup.check
+        sends = self.sends          # SYNCs sent (ordinal of the last one; the codec tags samples with it)
         statusword = io.statusword
-        follow_max = self.follow_max
-        follow_lim = self.follow_mm
-        hb_to = self.hb_timeout_ns
+        sigs = SIGNALS
         period = self.period_ns
         max_in_row = self.max_in_row
         sp_timeout = self.sp_timeout_ns
@@ -380,7 +408,9 @@ class HotLoop:
         sh.s[S.S_BUS_LOAD] = s_bus
         sh.s[S.S_PERIOD] = self.dt
         h[S.H_PID] = os.getpid()
-        ppid = os.getppid()
+        ppid = self.sh.h[S.H_SUP_PID] or os.getppid()
+        if os.getppid() != ppid:
+            sigs[1] = 1                 # the supervisor died before we could watch it
         overruns = 0
         in_row = 0
         max_row = 0
@@ -416,6 +446,8 @@ class HotLoop:
                     if d > pm5:
                         pm5 = d
                 h[S.H_LOOP_BEAT_NS] = t0
+                if sigs[0] or sigs[1] or (cycles & (SUPERVISOR_CHECK_EVERY - 1)) == 0:
+                    self._check_signals(t0, ppid)
                 # ---------------------------------------------------------- feedback in
                 io.poll(t0)
                 for i in range(6):
@@ -445,40 +477,10 @@ class HotLoop:
                     pm0 = d
                 # ---------------------------------------------------------- supervision
                 if state == ST_RUNNING or state == ST_IDLE:
-                    for i in range(6):
-                        hb = hb_ns[i]
-                        if t0 - hb > hb_to:
-                            self._fault(F_HEARTBEAT, i + 1, (t0 - hb) // 1_000_000 if hb else -1)
-                            break
-                        if emcy_count[i] != emcy_seen[i]:
-                            emcy_seen[i] = emcy_count[i]
-                            self._fault(F_EMCY, i + 1, io.emcy_code[i])
-                            break
-                        sw = statusword[i]
-                        if (sw & 0x6F) != 0x27:
-                            self._fault(F_DRIVE, i + 1, sw)
-                            break
-                        if pos_count[i] != pos_seen[i]:
-                            # a fresh sample: the position at one of the last SYNCs; the error is
-                            # its distance to the commands sent within the transport allowance
-                            pos_seen[i] = pos_count[i]
-                            a_i = act[i]
-                            w = min_w + div * ((sends - fb_base) // div - (pos_count[i] - fb_cnt[i]))
-                            if w > n_hist:
-                                w = n_hist
-                            elif w < min_w:
-                                w = min_w
-                            k = h_slot + n_hist
-                            win = hist_cmd[i][k - w:k]
-                            lo = min(win)
-                            hi = max(win)
-                            e = lo - a_i if a_i < lo else (a_i - hi if a_i > hi else 0.0)
-                            if e > follow_max[i]:
-                                follow_max[i] = e
-                            if e > follow_lim:
-                                self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
-                                break
-                    state = self.state
+                    code = supervise(t0, act, sends)
+                    if code:
+                        self._fault(code, sup.strut, sup.arg)
+                        state = self.state
                 # ---------------------------------------------------------- thermal / spindle offsets
                 if (cycles & (THERMAL_EVERY - 1)) == 0 and state != ST_STOPPING:
                     for i in range(6):
@@ -513,7 +515,6 @@ class HotLoop:
                         if not self.streaming:
                             h[S.H_END_SEEN] = r + 1
                     elif self.streaming:
-                        d = l0[0] - l1[0]
                         moving = False
                         for i in range(6):
                             d = l0[i] - l1[i]
@@ -552,84 +553,74 @@ class HotLoop:
                     for i in range(6):
                         v = act[i]
                         out[i] = lmin[i] if v < lmin[i] else (lmax[i] if v > lmax[i] else v)
-                    if True:
-                        all_on = True
+                    all_on = True
+                    for i in range(6):
+                        if pos_count[i] == 0:       # no position yet: never enable blind
+                            all_on = False
+                            break
+                        if act[i] < lmin[i] or act[i] > lmax[i]:
+                            all_on = False
+                            if t0 - self.enable_t0 > ENABLE_TIMEOUT_NS // 4:
+                                self.enable_t0 = -ENABLE_TIMEOUT_NS   # refuse now
+                            break
+                    for i in range(6 if all_on else 0):
+                        sw = statusword[i]
+                        if not _op_enabled(sw):
+                            all_on = False
+                            cw = _next_cw(sw, self.cw[i])
+                            if cw != self.cw[i]:
+                                io.set_controlword(i, cw)
+                                self.cw[i] = cw
+                    if all_on:
                         for i in range(6):
-                            if pos_count[i] == 0:       # no position yet: never enable blind
+                            if not _op_enabled(statusword[i]):
                                 all_on = False
+                    if all_on:
+                        for i in range(6):
+                            io.set_controlword(i, CW_ENABLE_OPERATION)
+                            self.cw[i] = CW_ENABLE_OPERATION
+                        self.seed_from_feedback()
+                        sup.arm(t0)
+                        self.resync = True
+                        state = self.state = ST_IDLE
+                        h[S.H_READY] = 1
+                    elif t0 - self.enable_t0 > ENABLE_TIMEOUT_NS:
+                        bad = 0
+                        arg = 0
+                        for i in range(6):
+                            if pos_count[i] == 0:
+                                bad, arg = i + 1, -1
                                 break
                             if act[i] < lmin[i] or act[i] > lmax[i]:
-                                all_on = False
-                                if t0 - self.enable_t0 > ENABLE_TIMEOUT_NS // 4:
-                                    self.enable_t0 = -ENABLE_TIMEOUT_NS   # refuse now
+                                bad, arg = i + 1, -2
                                 break
-                        for i in range(6 if all_on else 0):
-                            sw = statusword[i]
-                            if not _op_enabled(sw):
-                                all_on = False
-                                cw = _next_cw(sw, self.cw[i])
-                                if cw != self.cw[i]:
-                                    io.set_controlword(i, cw)
-                                    self.cw[i] = cw
-                        if all_on:
-                            for i in range(6):
-                                if not _op_enabled(statusword[i]):
-                                    all_on = False
-                        if all_on:
-                            for i in range(6):
-                                io.set_controlword(i, CW_ENABLE_OPERATION)
-                                self.cw[i] = CW_ENABLE_OPERATION
-                            self.seed_from_feedback()
-                            self.resync = True
-                            fb_base = sends
-                            for i in range(6):
-                                fb_cnt[i] = pos_count[i]
-                            for i in range(6):
-                                emcy_seen[i] = emcy_count[i]
-                            state = self.state = ST_IDLE
-                            h[S.H_READY] = 1
-                        elif t0 - self.enable_t0 > ENABLE_TIMEOUT_NS:
-                            bad = 0
-                            arg = 0
-                            for i in range(6):
-                                if pos_count[i] == 0:
-                                    bad, arg = i + 1, -1
-                                    break
-                                if act[i] < lmin[i] or act[i] > lmax[i]:
-                                    bad, arg = i + 1, -2
-                                    break
-                                if not _op_enabled(statusword[i]):
-                                    bad, arg = i + 1, statusword[i]
-                                    break
-                            self.fault = F_ENABLE
-                            self.fault_strut = bad
-                            self.fault_arg = arg
-                            self._disable()
-                            state = self.state = ST_FAULT
-                            if h[S.H_READY] == 0:
-                                h[S.H_READY] = -1
+                            if not _op_enabled(statusword[i]):
+                                bad, arg = i + 1, statusword[i]
+                                break
+                        self.fault = F_ENABLE
+                        self.fault_strut = bad
+                        self.fault_arg = arg
+                        self._disable()
+                        state = self.state = ST_FAULT
+                        if h[S.H_READY] == 0:
+                            h[S.H_READY] = -1
                 # ---------------------------------------------------------- out to the bus
                 tc = mono()
                 d = tc - tb
                 ps2 += d
                 if d > pm2:
                     pm2 = d
-                hb_ = h_slot
-                hb2 = h_slot + n_hist
-                h_slot = h_slot + 1 if h_slot + 1 < n_hist else 0
                 for i in range(6):
                     v = out[i]
                     d = v - l0[i]
                     travel[i] += d if d >= 0.0 else -d
-                    hs = hist_cmd[i]
-                    hs[hb_] = v
-                    hs[hb2] = v
                     t = round((v - off[i]) * ipm)
                     target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
                     l2[i] = l1[i]
                     l1[i] = l0[i]
                     l0[i] = v
                 sends += 1
+                record(sends, out)
                 if io.send() != 0 and state != ST_FAULT and self.fault == F_NONE:
                     self._fault(F_BUS, 0, 1)
                 # ---------------------------------------------------------- feedback: FK
@@ -694,9 +685,6 @@ class HotLoop:
                     h[H_PM + 4] = pm4
                     h[H_PM + 5] = pm5
                     self.publish(t0)
-                    if (cycles & 1023) == 0:
-                        self._check_supervisor(t0, ppid)
-                        self.resync = True
                 if self.exit_after > 0 and self.state in (ST_DISABLED, ST_FAULT):
                     self.exit_after += 1
                     if self.exit_after > 20:
@@ -705,22 +693,35 @@ class HotLoop:
                     break
                 t_end = mono()
         finally:
+            self.sends = sends
             gc.enable()
             gc.unfreeze()
         self.publish(mono())
         h[S.H_EXIT] = 1
         return 0
 
-    def _check_supervisor(self, now: int, ppid: int) -> None:
-        """The supervisor process died (we were re-parented): stop, disable, exit.
+    def _check_signals(self, now: int, ppid: int) -> None:
+        """A stop signal (SIGTERM/SIGHUP) or the supervisor's death (parent-death signal, or we
+        were re-parented): controlled stop, drives disabled, exit.
 
         A live but slow supervisor is not a fault by itself: while streaming, an empty ring is
         (dead setpoint source); at rest the drives just hold.
         """
-        if os.getppid() != ppid:
+        sig = SIGNALS[0]
+        if sig:
+            SIGNALS[0] = 0
+            if not self.exit_signal:
+                self._on_signal(sig)
+        if SIGNALS[1] or os.getppid() != ppid:
+            if os.getppid() == ppid:        # a parent *thread* ended, not the process: ignore
+                SIGNALS[1] = 0
+                return
             beat = self.sh.h[S.H_SUP_BEAT_NS]
-            if self.state in (S.ST_IDLE, S.ST_RUNNING):
+            if self.fault == F_NONE:
                 self._fault(F_SUPERVISOR, 0, (now - beat) // 1_000_000 if beat else -1)
+            if self.state == S.ST_BOOT:
+                self._disable()
+                self.state = S.ST_FAULT
             if self.exit_after < 0:
                 self.exit_after = 1     # nobody left to reset us: stop, disable, exit
 
@@ -745,7 +746,23 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
     if code == F_DRIVE:
         return f"drive {strut} left Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
     if code == F_SUPERVISOR:
-        return f"supervisor silent for {arg} ms"
+        return "supervisor process gone" + (f" (last sign of life {arg} ms before)" if arg >= 0 else "")
+    if code == F_FEEDBACK:
+        return f"stale feedback from drive {strut}: no position sample for {arg} ms"
+    if code == F_NMT:
+        return (f"drive {strut} was reset (boot-up message)" if arg == 0
+                else f"drive {strut} left NMT Operational (heartbeat state {arg})")
+    if code == F_REMOTE:
+        return f"drive {strut} lost remote (statusword bit 9 clear: 0x{arg & 0xFFFF:04X})"
+    if code == F_NOT_FOLLOWING:
+        return f"drive {strut} does not follow its target (statusword bit 12 clear: 0x{arg & 0xFFFF:04X})"
+    if code == F_SIGNAL:
+        import signal
+        try:
+            name = signal.Signals(arg).name
+        except ValueError:
+            name = f"signal {arg}"
+        return f"stopped by {name}"
     if code == F_BUS:
         return "bus send failed"
     if code == F_ENABLE:
@@ -761,7 +778,8 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
 
 
 def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, log_level: str,
-             report, sim_args: dict | None = None, cpu: int | None = None) -> None:
+             report, sim_args: dict | None = None, cpu: int | None = None,
+             pdeath_signal: int | None = None) -> None:
     """Body of the hot process: boot the bus, take privileges, run the cycle.
 
     ``report(kind, payload)`` sends one message to the supervisor ("ready" or "error").
@@ -772,6 +790,7 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
     logging.getLogger("canopen").setLevel(logging.WARNING)
     logging.getLogger("can").setLevel(logging.WARNING)
     sh = S.Shared(shm_name)
+    install_signal_handlers(pdeath_signal)
     from . import busio, rt
     # memory lock and CPU first (slow, and the drives must not wait for the cycle after the boot),
     # SCHED_FIFO last: threads the bus boot starts must not inherit it

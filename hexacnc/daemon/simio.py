@@ -8,6 +8,16 @@ can be told to fail: ``hb_lost``, ``emcy(code)``, ``stuck`` (stops following).
 """
 from __future__ import annotations
 
+from drivers.cia402 import (CW_DISABLE_VOLTAGE, CW_ENABLE_OPERATION, CW_FAULT_RESET, CW_SHUTDOWN, CW_SWITCH_ON,
+                            SW_DRIVE_FOLLOWS, SW_REMOTE)
+
+#: statuswords of the model (CiA 402 states, remote bit 9 set; CSP bit 12 "follows" when enabled)
+SW_SWITCH_ON_DISABLED = 0x0040 | SW_REMOTE
+SW_READY = 0x0021 | SW_REMOTE
+SW_SWITCHED_ON = 0x0023 | SW_REMOTE
+SW_OP_ENABLED = 0x0027 | SW_REMOTE | SW_DRIVE_FOLLOWS
+SW_FAULT_BIT = 0x0008
+
 
 class SimIO:
     def __init__(self, cfg, period_s: float | None = None, tau_s: float = 0.002, start_pos=None):
@@ -18,7 +28,10 @@ class SimIO:
         self.target = [0] * 6
         self.pos = [0] * 6
         self.pos_count = [0] * 6
-        self.statusword = [0x0240] * 6          # switch on disabled
+        self.pos_sync = [0] * 6                 # SYNC each sample answers (the last send)
+        self.nmt_state = [5] * 6                # NMT operational
+        self.sends = 0
+        self.statusword = [SW_SWITCH_ON_DISABLED] * 6
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
@@ -39,24 +52,24 @@ class SimIO:
     def set_controlword(self, i: int, cw: int) -> None:
         self._cw[i] = cw
         sw = self.statusword[i]
-        if cw == 0x80 and sw & 0x08:
-            self.statusword[i] = 0x0240
-        elif cw == 0x0000:
-            self.statusword[i] = 0x0240 | (sw & 0x08)
-        elif sw & 0x08:
+        if cw == CW_FAULT_RESET and sw & SW_FAULT_BIT:
+            self.statusword[i] = SW_SWITCH_ON_DISABLED
+        elif cw == CW_DISABLE_VOLTAGE:
+            self.statusword[i] = SW_SWITCH_ON_DISABLED | (sw & SW_FAULT_BIT)
+        elif sw & SW_FAULT_BIT:
             return
-        elif cw == 0x06:
-            self.statusword[i] = 0x0221
-        elif cw == 0x07 and (sw & 0x6F) in (0x21, 0x27):
-            self.statusword[i] = 0x0233 if False else 0x0223
-        elif cw == 0x0F and (sw & 0x6F) in (0x23, 0x27):
-            self.statusword[i] = 0x0237
+        elif cw == CW_SHUTDOWN:
+            self.statusword[i] = SW_READY
+        elif cw == CW_SWITCH_ON and (sw & 0x6F) in (0x21, 0x27):
+            self.statusword[i] = SW_SWITCHED_ON
+        elif cw == CW_ENABLE_OPERATION and (sw & 0x6F) in (0x23, 0x27):
+            self.statusword[i] = SW_OP_ENABLED
             self._latched[i] = None
 
     def emcy(self, i: int, code: int) -> None:
         self.emcy_code[i] = code
         self.emcy_count[i] += 1
-        self.statusword[i] = 0x0208 | 0x0200
+        self.statusword[i] = SW_FAULT_BIT | SW_REMOTE
 
     def poll(self, now_ns: int) -> int:
         dt = self.dt
@@ -72,11 +85,13 @@ class SimIO:
                 self._x[i] += step
             self.pos[i] = round(self._x[i] * self.ipm)
             self.pos_count[i] += 1
+            self.pos_sync[i] = self.sends
         return 6
 
     def send(self) -> int:
         for i in range(6):
             self._latched[i] = self.target[i]
+        self.sends += 1
         self.frames_tx += 4
         return 0
 
