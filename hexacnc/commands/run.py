@@ -64,7 +64,8 @@ def _start_demo(daemon, log) -> bool:
     return True
 
 
-def _demo_progress(daemon, log) -> bool:
+def _demo_progress(daemon, log) -> bool | None:
+    """True while the demo runs, False when it finished, None when it ended in a fault."""
     st = daemon.status()
     prog = st.get("program") or {}
     pc = st.get("pose_cmd") or [0.0] * 6
@@ -75,7 +76,7 @@ def _demo_progress(daemon, log) -> bool:
              c["compute_us"]["p99"], c["overruns"])
     if st.get("fault"):
         log.error("demo: fault %s", st["fault"])
-        return False
+        return None
     if st["state"] == "idle" and not (prog.get("queued") or 0) and float(prog.get("percent") or 0.0) >= 100.0:
         log.info("demo: finished; strut commands %s mm",
                  ", ".join(f"{v:.4f}" for v in st.get("struts_cmd_mm") or []))
@@ -94,18 +95,27 @@ def main(args: argparse.Namespace) -> int:
     log = logging.getLogger("hexacnc.run")
     stop = threading.Event()
 
+    got = []
+
     def on_signal(signum, frame):
+        got.append(signum)
         stop.set()
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     notifier = Notifier()
-    daemon = server = wd = None
+    daemon = server = wd = sock_lock = None
+    rc = 0
     try:
         log.info("machine %s (%s)", cfg.name, cfg.path)
+        # before any frame: nobody else serves this socket (lock naming its pid, then a probe)
+        sock_lock = _claim_socket(cfg, args.socket)
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
         info = daemon.info
         io_info = info.get("io_info", {})
         log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
+        segs = getattr(daemon.sim, "segments", None)
+        if segs:
+            log.info("frame rings: %s", " ".join(seg.name for seg in segs))
         log.info("bus: %s", info.get("bus_summary"))
         for m in (info.get("privileges") or {}).get("messages", []):
             log.info("hot loop privileges: %s", m)
@@ -134,11 +144,20 @@ def main(args: argparse.Namespace) -> int:
                 break
             stop.wait(0.1)
             if not daemon.alive:
-                log.error("hot loop process ended: %s", (daemon.status().get("fault") or {}).get("message"))
-                return 1
+                end = daemon.hot_end
+                msg = end.message if end is not None else (daemon.status().get("fault") or {}).get("message")
+                if end is not None and end.clean:
+                    log.warning("%s; exiting", msg)
+                    break
+                log.error("hot loop process ended: %s", msg)
+                rc = 1
+                break
             if demo_running and time.monotonic() - last_log >= 1.0:
                 last_log = time.monotonic()
                 demo_running = _demo_progress(daemon, log)
+                if demo_running is None:
+                    rc = 1
+                    break
                 if not demo_running and t_end is None:
                     break
                 continue
@@ -151,18 +170,44 @@ def main(args: argparse.Namespace) -> int:
                          c["overruns"], c["max_overruns_in_row"])
         st = daemon.status()
         c = st["cycle"]
-        log.info("stopping: %d cycles, compute median/p99/max %s/%s/%.0f us, overruns %d",
+        log.info("stopping%s: %d cycles, compute median/p99/max %s/%s/%.0f us, overruns %d",
+                 f" on {signal.Signals(got[0]).name}" if got else "",
                  c["cycles"], c["compute_us"]["median"], c["compute_us"]["p99"], c["compute_us"]["max"],
                  c["overruns"])
         notifier.notify("STOPPING=1")
-        return 0
     finally:
         if wd is not None:
             wd.stop_event.set()
         if server is not None:
             server.close()
         if daemon is not None:
-            daemon.close()
+            daemon.close()          # controlled stop, drives disabled
+            if daemon.final_fault is not None:
+                log.error("ended in fault %s: %s", daemon.final_fault.get("code"),
+                          daemon.final_fault.get("message"))
+                rc = 1
+        if sock_lock is not None:
+            from ..daemon.procs import release_lock
+            release_lock(sock_lock)
         for s, h in old.items():
             signal.signal(s, h)
         notifier.close()
+    return rc
+
+
+def _claim_socket(cfg, socket_path: str | None):
+    """Lock ``<socket>.lock`` (naming our pid) and check nobody answers on the socket; returns the
+    lock fd. Raises HexacncError naming the other daemon."""
+    import os
+    from ..daemon.procs import acquire_lock, release_lock
+    from ..daemon.server import check_socket_path
+    path = socket_path or cfg.daemon.socket_path
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        check_socket_path(path)         # the clear error about the directory
+    fd = acquire_lock(path + ".lock", f"socket {path}")
+    try:
+        check_socket_path(path)
+    except BaseException:
+        release_lock(fd)
+        raise
+    return fd

@@ -74,7 +74,7 @@ class PipeSim:
             for fd in sim_fds:
                 os.close(fd)
         self.proc.stdin.write(pickle.dumps(payload))
-        self.proc.stdin.close()
+        self.proc.stdin.flush()     # stdin stays open: STOP / inject lines (hexacnc.daemon.simhost)
         import selectors
         sel = selectors.DefaultSelector()
         sel.register(self.proc.stdout, selectors.EVENT_READ)
@@ -112,9 +112,27 @@ class PipeSim:
         release_segments(self.segments)
         self.segments = []
 
+    def _line(self, text: str) -> bool:
+        try:
+            self.proc.stdin.write(text.encode() + b"\n")
+            self.proc.stdin.flush()
+            return True
+        except (BrokenPipeError, ValueError, OSError):
+            return False
+
+    def inject(self, kind: str, node: int, value=0) -> None:
+        """Fault injection into the simulated drives (:func:`hexacnc.daemon.simhost.inject`)."""
+        if not self._line(f"inject {kind} {int(node)} {value}"):
+            raise BusError("the simulated drives process is not running")
+
     def terminate(self) -> None:
+        """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:
-            self.proc.terminate()
+            self._line("STOP")
+        try:
+            self.proc.stdin.close()
+        except (BrokenPipeError, OSError, ValueError):
+            pass
 
     def wait(self, timeout=None):
         return self.proc.wait(timeout)
@@ -209,6 +227,8 @@ class CyclicAdapter:
         self.pos = cio.pos_inc                # same list objects: no copies per cycle
         self.statusword = cio.status
         self.pos_count = cio.pos_count        # counted by the codec as it decodes
+        self.pos_sync = cio.pos_sync          # the SYNC each drive's last sample answers
+        self.nmt_state = cio.nmt_state        # from the drives' heartbeats (0: boot-up)
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6

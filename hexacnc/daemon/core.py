@@ -15,14 +15,9 @@ API (used by :mod:`hexacnc.daemon.server`): :meth:`Daemon.load_program`, :meth:`
 """
 from __future__ import annotations
 
-import json
 import logging
 import math
 import os
-import pickle
-import select
-import subprocess
-import sys
 import threading
 import time
 from collections import deque
@@ -38,6 +33,7 @@ from . import shm as S
 from .faults import F_EMCY, F_LIMIT, F_NONE, fault_code_name
 from .feed import ArraySource, point_to_point
 from .loop import fault_message
+from .procs import HotEnd, HotProcess, HotWatch, acquire_lock, bus_lock_path, release_lock
 
 log = logging.getLogger("hexacnc.daemon")
 
@@ -54,62 +50,6 @@ REWIND_ATTEMPTS = 3
 FEED_PERIOD_S = 0.002
 #: how long the hot process may take to boot the bus and enable the drives
 BOOT_TIMEOUT_S = 30.0
-
-
-class HotProcess:
-    """Handle of the hot loop subprocess (``python -m hexacnc.daemon.hot``)."""
-
-    def __init__(self, args: dict, fds: tuple = ()):
-        r, w = os.pipe()
-        try:
-            self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc.daemon.hot", str(w)],
-                                         stdin=subprocess.PIPE, pass_fds=(w,) + tuple(fds), close_fds=True)
-        finally:
-            os.close(w)
-        self._r = r
-        self.pid = self.proc.pid
-        try:
-            self.proc.stdin.write(pickle.dumps(args))
-            self.proc.stdin.close()
-        except BrokenPipeError:
-            pass
-
-    def wait_report(self, timeout_s: float):
-        """The ready/error message, or None on timeout or exit."""
-        buf = b""
-        t_end = time.monotonic() + timeout_s
-        try:
-            while time.monotonic() < t_end:
-                rd, _, _ = select.select([self._r], [], [], 0.05)
-                if rd:
-                    chunk = os.read(self._r, 65536)
-                    if not chunk:
-                        break
-                    buf += chunk
-                    if buf.endswith(b"\n"):
-                        return json.loads(buf)
-                elif self.proc.poll() is not None:
-                    break
-            return None
-        finally:
-            os.close(self._r)
-
-    def is_alive(self) -> bool:
-        return self.proc.poll() is None
-
-    def join(self, timeout_s: float) -> None:
-        try:
-            self.proc.wait(timeout_s)
-        except subprocess.TimeoutExpired:
-            pass
-
-    def terminate(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-
-    def kill(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
 
 
 def _spawn_hot(args: dict, fds: tuple = ()) -> HotProcess:
@@ -166,6 +106,11 @@ class Daemon:
         self._stats_cache: tuple[float, dict] = (0.0, {})
         self._last_fault_logged = 0
         self._notifier = None
+        self.watch: HotWatch | None = None
+        self.hot_end: HotEnd | None = None      #: how the hot loop ended without being told to
+        self.dropped: list[dict] = []           #: programs dropped from the queue (name, reason)
+        self.final_fault: dict | None = None    #: the fault latched when the daemon was closed
+        self._bus_lock: int | None = None
         if start:
             self.start()
 
@@ -180,7 +125,11 @@ class Daemon:
         self.info["bus_summary"] = busload.describe(rep)
         from .thermalsup import check_offset_rate, thermal_supervisor
         check_offset_rate(self.cfg, self.period_s)      # refuse a rate the cycle's acceleration guard would trip on
+        if mode == "bus":           # a real (or netns) bus: one daemon per interface, before any frame
+            self._bus_lock = acquire_lock(bus_lock_path(self.cfg),
+                                          f"bus {self.cfg.bus.interface} {self.cfg.bus.channel}")
         self.sh = S.Shared(create=True)
+        self.sh.h[S.H_SUP_PID] = os.getpid()
         self._keep_off_hot_cpu()
         try:
             self.thermal = thermal_supervisor(self.cfg, self.sh, self.status_state)
@@ -215,6 +164,8 @@ class Daemon:
             self._teardown()
             raise
         self.sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
+        self.watch = HotWatch(self.hot, self.sh, self._hot_ended)
+        self.watch.start()
         self.thermal.start()
         self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
         self._feeder.start()
@@ -249,9 +200,18 @@ class Daemon:
         self.closed = True
         if self.thermal is not None:
             self.thermal.close()
+        if self.watch is not None:
+            self.watch.ordered.set()
         if self.sh is not None and self.hot is not None and self.hot.is_alive():
             self.sh.command(S.CMD_SHUTDOWN)
             self.hot.join(timeout_s)
+        if self.sh is not None:
+            h = self.sh.h
+            self.final_fault = self._fault_dict(self.sh.read_status())
+            if self.final_fault is None and self.hot_end is not None and not self.hot_end.clean:
+                self.final_fault = {"code": self.hot_end.code, "message": self.hot_end.message}
+            if self.final_fault is None and self.hot is not None and h[S.H_EXIT] != 1:
+                self.final_fault = {"code": "loop_exited", "message": "the hot loop did not stop cleanly"}
         if self._feeder is not None:
             self._feeder.join(1.0)
         self._teardown()
@@ -269,12 +229,22 @@ class Daemon:
         if self.sh is not None:
             self.sh.close()
             self.sh = None
+        release_lock(self._bus_lock)
+        self._bus_lock = None
         saved = getattr(self, "_saved_affinity", None)
         if saved:
             try:
                 os.sched_setaffinity(0, saved)
             except OSError:
                 pass
+
+    def _hot_ended(self, end: HotEnd) -> None:
+        """The hot loop ended or hung without being told to (the watch thread)."""
+        (log.warning if end.clean else log.error)("%s", end.message)
+        with self.lock:
+            self.hot_end = end
+            self._abort_jobs(end.message)
+            self.cv.notify_all()
 
     @property
     def alive(self) -> bool:
@@ -316,8 +286,8 @@ class Daemon:
                 job = self.queue[0]
                 pose = self._pose_cmd_rad()
                 if float(np.max(np.abs(pose - job.start_rad))) > 1e-6:
-                    # the machine is not where the job was planned from (e.g. after a stop)
-                    self.queue.popleft()
+                    # the machine is not where the job was planned from (e.g. after a stop): this
+                    # job and those queued behind it are dropped, each with the reason
                     self._abort_jobs("the machine moved since the job was planned; send it again")
                     return
                 self.queue.popleft()
@@ -433,6 +403,10 @@ class Daemon:
                                        "spindle_C": spindle_C, "time_s": time_s})
 
     def _abort_jobs(self, why: str) -> None:
+        for job in self.queue:          # queued behind the running one: dropped, never silently
+            self.dropped.append({"name": job.name, "reason": why})
+            log.warning("%s dropped from the queue: %s", job.name, why)
+        del self.dropped[:-32]
         if self.current is not None:
             line, pct, left = self.current.source.progress()
             self.last_program = {"name": self.current.name, "line": line, "percent": pct,
@@ -566,6 +540,9 @@ class Daemon:
         with self.lock:
             if self.sh is None:
                 raise HexacncError("the daemon is not running")
+            for job in self.queue:
+                self.dropped.append({"name": job.name, "reason": "stop requested"})
+            del self.dropped[:-32]
             self.queue.clear()
             if self.current is not None:
                 self.stop_requested = True
@@ -708,9 +685,14 @@ class Daemon:
         pc = s[S.S_POSE_CMD:S.S_POSE_CMD + 6]
         pa = s[S.S_POSE_ACT:S.S_POSE_ACT + 6]
         fault = self._fault_dict(hs)
+        end = self.hot_end
+        if fault is None and end is not None:
+            fault = {"code": end.code, "message": end.message, "strut": None, "line": None}
         if fault is None and not self.alive and not self.closed:
             fault = {"code": "loop_exited", "message": "the hot loop process is not running", "strut": None,
                      "line": None}
+        if prog is not None and self.dropped:
+            prog["dropped"] = list(self.dropped)
         return {
             "state": state,
             "drives_enabled": hstate in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING),
@@ -727,6 +709,7 @@ class Daemon:
             "fault": fault,
             "cycle": self.cycle_stats(),
             "program": prog,
+            "dropped_programs": list(self.dropped),
             "thermal": self.thermal.status(s, h) if self.thermal is not None else {"source": "none", "state": "off"},
         }
 
