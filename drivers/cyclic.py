@@ -66,6 +66,11 @@ _U8 = struct.Struct("<B")
 _EMCY = struct.Struct("<HB5s")
 
 _K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY = 0, 1, 2, 3
+#: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
+#: re-anchored to the SYNCs just sent (see CyclicIO._init_sync_tags)
+CALM_POLLS = 8
+#: polls in a row without a position frame on a bus that count as a stall of its drives
+QUIET_POLLS = 16
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 
 
@@ -388,6 +393,7 @@ class CyclicIO:
                     ev |= self._decode_event(kind, i, data, 0, len(data), now)
             else:
                 ev |= EV_OVERFLOW
+        self._settle_tags()
         self.frames_received += count
         return ev
 
@@ -467,6 +473,7 @@ class CyclicIO:
                 if end < len(buf):      # the read did not fill the buffer: the socket is empty
                     break
             count += max_frames - left
+        self._settle_tags()
         self.frames_received += count
         return ev
 
@@ -480,15 +487,23 @@ class CyclicIO:
         and the drives of one bus answer in SYNC order too (one receive queue), so a sample answers
         the first such SYNC after its drive's previous sample and not before the bus's last tag.
         A stall of the drives therefore shifts nothing; TPDO1s lost on the wire are bridged by the
-        other drives of the bus (a run of lost frames as long as the divider on one bus, or SYNCs
-        lost before a drive, can mistag by whole divider periods). A tag never names a SYNC not yet
-        sent."""
+        other drives of the bus. A run of lost frames as long as the divider on one bus would leave
+        the tags behind by whole divider periods for good, so when a bus keeps pace (``CALM_POLLS``
+        polls in a row with at most one cycle's worth of position frames each - no backlog being
+        drained - and no stall of ``QUIET_POLLS`` polls without any before them) its samples are
+        tagged no older than ``divider + 1`` SYNCs. SYNCs lost before a drive shift its phase (not handled). A tag never names a
+        SYNC not yet sent."""
         plan = self.plan
         d = max(1, int(plan.feedback_divider))
         self._fb_div = d
         self._fb_phase = [(nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0 for nd in plan.nodes]
         self._fb_bus = [nd.bus for nd in plan.nodes]
         self._bus_tag = [0] * plan.buses
+        self._bus_rx = [0] * plan.buses              #: position frames per bus in this poll
+        self._bus_pace = [plan.tpdo_per_cycle(b) for b in range(plan.buses)]
+        self._fresh_mask = 0
+        self._bus_calm = [0] * plan.buses
+        self._bus_quiet = [0] * plan.buses
         self.pos_sync: list[int] = [0] * self.n
 
     def _tag_sample(self, i: int) -> None:
@@ -503,6 +518,41 @@ class CyclicIO:
             k = self.cycles - (self.cycles - self._fb_phase[i]) % d
         self.pos_sync[i] = k
         self._bus_tag[b] = k
+        self._bus_rx[b] += 1
+        self._fresh_mask |= 1 << i
+
+    def _settle_tags(self) -> None:
+        """End of a poll: on buses that keep pace, no tag older than ``divider + 1`` SYNCs."""
+        d = self._fb_div
+        lb = self.cycles - d - 1
+        rx = self._bus_rx
+        calm = self._bus_calm
+        pace = self._bus_pace
+        quiet = self._bus_quiet
+        for b in range(len(rx)):
+            n = rx[b]
+            if n > pace[b]:             # a backlog being drained
+                calm[b] = 0
+            elif n:
+                quiet[b] = 0
+                calm[b] += 1
+            else:
+                quiet[b] += 1
+                calm[b] = 0 if quiet[b] >= QUIET_POLLS else calm[b] + 1
+        if not self._fresh_mask:
+            return
+        for i in range(self.n):
+            if not self._fresh_mask >> i & 1:
+                continue
+            b = self._fb_bus[i]
+            if calm[b] >= CALM_POLLS and self.pos_sync[i] < lb:
+                k = lb + (self._fb_phase[i] - lb) % d
+                self.pos_sync[i] = k
+                if k > self._bus_tag[b]:
+                    self._bus_tag[b] = k
+        for b in range(len(rx)):
+            rx[b] = 0
+        self._fresh_mask = 0
 
     # -- supervision helpers (cheap, for the cycle) --------------------------------------------
     def heartbeat_lost(self, now: float | None = None) -> int:

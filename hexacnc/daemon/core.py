@@ -585,6 +585,18 @@ class Daemon:
         from .loop import CMD_STALL
         self.sh.command(CMD_STALL, int(us))
 
+    def crash_loop(self) -> None:
+        """Tests: make the hot loop raise in its cycle (a crashing hot process)."""
+        from .loop import CMD_CRASH
+        self.sh.command(CMD_CRASH)
+
+    def inject_drive(self, kind: str, node: int, value=0) -> None:
+        """Tests and ``hexacnc bench faults``: fault injection into the simulated drives process
+        (:func:`hexacnc.daemon.simhost.inject`)."""
+        if not hasattr(self.sim, "inject"):
+            raise HexacncError("fault injection needs the simulated drives on shm or pipe buses")
+        self.sim.inject(kind, node, value)
+
     def reset_stats(self, timeout_s: float = 1.0) -> None:
         """Start the cycle statistics afresh (benchmarks: one phase at a time)."""
         seq = self.sh.command(S.CMD_STATS_RESET)
