@@ -132,3 +132,55 @@ def test_crash_of_the_hot_loop_is_reported(machine, cfg):
     assert st["state"] == "fault" and st["fault"]["code"] == "loop_died", st["fault"]
     with pytest.raises(HexacncError):
         d.move_to(cfg.home_pose, 10.0)
+
+
+def test_enable_happens_in_the_cycle_and_reset_reenables_without_a_step(cfg):
+    """The drives are enabled by the cyclic frames while SYNC and targets at the measured position
+    run (decoded off the rings from the first frame on), and after a fault and reset they are
+    re-enabled from where they stand: no command step beyond the strut limits."""
+    from hexacnc.daemon.procs import HotProcess
+    from hexacnc.daemon import core
+    seen = {}
+    orig = core._spawn_hot
+
+    def spawn_and_tap(args, fds=()):
+        names = args["sim_args"]["shm_rings"]
+        seen["tap"] = RingTap(cfg, names, poll_s=0.002).start()
+        return orig(args, fds)
+    core._spawn_hot = spawn_and_tap
+    try:
+        d = Daemon(cfg, realtime=False)
+    finally:
+        core._spawn_hot = orig
+    tap = seen["tap"]
+    try:
+        tap.drain()
+        s = tap.seen
+        # SYNCs with targets before the first enable-operation controlword, and targets = positions
+        t_enable = min(t for t, i, cw in s.cw if cw == 0x000F)
+        t_first = [r[0] for r in s.targets[0] if None not in r[1]]
+        assert t_first and t_first[0] < t_enable
+        assert sum(1 for t in t_first if t < t_enable) >= 3
+        _move(d, cfg)
+        d.inject_fault()
+        _wait_fault(d)
+        time.sleep(0.3)
+        t_reset = time.monotonic()
+        d.reset()
+        time.sleep(0.3)
+        tap.drain()
+        t, L = tap.lengths_mm(t_reset - 0.1)
+        pk = motion_peaks(L, cfg.cycle.period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+                          cfg.max_jerk_mm_s3)
+        # single-cycle acceleration with an allowance of 2 increments of rounding: a step of a few
+        # um (the old re-enable) is ~16,000 mm/s^2 here
+        a1 = np.abs(np.diff(L, 2, axis=0)) / cfg.cycle.period_s ** 2
+        allow = 2.0 / cfg.bus.increments_per_mm / cfg.cycle.period_s ** 2
+        k = int(np.argmax(np.max(a1, axis=1)))
+        cws = [(round(tt - t_reset, 4), i, hex(cw)) for tt, i, cw in tap.seen.cw if tt > t_reset - 0.1]
+        assert np.all(a1 <= np.asarray(cfg.max_acceleration_mm_s2) + allow), (a1.max(), t[k] - t_reset, cws[:8], L[k-2:k+4, :3])
+        assert pk["a"] <= 1.0 and pk["v"] <= 1.0, pk
+        assert len(L) > 400 and np.max(np.abs(L[-1] - L[0])) < 0.01
+    finally:
+        d.close()
+        tap.stop()

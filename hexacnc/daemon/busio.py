@@ -4,7 +4,7 @@ Modes (``Daemon(io_mode=...)``; ``auto`` picks from the config):
 
 * ``bus`` - the real path: ``drivers.master`` boots the drives (NMT, SDO PDO mapping, mode 8)
   inside the hot process *before* the loop starts, then ``drivers.cyclic`` does the hot-path
-  frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
+  frames; the loop walks the drives to Operation Enabled in those frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
   process on the same bus (``udp_multicast``: only inside a network namespace or on loopback).
 * ``shm`` - the default for ``[bus] simulate`` with ``interface = "virtual"`` (python-can's
   virtual bus does not cross processes): the simulated drives run in their own process
@@ -92,7 +92,7 @@ class PipeSim:
                 break
         sel.close()
         if not ok:
-            self.terminate()
+            self.kill()             # never started: nothing to stop gently
             err = self.proc.stderr.read().decode(errors="replace")[-2000:]
             self.close_fds()
             self.release()
@@ -310,7 +310,10 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         m = Master(cfg, buses)
         for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
             try:
-                m.bring_up(enable=True)
+                # no enable here: the hot loop walks the drives to Operation Enabled in the cyclic
+                # frames, with SYNC running and the measured positions as targets (never by SDO
+                # before the loop: the drives would sit enabled with nothing to follow)
+                m.bring_up(enable=False)
                 break
             except BusError as exc:
                 if attempt == 3:
@@ -320,7 +323,7 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         pos = m.positions_inc()
         m.detach()
         cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
-                              controlword=cia402.CW_ENABLE_OPERATION, period_s=period_s)
+                              controlword=cia402.CW_DISABLE_VOLTAGE, period_s=period_s)
         for i in range(6):
             cio.status[i] = sw[i]
             cio.pos_inc[i] = pos[i]

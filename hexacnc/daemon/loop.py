@@ -55,6 +55,10 @@ PUBLISH_EVERY = 8
 ENABLE_TIMEOUT_NS = 2_000_000_000
 #: a strut command step below this (mm per cycle) counts as standstill
 STANDSTILL_MM = 1e-7
+#: a stop that ends with the drives disabled waits until every measured length is this close to its
+#: final command (mm), at most SETTLE_NS
+SETTLE_MM = 0.0003
+SETTLE_NS = 100_000_000
 #: thermal/spindle growth offsets are slewed at most this fast (mm/s), every THERMAL_EVERY cycles
 THERMAL_SLEW_MM_S = 0.002
 THERMAL_EVERY = 16
@@ -187,6 +191,7 @@ class HotLoop:
         self.cw = [-1] * 6            # last controlword requested per drive
         self.follow_max = self.sup.follow_max
         self.exit_signal = 0          # signal that ordered the stop and exit (0: none)
+        self.settle_t0 = 0            # when the commands of a stop that ends disabled came to rest
         self.state = S.ST_BOOT
         self.fault = F_NONE
         self.fault_strut = 0
@@ -265,6 +270,24 @@ class HotLoop:
             self.stop.start(self.l0, self.l1, self.l2)
             self.state = S.ST_STOPPING
         self.after_stop = S.ST_FAULT
+
+    def _settled(self, now: int) -> bool:
+        """After a stop that ends disabled: True once every measured length is within
+        ``SETTLE_MM`` of its final command, or ``SETTLE_NS`` after the commands stopped (a drive
+        that does not follow is disabled anyway). Disabling a strut still catching up with its
+        command would leave the next enable's targets (the measured positions) a step away from
+        the last commands."""
+        if self.settle_t0 == 0:
+            self.settle_t0 = now
+        if now - self.settle_t0 <= SETTLE_NS:
+            act = self.act
+            out = self.out
+            for i in range(6):
+                d = act[i] - out[i]
+                if d > SETTLE_MM or d < -SETTLE_MM:
+                    return False
+        self.settle_t0 = 0
+        return True
 
     def _disable(self) -> None:
         for i in range(6):
@@ -545,7 +568,7 @@ class HotLoop:
                         if self.after_stop == ST_IDLE:
                             self._rehold_from(out)
                             state = self.state = ST_IDLE
-                        else:
+                        elif self._settled(t0):     # disable once the struts stand where commanded
                             self._disable()
                             state = self.state = self.after_stop
                 elif state == ST_BOOT:
@@ -692,6 +715,9 @@ class HotLoop:
                 if cycles == max_cycles:
                     break
                 t_end = mono()
+        except BaseException:
+            h[S.H_EXIT] = 2             # crashed: the supervisor reports it, the drives stop on their own
+            raise
         finally:
             self.sends = sends
             gc.enable()

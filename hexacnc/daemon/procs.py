@@ -118,6 +118,9 @@ def classify_exit(h, returncode: int | None) -> HotEnd:
                       True, now)
     if h[S.H_EXIT] == 1:
         return HotEnd("loop_died", "hot loop exited after a fault: motion stopped, drives disabled", False, now)
+    if h[S.H_EXIT] == 2:
+        return HotEnd("loop_died", "hot loop process died (crashed in its cycle): the drives stop on their own "
+                                   "(communication-loss reaction)", False, now)
     how = (f"killed by {signal_name(-returncode)}" if returncode is not None and returncode < 0
            else f"exit status {returncode}")
     return HotEnd("loop_died", f"hot loop process died ({how}): the drives stop on their own "
