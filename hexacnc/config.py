@@ -298,6 +298,10 @@ class DaemonConfig:
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
     max_message_bytes: int = 16 * 1024 * 1024  #: largest protocol message accepted
+    #: a program is interpreted and planned in a child process with at most this address space (MB)
+    max_plan_memory_mb: int = 4096
+    #: ... and at most this long (s); over either it is refused naming the limit and the line reached
+    max_plan_s: float = 300.0
 
 
 @dataclass(frozen=True)
@@ -598,6 +602,8 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
         max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
         max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
+        max_plan_memory_mb=d.getint("max_plan_memory_mb", dd.max_plan_memory_mb, minval=512, maxval=1 << 20),
+        max_plan_s=d.getfloat("max_plan_s", dd.max_plan_s, above=0.0, maxval=86400.0),
     )
     if daemon.tcp_port and not daemon.tcp_token:
         raise d.error("tcp_token", "a token is required when tcp_port is set")

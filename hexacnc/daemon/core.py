@@ -111,6 +111,7 @@ class Daemon:
         self.dropped: list[dict] = []           #: programs dropped from the queue (name, reason)
         self.final_fault: dict | None = None    #: the fault latched when the daemon was closed
         self._bus_lock: int | None = None
+        self._planning: set = set()             #: programs being planned (planproc.PlanJob)
         if start:
             self.start()
 
@@ -198,6 +199,7 @@ class Daemon:
         if self.closed:
             return
         self.closed = True
+        self._cancel_planning()
         if self.thermal is not None:
             self.thermal.close()
         if self.watch is not None:
@@ -501,18 +503,30 @@ class Daemon:
 
     def load_program(self, text: str, name: str) -> dict:
         """Parse, plan and check the whole program, then queue it. Raises GcodeError/PlanError."""
-        from . import program as prog
+        from .planproc import PlanJob
+        from .program import ProgramSource
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
-        plan = prog.plan_program(self.cfg, self.hx, text, name, start, self.period_s)
-        job = Job(name=name, source=plan.source, start_rad=start, end_rad=plan.end_rad,
-                  blocks=plan.blocks, duration_s=plan.duration_s)
+            # interpreted and planned in a child with bounded memory and time; a stop kills it
+            pj = PlanJob(self.cfg, text, name, start, self.period_s)
+            self._planning.add(pj)
+        try:
+            plan, blocks, duration_s, end_rad, _summary = pj.result()
+        finally:
+            with self.lock:
+                self._planning.discard(pj)
+        job = Job(name=name, source=ProgramSource(plan, self.period_s, name), start_rad=start, end_rad=end_rad,
+                  blocks=blocks, duration_s=duration_s)
         with self.lock:
             if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
                 raise HexacncError("another motion was queued while this program was planned; send it again")
             self._queue(job)
-        return {"blocks": plan.blocks, "duration_s": plan.duration_s}
+        return {"blocks": blocks, "duration_s": duration_s}
+
+    def _cancel_planning(self) -> None:
+        for pj in list(self._planning):
+            pj.cancel()
 
     def pause(self) -> dict:
         with self.lock:
@@ -540,6 +554,7 @@ class Daemon:
         with self.lock:
             if self.sh is None:
                 raise HexacncError("the daemon is not running")
+            self._cancel_planning()         # a program still being interpreted or planned: dropped
             for job in self.queue:
                 self.dropped.append({"name": job.name, "reason": "stop requested"})
             del self.dropped[:-32]
