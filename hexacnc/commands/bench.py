@@ -15,6 +15,7 @@ BENCHES: dict[str, str] = {
     "calib": "hexacnc.bench.calib",
     "simulate": "hexacnc.bench.simulate",
     "hold": "hexacnc.bench.hold",
+    "faults": "hexacnc.bench.faults",
 }
 
 

@@ -112,6 +112,7 @@ class Daemon:
         self.final_fault: dict | None = None    #: the fault latched when the daemon was closed
         self._bus_lock: int | None = None
         self._planning: set = set()             #: programs being planned (planproc.PlanJob)
+        self._stops = 0                         #: stop() calls so far (a plan started before one is dropped)
         if start:
             self.start()
 
@@ -508,9 +509,14 @@ class Daemon:
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
-            # interpreted and planned in a child with bounded memory and time; a stop kills it
-            pj = PlanJob(self.cfg, text, name, start, self.period_s)
+            stops = self._stops
+        # interpreted and planned in a child with bounded memory and time (started outside the
+        # lock: stop/pause never wait for it); a stop kills it
+        pj = PlanJob(self.cfg, text, name, start, self.period_s)
+        with self.lock:
             self._planning.add(pj)
+            if self._stops != stops:        # a stop came while the child was being started
+                pj.cancel()
         try:
             plan, blocks, duration_s, end_rad, _summary = pj.result()
         finally:
@@ -554,6 +560,7 @@ class Daemon:
         with self.lock:
             if self.sh is None:
                 raise HexacncError("the daemon is not running")
+            self._stops += 1
             self._cancel_planning()         # a program still being interpreted or planned: dropped
             for job in self.queue:
                 self.dropped.append({"name": job.name, "reason": "stop requested"})
