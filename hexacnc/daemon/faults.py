@@ -30,3 +30,53 @@ CODES = {
 
 def fault_code_name(code: int) -> str:
     return CODES.get(code, f"fault_{code}")
+
+
+def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: str = "") -> str:
+    """Human-readable cause of a fault (slow path)."""
+    name = fault_code_name(code)
+    if code == F_HEARTBEAT:
+        return (f"lost heartbeat of drive {strut}" + (f" ({arg} ms since the last one)" if arg >= 0
+                                                       else " (none received)"))
+    if code == F_EMCY:
+        return f"EMCY from drive {strut}: 0x{arg & 0xFFFF:04X}" + (f" {emcy_text}" if emcy_text else "")
+    if code == F_FOLLOWING:
+        return f"following error of strut {strut}: {arg / 1000.0:.3f} mm over the limit"
+    if code == F_LIMIT:
+        return f"setpoint outside limits: {detail}" if detail else f"setpoint outside limits (code {arg})"
+    if code == F_DEADLINE:
+        return f"missed-deadline burst: {arg} cycles in a row over the period"
+    if code == F_SETPOINT:
+        return ("dead setpoint source: setpoint ring ran empty while moving" if arg == 1
+                else "dead setpoint source: no setpoint within [cycle] setpoint_timeout_s")
+    if code == F_DRIVE:
+        return f"drive {strut} left Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
+    if code == F_SUPERVISOR:
+        return "supervisor process gone" + (f" (last sign of life {arg} ms before)" if arg >= 0 else "")
+    if code == F_FEEDBACK:
+        return f"stale feedback from drive {strut}: no position sample for {arg} ms"
+    if code == F_NMT:
+        return (f"drive {strut} was reset (boot-up message)" if arg == 0
+                else f"drive {strut} left NMT Operational (heartbeat state {arg})")
+    if code == F_REMOTE:
+        return f"drive {strut} lost remote (statusword bit 9 clear: 0x{arg & 0xFFFF:04X})"
+    if code == F_NOT_FOLLOWING:
+        return f"drive {strut} does not follow its target (statusword bit 12 clear: 0x{arg & 0xFFFF:04X})"
+    if code == F_SIGNAL:
+        import signal
+        try:
+            name = signal.Signals(arg).name
+        except ValueError:
+            name = f"signal {arg}"
+        return f"stopped by {name}"
+    if code == F_BUS:
+        return "bus send failed"
+    if code == F_ENABLE:
+        if arg == -2:
+            return f"drive {strut} reports a position outside the strut length range: not enabled"
+        if arg == -1:
+            return f"no position feedback from drive {strut}: not enabled"
+        return f"drive {strut} did not reach Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
+    if code == F_TEST:
+        return "test fault"
+    return name

@@ -171,6 +171,13 @@ class HotWatch(threading.Thread):
 
 # -- locks ------------------------------------------------------------------------------------
 def lock_dir() -> str:
+    """Where bus locks live: ``$HEXACNC_LOCK_DIR``, else ``/run/lock`` when writable (shared by a
+    systemd unit with PrivateTmp and a daemon started by hand), else ``$XDG_RUNTIME_DIR``, else /tmp."""
+    d = os.environ.get("HEXACNC_LOCK_DIR")
+    if d:
+        return d
+    if os.access("/run/lock", os.W_OK | os.X_OK):
+        return "/run/lock"
     return os.environ.get("XDG_RUNTIME_DIR") or "/tmp"
 
 
