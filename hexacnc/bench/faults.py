@@ -24,6 +24,7 @@ Timing figures depend on the machine's load (printed as ``loadavg``).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import re
@@ -317,7 +318,9 @@ def stop_during_planning(cfg, lines: int) -> dict:
     text = "G0 X0 Y0 Z20\n" + "".join(f"G1 X{(i % 100) * 0.5 - 25:.1f} Y{(i % 7) - 3} F3000\n" for i in range(lines))
     d, tap = _moving_daemon(cfg, 40.0)           # 2.5 s of motion
     tmp = tempfile.mkdtemp(prefix="hxbp", dir="/tmp")
-    srv = SocketServer(d, cfg, os.path.join(tmp, "b.sock")).start()
+    big = cfg.replace(daemon=dataclasses.replace(cfg.daemon, max_message_bytes=max(cfg.daemon.max_message_bytes,
+                                                                                   2 * len(text))))
+    srv = SocketServer(d, big, os.path.join(tmp, "b.sock")).start()
     s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
         s.connect(srv.socket_path)

@@ -61,6 +61,10 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
     (log.info if locked else log.warning)("hot loop: %s", m1)
     cpu, m2 = rt.pin_cpu(cfg.cycle.cpu if cpu is None else cpu)
     (log.info if cpu >= 0 else log.warning)("hot loop: %s", m2)
+    # the per-cycle transform (generated code) before the bus: between the master's boot (its
+    # heartbeat stops) and the first cyclic frame only the codec is set up
+    from ..transform import CycleTransform
+    ct = CycleTransform(cfg, period_s=period_s)
     io = None
     try:
         io = busio.open_io(cfg, io_mode, period_s, sim_args or {})
@@ -81,7 +85,7 @@ def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, 
     sh.h[S.H_PRIV_AFFINITY] = priv["affinity_cpu"] + 1
     report("ready", {"privileges": priv, "bus_load": getattr(io, "bus_load", 0.0),
                      "io_info": getattr(io, "info", {})})
-    loop = HotLoop(cfg, sh, io, priv=priv, period_s=period_s)
+    loop = HotLoop(cfg, sh, io, ct=ct, priv=priv, period_s=period_s)
     try:
         loop.run()
     finally:

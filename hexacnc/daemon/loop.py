@@ -109,7 +109,7 @@ class HotLoop:
         self.hb_timeout_ns = int(bus.heartbeat_timeout_ms * 1_000_000)
         fb_to = float(getattr(cy, "feedback_timeout_s", 0.35))
         self.sup = DriveSupervisor(io, self.dt, following_limits_mm(cfg), bus.heartbeat_timeout_ms * 1e-3,
-                                   fb_to, fb_to + HISTORY_MARGIN_S)
+                                   fb_to, fb_to + HISTORY_MARGIN_S, bus.heartbeat_ms * 1e-3)
         self.max_in_row = int(cy.max_overruns_in_row)
         self.sp_timeout_ns = int(cy.setpoint_timeout_s * 1e9)
         self.stop = StrutStop(cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,

@@ -3,7 +3,8 @@
 :class:`DriveSupervisor` is one step of the hot loop's cycle. Every cycle, for each drive, in
 this order (the first finding wins and names the drive):
 
-1. heartbeat older than ``[bus] heartbeat_timeout_ms``      -> ``F_HEARTBEAT``
+1. heartbeat older than ``[bus] heartbeat_timeout_ms`` (at least ``feedback_timeout_s`` plus one
+   heartbeat period ``[bus] heartbeat_ms``: a stall below the bound is no fault) -> ``F_HEARTBEAT``
 2. a new EMCY                                               -> ``F_EMCY``
 3. boot-up or an NMT state other than Operational           -> ``F_NMT``
 4. statusword: not Operation Enabled                        -> ``F_DRIVE``;
@@ -54,10 +55,12 @@ class DriveSupervisor:
     """
 
     def __init__(self, io, period_s: float, follow_mm, hb_timeout_s: float, feedback_timeout_s: float,
-                 history_s: float):
+                 history_s: float, hb_period_s: float = 0.0):
         self.io = io
         self.follow_mm = [float(v) for v in follow_mm]
-        self.hb_to_ns = int(hb_timeout_s * 1e9)
+        # a stall shorter than the feedback bound delays a heartbeat by up to the stall plus one
+        # heartbeat period: never a fault by itself (the stale-feedback check is the bound)
+        self.hb_to_ns = int(max(hb_timeout_s, feedback_timeout_s + hb_period_s) * 1e9)
         self.fb_to_ns = int(feedback_timeout_s * 1e9)
         self.n_hist = history_slots(period_s, history_s)
         self.mask = self.n_hist - 1
