@@ -9,19 +9,18 @@ and the exit status (0 after a clean stop, non-zero after a fault).
 from __future__ import annotations
 
 import os
-import re
 import signal
 import subprocess
 import sys
 import threading
 import time
-from importlib import resources
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from drivers.cia402 import CW_DISABLE_VOLTAGE
+from hexacnc.bench.faults import children, machine_text
 from hexacnc.bench.ringtap import RingTap, motion_peaks
 from hexacnc.config import load_config
 
@@ -33,32 +32,10 @@ PROGRAM = "G21 G90 G64 P0.02\nG0 X0 Y0 Z20\nG1 X60 F9000\nG1 X-60\nG1 X60\nG1 X-
 
 def machine_file(tmp: Path, extra_struts: str = "max_following_error_mm = 5.0\n") -> Path:
     """The embedded default machine, tolerant of this loaded test VM's stalls (deadline bursts)."""
-    text = (resources.files("hexacnc") / "data" / "default.toml").read_text()
-    text = re.sub(r"max_overruns_in_row = \d+", "max_overruns_in_row = 1000", text)
-    text = text.replace("[struts]\n", "[struts]\n" + extra_struts, 1)
+    text = machine_text().replace("[struts]\n", "[struts]\n" + extra_struts, 1)
     p = tmp / "machine.toml"
     p.write_text(text)
     return p
-
-
-def children(pid: int) -> dict:
-    """{name: pid} of the daemon's child processes (hot loop, simulated drives)."""
-    out = {}
-    for d in os.listdir("/proc"):
-        if not d.isdigit():
-            continue
-        try:
-            stat = Path(f"/proc/{d}/stat").read_text()
-            cmd = Path(f"/proc/{d}/cmdline").read_bytes().replace(b"\0", b" ").decode()
-        except OSError:
-            continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        if ppid == pid:
-            if "hexacnc.daemon.hot" in cmd:
-                out["hot"] = int(d)
-            elif "hexacnc.daemon.simhost" in cmd:
-                out["sim"] = int(d)
-    return out
 
 
 class Run:

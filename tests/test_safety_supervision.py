@@ -138,7 +138,6 @@ def test_enable_happens_in_the_cycle_and_reset_reenables_without_a_step(cfg):
     """The drives are enabled by the cyclic frames while SYNC and targets at the measured position
     run (decoded off the rings from the first frame on), and after a fault and reset they are
     re-enabled from where they stand: no command step beyond the strut limits."""
-    from hexacnc.daemon.procs import HotProcess
     from hexacnc.daemon import core
     seen = {}
     orig = core._spawn_hot

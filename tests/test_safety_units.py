@@ -2,7 +2,6 @@
 exit classification, locks, the hot process' signal flags."""
 from __future__ import annotations
 
-import dataclasses
 import os
 import signal
 import struct
