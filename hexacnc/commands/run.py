@@ -110,15 +110,7 @@ def main(args: argparse.Namespace) -> int:
         # before any frame: nobody else serves this socket (lock naming its pid, then a probe)
         sock_lock = _claim_socket(cfg, args.socket)
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
-        info = daemon.info
-        io_info = info.get("io_info", {})
-        log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
-        segs = getattr(daemon.sim, "segments", None)
-        if segs:
-            log.info("frame rings: %s", " ".join(seg.name for seg in segs))
-        log.info("bus: %s", info.get("bus_summary"))
-        for m in (info.get("privileges") or {}).get("messages", []):
-            log.info("hot loop privileges: %s", m)
+        _log_start(daemon, log)
         try:
             from ..daemon.server import SocketServer
         except ImportError:
@@ -134,40 +126,7 @@ def main(args: argparse.Namespace) -> int:
             wd = Watchdog(daemon, notifier, wd_s / 3.0)
             wd.start()
         log.info("running (cycle %.3f ms); Ctrl-C stops", daemon.period_s * 1e3)
-        t_end = None if args.duration is None else time.monotonic() + args.duration
-        last_log = time.monotonic()
-        demo_running = False
-        if args.demo:
-            demo_running = _start_demo(daemon, log)
-        while not stop.is_set():
-            if t_end is not None and time.monotonic() >= t_end:
-                break
-            stop.wait(0.1)
-            if not daemon.alive:
-                end = daemon.hot_end
-                msg = end.message if end is not None else (daemon.status().get("fault") or {}).get("message")
-                if end is not None and end.clean:
-                    log.warning("%s; exiting", msg)
-                    break
-                log.error("hot loop process ended: %s", msg)
-                rc = 1
-                break
-            if demo_running and time.monotonic() - last_log >= 1.0:
-                last_log = time.monotonic()
-                demo_running = _demo_progress(daemon, log)
-                if demo_running is None:
-                    rc = 1
-                    break
-                if not demo_running and t_end is None:
-                    break
-                continue
-            if time.monotonic() - last_log >= 10.0:
-                last_log = time.monotonic()
-                st = daemon.status()
-                c = st["cycle"]
-                log.info("state %s, cycles %d, compute p99 %s us, lateness p99 %s us, overruns %d (max %d in a row)",
-                         st["state"], c["cycles"], c["compute_us"]["p99"], c["lateness_us"]["p99"],
-                         c["overruns"], c["max_overruns_in_row"])
+        rc = _serve(daemon, args, stop, log)
         st = daemon.status()
         c = st["cycle"]
         log.info("stopping%s: %d cycles, compute median/p99/max %s/%s/%.0f us, overruns %d",
@@ -193,6 +152,55 @@ def main(args: argparse.Namespace) -> int:
             signal.signal(s, h)
         notifier.close()
     return rc
+
+
+def _log_start(daemon, log) -> None:
+    """The start-up summary: drives and transport, frame rings, bus load, privileges."""
+    info = daemon.info
+    io_info = info.get("io_info", {})
+    log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
+    segs = getattr(daemon.sim, "segments", None)
+    if segs:
+        log.info("frame rings: %s", " ".join(seg.name for seg in segs))
+    log.info("bus: %s", info.get("bus_summary"))
+    for m in (info.get("privileges") or {}).get("messages", []):
+        log.info("hot loop privileges: %s", m)
+
+
+def _serve(daemon, args, stop: threading.Event, log) -> int:
+    """Run until a signal, ``--duration``, the end of ``--demo`` or the hot loop's end; returns
+    the exit status so far (1: the hot loop was lost or the demo faulted)."""
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    last_log = time.monotonic()
+    demo_running = _start_demo(daemon, log) if args.demo else False
+    while not stop.is_set():
+        if t_end is not None and time.monotonic() >= t_end:
+            return 0
+        stop.wait(0.1)
+        if not daemon.alive:
+            end = daemon.hot_end
+            msg = end.message if end is not None else (daemon.status().get("fault") or {}).get("message")
+            if end is not None and end.clean:
+                log.warning("%s; exiting", msg)
+                return 0
+            log.error("hot loop process ended: %s", msg)
+            return 1
+        if demo_running and time.monotonic() - last_log >= 1.0:
+            last_log = time.monotonic()
+            demo_running = _demo_progress(daemon, log)
+            if demo_running is None:
+                return 1
+            if not demo_running and t_end is None:
+                return 0
+            continue
+        if time.monotonic() - last_log >= 10.0:
+            last_log = time.monotonic()
+            st = daemon.status()
+            c = st["cycle"]
+            log.info("state %s, cycles %d, compute p99 %s us, lateness p99 %s us, overruns %d (max %d in a row)",
+                     st["state"], c["cycles"], c["compute_us"]["p99"], c["lateness_us"]["p99"],
+                     c["overruns"], c["max_overruns_in_row"])
+    return 0
 
 
 def _claim_socket(cfg, socket_path: str | None):
