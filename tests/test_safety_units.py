@@ -241,3 +241,25 @@ def test_hot_process_ignores_sigint_and_flags_sigterm():
         loop.SIGNALS[:] = [0, 0]
         for s, h in old.items():
             signal.signal(s, h)
+
+
+def test_a_stopped_process_is_told_from_a_starved_one():
+    import subprocess
+    import sys
+    import time
+    from hexacnc.daemon.procs import process_state
+    p = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(30)"])
+    try:
+        os.kill(p.pid, signal.SIGSTOP)
+        for _ in range(100):
+            if process_state(p.pid) == "T":
+                break
+            time.sleep(0.01)
+        assert process_state(p.pid) == "T"
+        os.kill(p.pid, signal.SIGCONT)
+        time.sleep(0.05)
+        assert process_state(p.pid) in ("S", "R")
+    finally:
+        p.kill()
+        p.wait()
+    assert process_state(p.pid) == ""

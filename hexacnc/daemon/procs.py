@@ -27,10 +27,13 @@ from dataclasses import dataclass
 from ..errors import BusError
 from . import shm as S
 
-#: the hot loop's beat (written every cycle) older than this: hung (SIGSTOP, stuck); it is killed.
-#: Only reporting depends on it (the drives stop on their own within [bus] comm_loss_timeout_s); a
-#: loaded 2-CPU VM without SCHED_FIFO was seen to starve the hot process for 300+ ms
-HANG_S = 1.0
+#: the hot loop's beat (written every cycle) older than this while the process is stopped
+#: (SIGSTOP: state T): hung, it is killed. Only reporting depends on it (the drives stop on their
+#: own within [bus] comm_loss_timeout_s)
+HANG_S = 0.3
+#: ... and older than this while it is runnable: stuck in its cycle (a loaded 2-CPU VM without
+#: SCHED_FIFO, with several daemons' hot loops on one CPU, starved a hot process for over 1 s)
+STUCK_S = 5.0
 #: how often the watch looks (s)
 WATCH_PERIOD_S = 0.01
 
@@ -132,12 +135,14 @@ def classify_exit(h, returncode: int | None) -> HotEnd:
 class HotWatch(threading.Thread):
     """Watch the hot loop: ``on_end(HotEnd)`` once when it ends or hangs without being told to."""
 
-    def __init__(self, hot: HotProcess, sh: S.Shared, on_end, hang_s: float = HANG_S):
+    def __init__(self, hot: HotProcess, sh: S.Shared, on_end, hang_s: float = HANG_S,
+                 stuck_s: float = STUCK_S):
         super().__init__(name="hexacnc-hotwatch", daemon=True)
         self.hot = hot
         self.sh = sh
         self.on_end = on_end
         self.hang_ns = int(hang_s * 1e9)
+        self.stuck_ns = int(stuck_s * 1e9)
         self.ordered = threading.Event()       #: set before the supervisor stops the hot loop
         self.end: HotEnd | None = None
 
@@ -157,7 +162,8 @@ class HotWatch(threading.Thread):
             beat = h[S.H_LOOP_BEAT_NS]
             if beat and h[S.H_EXIT] == 0 and not starved:
                 age = time.monotonic_ns() - beat
-                if age > self.hang_ns and not self.ordered.is_set():
+                if age > self.hang_ns and not self.ordered.is_set() and (
+                        age > self.stuck_ns or process_state(self.hot.pid) in ("T", "t")):
                     self.hot.kill()
                     self._ended(HotEnd("loop_hung", f"hot loop hung ({age // 1_000_000} ms without a "
                                        "cycle): killed; the drives stop on their own (communication-loss "
@@ -167,6 +173,15 @@ class HotWatch(threading.Thread):
     def _ended(self, end: HotEnd) -> None:
         self.end = end
         self.on_end(end)
+
+
+def process_state(pid: int) -> str:
+    """The kernel's one-letter state of ``pid`` (R, S, D, T stopped, t traced, Z ...), "" if gone."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0]
+    except (OSError, IndexError):
+        return ""
 
 
 # -- locks ------------------------------------------------------------------------------------
