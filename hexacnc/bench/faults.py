@@ -316,7 +316,7 @@ def stop_during_planning(cfg, lines: int) -> dict:
     from ..daemon import protocol as P
     from ..daemon.server import SocketServer
     text = "G0 X0 Y0 Z20\n" + "".join(f"G1 X{(i % 100) * 0.5 - 25:.1f} Y{(i % 7) - 3} F3000\n" for i in range(lines))
-    d, tap = _moving_daemon(cfg, 40.0)           # 2.5 s of motion
+    d, tap = _moving_daemon(cfg, 15.0)           # ~7 s of motion
     tmp = tempfile.mkdtemp(prefix="hxbp", dir="/tmp")
     big = cfg.replace(daemon=dataclasses.replace(cfg.daemon, max_message_bytes=max(cfg.daemon.max_message_bytes,
                                                                                    2 * len(text))))
@@ -325,7 +325,11 @@ def stop_during_planning(cfg, lines: int) -> dict:
     try:
         s.connect(srv.socket_path)
         s.sendall(P.encode({"id": 1, "op": "program", "text": text, "name": f"{lines}-lines.ngc"}))
-        time.sleep(0.7)
+        t_end = time.monotonic() + 30.0         # received and decoded: the planning child runs
+        while not d._planning and time.monotonic() < t_end:
+            time.sleep(0.005)
+        time.sleep(0.5)
+        tap.drain()
         t0 = time.monotonic()
         s.sendall(P.encode({"id": 2, "op": "stop"}))
         dec = P.Decoder()
