@@ -66,6 +66,11 @@ _U8 = struct.Struct("<B")
 _EMCY = struct.Struct("<HB5s")
 
 _K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY = 0, 1, 2, 3
+#: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
+#: re-anchored to the SYNCs just sent (see CyclicIO._init_sync_tags)
+CALM_POLLS = 8
+#: polls in a row without a position frame on a bus that count as a stall of its drives
+QUIET_POLLS = 16
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 
 
@@ -89,6 +94,15 @@ def limits_inc(cfg) -> tuple[list[int], list[int]]:
     lo = [math.ceil((float(cfg.min_length_mm[i]) - float(cfg.strut_offset_mm[i])) * k - 1e-9) for i in range(6)]
     hi = [math.floor((float(cfg.max_length_mm[i]) - float(cfg.strut_offset_mm[i])) * k + 1e-9) for i in range(6)]
     return lo, hi
+
+
+def master_heartbeat_s(bus_cfg) -> float:
+    """Period of the master heartbeat (0x700 + 0x7F) while cycling: ``[bus] heartbeat_ms``, at most a
+    quarter of ``[bus] comm_loss_timeout_s`` (the drives' heartbeat consumer time, 0x1016), so a
+    drive sees a silent master within that time and never a live one as silent."""
+    hb = bus_cfg.heartbeat_ms * 1e-3
+    loss = getattr(bus_cfg, "comm_loss_timeout_s", 0.0)
+    return min(hb, loss / 4.0) if loss > 0 else hb
 
 
 def event_text(ev: int) -> str:
@@ -217,7 +231,7 @@ class CyclicIO:
         self._have_last = False                 #: the RPDO buffers hold valid targets
         self._sync_overflow = plan.sync_counter_overflow
         # master heartbeat (consumed by the drives, 0x1016)
-        self._hb_period_s = bus_cfg.heartbeat_ms * 1e-3
+        self._hb_period_s = master_heartbeat_s(bus_cfg)
         self._hb_next_s = 0.0                    # first heartbeat with the first send()
         # receive dispatch
         self._rx: dict[int, tuple[int, int]] = {}
@@ -235,6 +249,7 @@ class CyclicIO:
         # struts whose controlword travels inside RPDO1 (single layout): no event frame
         with_event = {nd.index for nd in plan.nodes if nd.rpdo2_cob_id is not None}
         self._cw_inline = [i for i in range(n) if i not in with_event]
+        self._init_sync_tags()
 
     # -- transmit -----------------------------------------------------------------------------
     def set_controlword(self, strut: int, controlword: int) -> None:
@@ -384,11 +399,13 @@ class CyclicIO:
                     self.pos_inc[i] = _I32.unpack_from(data)[0]
                     self.pos_time_s[i] = now
                     self.pos_count[i] += 1
+                    self._tag_sample(i)
                     ev |= EV_FEEDBACK
                 else:
                     ev |= self._decode_event(kind, i, data, 0, len(data), now)
             else:
                 ev |= EV_OVERFLOW
+        self._settle_tags()
         self.frames_received += count
         return ev
 
@@ -458,6 +475,7 @@ class CyclicIO:
                         pos_inc[i] = unpack_i32(buf, d)[0]
                         pos_time[i] = now
                         pos_count[i] += 1
+                        self._tag_sample(i)
                         ev |= EV_FEEDBACK
                     else:
                         ev |= self._decode_event(kind, i, buf, d, length, now)
@@ -467,8 +485,86 @@ class CyclicIO:
                 if end < len(buf):      # the read did not fill the buffer: the socket is empty
                     break
             count += max_frames - left
+        self._settle_tags()
         self.frames_received += count
         return ev
+
+    # -- SYNC tag of each position sample ------------------------------------------------------
+    def _init_sync_tags(self) -> None:
+        """``pos_sync[i]``: the SYNC (ordinal: 1 = the first :meth:`send`) that drive ``i``'s last
+        TPDO1 answers, for a following-error check against the command of that very SYNC.
+
+        Drive ``i`` answers every ``feedback_divider``-th SYNC from its SYNC start value, so the
+        SYNCs it answers are ``k = phase_i (mod divider)``; each drive's samples come in SYNC order,
+        and the drives of one bus answer in SYNC order too (one receive queue), so a sample answers
+        the first such SYNC after its drive's previous sample and not before the bus's last tag.
+        A stall of the drives therefore shifts nothing; TPDO1s lost on the wire are bridged by the
+        other drives of the bus. A run of lost frames as long as the divider on one bus would leave
+        the tags behind by whole divider periods for good, so when a bus keeps pace (``CALM_POLLS``
+        polls in a row with at most one cycle's worth of position frames each - no backlog being
+        drained - and no stall of ``QUIET_POLLS`` polls without any before them) its samples are
+        tagged no older than ``divider + 1`` SYNCs. SYNCs lost before a drive shift its phase (not handled). A tag never names a
+        SYNC not yet sent."""
+        plan = self.plan
+        d = max(1, int(plan.feedback_divider))
+        self._fb_div = d
+        self._fb_phase = [(nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0 for nd in plan.nodes]
+        self._fb_bus = [nd.bus for nd in plan.nodes]
+        self._bus_tag = [0] * plan.buses
+        self._bus_rx = [0] * plan.buses              #: position frames per bus in this poll
+        self._bus_pace = [plan.tpdo_per_cycle(b) for b in range(plan.buses)]
+        self._fresh_mask = 0
+        self._bus_calm = [0] * plan.buses
+        self._bus_quiet = [0] * plan.buses
+        self.pos_sync: list[int] = [0] * self.n
+
+    def _tag_sample(self, i: int) -> None:
+        b = self._fb_bus[i]
+        d = self._fb_div
+        lo = self._bus_tag[b]
+        k = self.pos_sync[i] + 1
+        if lo > k:
+            k = lo
+        k += (self._fb_phase[i] - k) % d
+        if k > self.cycles:
+            k = self.cycles - (self.cycles - self._fb_phase[i]) % d
+        self.pos_sync[i] = k
+        self._bus_tag[b] = k
+        self._bus_rx[b] += 1
+        self._fresh_mask |= 1 << i
+
+    def _settle_tags(self) -> None:
+        """End of a poll: on buses that keep pace, no tag older than ``divider + 1`` SYNCs."""
+        d = self._fb_div
+        lb = self.cycles - d - 1
+        rx = self._bus_rx
+        calm = self._bus_calm
+        pace = self._bus_pace
+        quiet = self._bus_quiet
+        for b in range(len(rx)):
+            n = rx[b]
+            if n > pace[b]:             # a backlog being drained
+                calm[b] = 0
+            elif n:
+                quiet[b] = 0
+                calm[b] += 1
+            else:
+                quiet[b] += 1
+                calm[b] = 0 if quiet[b] >= QUIET_POLLS else calm[b] + 1
+        if not self._fresh_mask:
+            return
+        for i in range(self.n):
+            if not self._fresh_mask >> i & 1:
+                continue
+            b = self._fb_bus[i]
+            if calm[b] >= CALM_POLLS and self.pos_sync[i] < lb:
+                k = lb + (self._fb_phase[i] - lb) % d
+                self.pos_sync[i] = k
+                if k > self._bus_tag[b]:
+                    self._bus_tag[b] = k
+        for b in range(len(rx)):
+            rx[b] = 0
+        self._fresh_mask = 0
 
     # -- supervision helpers (cheap, for the cycle) --------------------------------------------
     def heartbeat_lost(self, now: float | None = None) -> int:

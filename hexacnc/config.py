@@ -310,6 +310,9 @@ class CycleConfig:
     following_error_mm: float = 1.0
     watchdog_s: float = 2.0
     spin_s: float = 0.0002                     #: the hot loop spins this long before each deadline
+    #: a drive without a fresh position sample this long faults (stale feedback), heartbeat or not; also
+    #: the longest stall of the feedback the following-error check still matches to its SYNC
+    feedback_timeout_s: float = 0.35
 
 
 @dataclass(frozen=True)
@@ -327,6 +330,9 @@ class BusConfig:
     increments_per_mm: float = 10000.0
     heartbeat_ms: int = 100
     heartbeat_timeout_ms: int = 350
+    #: drives stop on their own (quick stop) when the master is silent this long (configured at boot:
+    #: heartbeat consumer 0x1016, RPDO/SYNC time-outs); the hot loop's master heartbeat comes 4x as often
+    comm_loss_timeout_s: float = 0.02
     simulate: bool = True                      #: start the simulated drives process
     simulate_profile: str = "permissive"       #: permissive | strict (simulated drives, see drivers/README.md)
     node_eds: tuple = ()                       #: per node: EDS/DCF path ("" = bundled default), from [bus] nodes
@@ -361,6 +367,10 @@ class DaemonConfig:
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
     max_message_bytes: int = 16 * 1024 * 1024  #: largest protocol message accepted
+    #: a program is interpreted and planned in a child process with at most this address space (MB)
+    max_plan_memory_mb: int = 4096
+    #: ... and at most this long (s); over either it is refused naming the limit and the line reached
+    max_plan_s: float = 300.0
 
 
 @dataclass(frozen=True)
@@ -454,6 +464,8 @@ class MachineConfig:
     #: controller's model never reads it (hexacnc.sim.truth)
     simulation_truth: str = ""
     raw: dict = field(repr=False, default_factory=dict)
+    #: ``[struts] max_following_error_mm`` (6,); None: ``[cycle] following_error_mm`` for every strut
+    max_following_error_mm: np.ndarray | None = None
 
     @property
     def max_angle_rad(self) -> np.ndarray:
@@ -488,6 +500,8 @@ def _daemon_config(d: Section, bus: BusConfig) -> DaemonConfig:
         log_level=d.getchoice("log_level", ("DEBUG", "INFO", "WARNING", "ERROR"), dd.log_level),
         max_clients=d.getint("max_clients", dd.max_clients, minval=1, maxval=1024),
         max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
+        max_plan_memory_mb=d.getint("max_plan_memory_mb", dd.max_plan_memory_mb, minval=512, maxval=1 << 20),
+        max_plan_s=d.getfloat("max_plan_s", dd.max_plan_s, above=0.0, maxval=86400.0),
         token_file=_expand_user_vars(d.getstr("token_file", dd.token_file)),
         controller_group=d.getstr("controller_group", dd.controller_group),
         observer_group=d.getstr("observer_group", dd.observer_group),
@@ -673,7 +687,10 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         following_error_mm=cy.getfloat("following_error_mm", cd.following_error_mm, above=0.0),
         watchdog_s=cy.getfloat("watchdog_s", cd.watchdog_s, above=0.0, maxval=600.0),
         spin_s=cy.getfloat("spin_s", cd.spin_s, minval=0.0, maxval=0.1),
+        feedback_timeout_s=cy.getfloat("feedback_timeout_s", cd.feedback_timeout_s, above=0.0, maxval=10.0),
     )
+    ferr = (s.getvec("max_following_error_mm", 6, above=0.0, maxval=1000.0, allow_scalar=True)
+            if s.has("max_following_error_mm") else None)
     if cycle.spin_s > 0.8 * cycle.period_s:
         raise cy.error("spin_s", f"{cycle.spin_s:g} s is more than 80 % of period_s = {cycle.period_s:g} s: "
                                  "the hot loop must sleep part of every period (SCHED_FIFO throttling)")
@@ -697,6 +714,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         increments_per_mm=b.getfloat("increments_per_mm", bd.increments_per_mm, above=0.0, maxval=1e7),
         heartbeat_ms=b.getint("heartbeat_ms", bd.heartbeat_ms, minval=1, maxval=10000),
         heartbeat_timeout_ms=b.getint("heartbeat_timeout_ms", bd.heartbeat_timeout_ms, minval=1, maxval=60000),
+        comm_loss_timeout_s=b.getfloat("comm_loss_timeout_s", bd.comm_loss_timeout_s, minval=0.002, maxval=10.0),
         simulate=b.getbool("simulate", bd.simulate),
         simulate_profile=b.getchoice("simulate_profile", ("permissive", "strict"), bd.simulate_profile),
         boot_timeout_s=b.getfloat("boot_timeout_s", bd.boot_timeout_s, above=0.0, maxval=600.0),
@@ -773,6 +791,7 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
         daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, operator=operator,
         gcode=gcode, simulation_truth=simulation_truth,
+        max_following_error_mm=None if ferr is None else _freeze(ferr),
         raw=doc,
     )
     _check_geometry(cfg)

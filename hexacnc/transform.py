@@ -153,6 +153,11 @@ class CycleTransform:
             self._prev2[i] = float(lengths_mm[i])
         self._have_prev = 2
 
+    def forget_motion(self) -> None:
+        """Drop the velocity/acceleration guard's history: the next :meth:`command` is not checked
+        against earlier commands (slow path: seeding a new standstill from a measured position)."""
+        self._have_prev = 0
+
     def reset_pose(self, X) -> None:
         """Re-seed the forward-kinematics predictor at pose X (mm, rad)."""
         for i in range(6):

@@ -18,6 +18,7 @@ BENCHES: dict[str, str] = {
     "arch": "hexacnc.bench.arch",
     "operator": "hexacnc.bench.operator",
     "calib-cycle": "hexacnc.bench.calibcycle",
+    "faults": "hexacnc.bench.faults",
 }
 
 

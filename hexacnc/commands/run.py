@@ -23,14 +23,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--demo", action="store_true",
                         help="run the embedded demo program (a small 5-axis part) and show its progress; "
                              "without --duration, exit when it has finished")
+    parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
+    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
+                        help="default: [daemon] log_level")
     parser.add_argument("--truth", metavar="TRUE.toml",
                         help="simulated drives only: the plant and the simulated instruments follow this true "
                              "machine (hexacnc calib synth-machine); overrides [simulation] truth")
-    parser.add_argument("--no-realtime", action="store_true", help="do not ask for SCHED_FIFO")
     parser.add_argument("--capture", metavar="FILE.pcap", help="write every CAN frame of the session to a "
                         "SocketCAN pcap (Wireshark link type 227; more buses: FILE-bus1.pcap, ...)")
-    parser.add_argument("--log-level", choices=("DEBUG", "INFO", "WARNING", "ERROR"),
-                        help="default: [daemon] log_level")
 
 
 class Watchdog(threading.Thread):
@@ -69,7 +69,8 @@ def _start_demo(daemon, log) -> bool:
     return True
 
 
-def _demo_progress(daemon, log) -> bool:
+def _demo_progress(daemon, log) -> bool | None:
+    """True while the demo runs, False when it finished, None when it ended in a fault."""
     st = daemon.status()
     prog = st.get("program") or {}
     pc = st.get("pose_cmd") or [0.0] * 6
@@ -80,7 +81,7 @@ def _demo_progress(daemon, log) -> bool:
              c["compute_us"]["p99"], c["overruns"])
     if st.get("fault"):
         log.error("demo: fault %s", st["fault"])
-        return False
+        return None
     if st["state"] == "idle" and not (prog.get("queued") or 0) and float(prog.get("percent") or 0.0) >= 100.0:
         log.info("demo: finished; strut commands %s mm",
                  ", ".join(f"{v:.4f}" for v in st.get("struts_cmd_mm") or []))
@@ -120,28 +121,29 @@ def main(args: argparse.Namespace) -> int:
     log = logging.getLogger("hexacnc.run")
     stop = threading.Event()
 
+    got = []
+
     def on_signal(signum, frame):
+        got.append(signum)
         stop.set()
 
-    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT)}
+    old = {s: signal.signal(s, on_signal) for s in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
     notifier = Notifier()
-    daemon = server = wd = None
+    daemon = server = wd = sock_lock = None
+    rc = 0
     try:
         log.info("machine %s (%s)", cfg.name, cfg.path)
         from ..daemon.admission import preflight
-        preflight(cfg, args.socket)      # socket directory, token, TLS: refused before the drives boot
+        sock_path = preflight(cfg, args.socket)   # socket directory, token, TLS: refused before the drives boot
+        # before any frame: nobody else serves this socket (lock naming its pid, then a probe)
+        sock_lock = _claim_socket(sock_path)
         daemon = Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime, log_level=level)
         from ..daemon.calibops import attach
         attach(daemon, truth)
         if truth is not None:
             log.info("simulated plant follows the true machine %s (the controller uses %s)", truth.path, cfg.path)
-        info = daemon.info
-        io_info = info.get("io_info", {})
-        log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
-        log.info("bus: %s", info.get("bus_summary"))
-        for m in (info.get("privileges") or {}).get("messages", []):
-            log.info("hot loop privileges: %s", m)
-        server = SocketServer(daemon, cfg, args.socket).start()
+        _log_start(daemon, log)
+        server = SocketServer(daemon, cfg, sock_path).start()
         log.info("socket %s (hexacnc send PROGRAM.ngc --socket %s; hexacnc status --socket %s)",
                  server.socket_path, server.socket_path, server.socket_path)
         notifier.notify("READY=1\nSTATUS=" + ("drives disabled, waiting for enable" if daemon.awaiting_enable
@@ -151,51 +153,103 @@ def main(args: argparse.Namespace) -> int:
             wd = Watchdog(daemon, notifier, wd_s / 3.0)
             wd.start()
         log.info("running (cycle %.3f ms); Ctrl-C stops", daemon.period_s * 1e3)
-        t_end = None if args.duration is None else time.monotonic() + args.duration
-        last_log = time.monotonic()
-        demo_running = False
-        if args.demo:
-            demo_running = _start_demo(daemon, log)
-        while not stop.is_set():
-            if t_end is not None and time.monotonic() >= t_end:
-                break
-            stop.wait(0.1)
-            if server is not None and server.daemon is not daemon:     # reloaded (op reload)
-                daemon = server.daemon
-            if getattr(server, "calib_reloading", False):
-                continue
-            if not daemon.alive:
-                log.error("hot loop process ended: %s", (daemon.status().get("fault") or {}).get("message"))
-                return 1
-            if demo_running and time.monotonic() - last_log >= 1.0:
-                last_log = time.monotonic()
-                demo_running = _demo_progress(daemon, log)
-                if not demo_running and t_end is None:
-                    break
-                continue
-            if time.monotonic() - last_log >= 10.0:
-                last_log = time.monotonic()
-                st = daemon.status()
-                c = st["cycle"]
-                log.info("state %s, cycles %d, compute p99 %s us, lateness p99 %s us, overruns %d (max %d in a row)",
-                         st["state"], c["cycles"], c["compute_us"]["p99"], c["lateness_us"]["p99"],
-                         c["overruns"], c["max_overruns_in_row"])
+        rc = _serve(daemon, server, args, stop, log)
+        daemon = server.daemon          # the daemon now serving (a reload replaces it)
         st = daemon.status()
         c = st["cycle"]
-        log.info("stopping: %d cycles, compute median/p99/max %s/%s/%.0f us, overruns %d",
+        log.info("stopping%s: %d cycles, compute median/p99/max %s/%s/%.0f us, overruns %d",
+                 f" on {signal.Signals(got[0]).name}" if got else "",
                  c["cycles"], c["compute_us"]["median"], c["compute_us"]["p99"], c["compute_us"]["max"],
                  c["overruns"])
         notifier.notify("STOPPING=1")
-        return 0
     finally:
         if wd is not None:
             wd.stop_event.set()
         if server is not None:
             server.close()
-        if server is not None and server.daemon is not daemon:
-            server.daemon.close()
+            if server.daemon is not daemon:     # reloaded while starting up or stopping
+                daemon = server.daemon
         if daemon is not None:
-            daemon.close()
+            daemon.close()          # controlled stop, drives disabled
+            if daemon.final_fault is not None:
+                log.error("ended in fault %s: %s", daemon.final_fault.get("code"),
+                          daemon.final_fault.get("message"))
+                rc = 1
+        if sock_lock is not None:
+            from ..daemon.procs import release_lock
+            release_lock(sock_lock)
         for s, h in old.items():
             signal.signal(s, h)
         notifier.close()
+    return rc
+
+
+def _log_start(daemon, log) -> None:
+    """The start-up summary: drives and transport, frame rings, bus load, privileges."""
+    info = daemon.info
+    io_info = info.get("io_info", {})
+    log.info("drives: %s, transport %s", info.get("io_mode"), io_info.get("interface", io_info.get("drives")))
+    segs = getattr(daemon.sim, "segments", None)
+    if segs:
+        log.info("frame rings: %s", " ".join(seg.name for seg in segs))
+    log.info("bus: %s", info.get("bus_summary"))
+    for m in (info.get("privileges") or {}).get("messages", []):
+        log.info("hot loop privileges: %s", m)
+
+
+def _serve(daemon, server, args, stop: threading.Event, log) -> int:
+    """Run until a signal, ``--duration``, the end of ``--demo`` or the hot loop's end; returns
+    the exit status so far (1: the hot loop was lost or the demo faulted). Follows the server's
+    daemon when the op ``reload`` replaces it."""
+    t_end = None if args.duration is None else time.monotonic() + args.duration
+    last_log = time.monotonic()
+    demo_running = _start_demo(daemon, log) if args.demo else False
+    while not stop.is_set():
+        if t_end is not None and time.monotonic() >= t_end:
+            return 0
+        stop.wait(0.1)
+        if server.daemon is not daemon:     # reloaded (op reload)
+            daemon = server.daemon
+        if getattr(server, "calib_reloading", False):
+            continue
+        if not daemon.alive:
+            end = daemon.hot_end
+            msg = end.message if end is not None else (daemon.status().get("fault") or {}).get("message")
+            if end is not None and end.clean:
+                log.warning("%s; exiting", msg)
+                return 0
+            log.error("hot loop process ended: %s", msg)
+            return 1
+        if demo_running and time.monotonic() - last_log >= 1.0:
+            last_log = time.monotonic()
+            demo_running = _demo_progress(daemon, log)
+            if demo_running is None:
+                return 1
+            if not demo_running and t_end is None:
+                return 0
+            continue
+        if time.monotonic() - last_log >= 10.0:
+            last_log = time.monotonic()
+            st = daemon.status()
+            c = st["cycle"]
+            log.info("state %s, cycles %d, compute p99 %s us, lateness p99 %s us, overruns %d (max %d in a row)",
+                     st["state"], c["cycles"], c["compute_us"]["p99"], c["lateness_us"]["p99"],
+                     c["overruns"], c["max_overruns_in_row"])
+    return 0
+
+
+def _claim_socket(path: str):
+    """Lock ``<socket>.lock`` (naming our pid) and check nobody answers on the socket; returns the
+    lock fd. Raises HexacncError naming the other daemon."""
+    import os
+    from ..daemon.procs import acquire_lock, release_lock
+    from ..daemon.server import check_socket_path
+    if not os.path.isdir(os.path.dirname(os.path.abspath(path))):
+        check_socket_path(path)         # the clear error about the directory
+    fd = acquire_lock(path + ".lock", f"socket {path}")
+    try:
+        check_socket_path(path)
+    except BaseException:
+        release_lock(fd)
+        raise
+    return fd

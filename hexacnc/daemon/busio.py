@@ -4,7 +4,7 @@ Modes (``Daemon(io_mode=...)``; ``auto`` picks from the config):
 
 * ``bus`` - the real path: ``drivers.master`` boots the drives (NMT, SDO PDO mapping, mode 8)
   inside the hot process *before* the loop starts, then ``drivers.cyclic`` does the hot-path
-  frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
+  frames; the loop walks the drives to Operation Enabled in those frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
   process on the same bus (``udp_multicast``: only inside a network namespace or on loopback).
 * ``shm`` - the default for ``[bus] simulate`` with ``interface = "virtual"`` (python-can's
   virtual bus does not cross processes): the simulated drives run in their own process
@@ -74,7 +74,7 @@ class PipeSim:
             for fd in sim_fds:
                 os.close(fd)
         self.proc.stdin.write(pickle.dumps(payload))
-        self.proc.stdin.close()
+        self.proc.stdin.flush()     # stdin stays open: STOP / inject lines (hexacnc.daemon.simhost)
         import selectors
         sel = selectors.DefaultSelector()
         sel.register(self.proc.stdout, selectors.EVENT_READ)
@@ -92,7 +92,7 @@ class PipeSim:
                 break
         sel.close()
         if not ok:
-            self.terminate()
+            self.kill()             # never started: nothing to stop gently
             err = self.proc.stderr.read().decode(errors="replace")[-2000:]
             self.close_fds()
             self.release()
@@ -112,9 +112,27 @@ class PipeSim:
         release_segments(self.segments)
         self.segments = []
 
+    def _line(self, text: str) -> bool:
+        try:
+            self.proc.stdin.write(text.encode() + b"\n")
+            self.proc.stdin.flush()
+            return True
+        except (BrokenPipeError, ValueError, OSError):
+            return False
+
+    def inject(self, kind: str, node: int, value=0) -> None:
+        """Fault injection into the simulated drives (:func:`hexacnc.daemon.simhost.inject`)."""
+        if not self._line(f"inject {kind} {int(node)} {value}"):
+            raise BusError("the simulated drives process is not running")
+
     def terminate(self) -> None:
+        """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:
-            self.proc.terminate()
+            self._line("STOP")
+        try:
+            self.proc.stdin.close()
+        except (BrokenPipeError, OSError, ValueError):
+            pass
 
     def wait(self, timeout=None):
         return self.proc.wait(timeout)
@@ -209,6 +227,8 @@ class CyclicAdapter:
         self.pos = cio.pos_inc                # same list objects: no copies per cycle
         self.statusword = cio.status
         self.pos_count = cio.pos_count        # counted by the codec as it decodes
+        self.pos_sync = cio.pos_sync          # the SYNC each drive's last sample answers
+        self.nmt_state = cio.nmt_state        # from the drives' heartbeats (0: boot-up)
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
@@ -287,15 +307,16 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
     else:
         transport = cfg.bus.interface
         buses = canbus.open_buses(cfg.bus, channel=sim_args.get("channel"))
-    # [daemon] enable_at_start false: the drives stay disabled until a controller sends "enable"
-    enable = bool(getattr(cfg.daemon, "enable_at_start", True))
     from drivers.pcap import capture_buses
     buses = capture_buses(buses)        # hexacnc run --capture FILE.pcap ($HEXACNC_CAPTURE): every frame
     try:
         m = Master(cfg, buses)
         for attempt in (1, 2, 3):   # a loaded machine can miss an SDO answer: boot again from NMT reset
             try:
-                m.bring_up(enable=enable)
+                # no enable here: the hot loop walks the drives to Operation Enabled in the cyclic
+                # frames, with SYNC running and the measured positions as targets (never by SDO
+                # before the loop: the drives would sit enabled with nothing to follow)
+                m.bring_up(enable=False)
                 break
             except BusError as exc:
                 if attempt == 3:
@@ -305,8 +326,7 @@ def open_io(cfg, mode: str, period_s: float, sim_args: dict):
         pos = m.positions_inc()
         m.detach()
         cio = cyclic.CyclicIO(buses, cfg.bus, limits_inc=cyclic.limits_inc(cfg),
-                              controlword=cia402.CW_ENABLE_OPERATION if enable else cia402.CW_DISABLE_VOLTAGE,
-                              period_s=period_s,
+                              controlword=cia402.CW_DISABLE_VOLTAGE, period_s=period_s,
                               sync_every=m.sync_every)   # bus period per 0x60C2 (drivers.commission)
         for i in range(6):
             cio.status[i] = sw[i]

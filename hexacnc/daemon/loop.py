@@ -1,23 +1,18 @@
-"""The hot loop: a process that runs only the fixed-period cycle.
+"""The hot loop: a process that runs only the fixed-period cycle (started by :mod:`.hot`).
 
-Started by the supervisor (:mod:`hexacnc.daemon.core`) with the ``spawn`` start
-method, so nothing of the supervisor (threads, sockets, the planner) lives here.
-Per cycle, on plain floats and preallocated lists:
+:meth:`HotLoop.run` is the cycle as a sequence of steps, on plain floats and preallocated lists:
+``wait_until`` the absolute deadline (sleep until ``[cycle] spin_s`` before it, then spin);
+``feedback_in`` (signals, the supervisor's presence, ``io.poll``: positions, statuswords,
+heartbeats, EMCY; a supervisor command); ``supervise`` (:mod:`.supervise`); ``offsets`` (thermal,
+spindle); ``next_setpoint`` (the shared ring); ``transform`` (``CycleTransform.command``: IK, sag,
+thermal, limit guard - or the controlled stop, or the enable walk of :mod:`.enablewalk`);
+``frames_out`` (increments, ``io.send``: targets then SYNC); ``CycleTransform.feedback`` (FK of the
+measured lengths); ``account`` (:mod:`.cyclestats`) and the status block.
 
-1. sleep until ``[cycle] spin_s`` before the absolute deadline (``time.monotonic_ns``), spin to it;
-2. ``io.poll`` - feedback frames (positions, statuswords, heartbeats, EMCY) of the previous SYNC;
-3. supervision: heartbeat age, EMCY, drive state, following error of each strut;
-4. next setpoint from the shared ring (hold the last pose when empty after an END row);
-5. ``CycleTransform.command`` (IK, sag, thermal, length/joint/velocity/acceleration guard);
-6. drive increments -> ``io.send`` (targets, then SYNC);
-7. ``CycleTransform.feedback`` (FK of the measured lengths) and the status block.
-
-A fault switches to the controlled stop (:class:`~hexacnc.daemon.stopgen.StrutStop`:
-jerk-limited per strut, from the commanded motion to standstill), then the drives
-are disabled by controlword and the fault latched until ``CMD_RESET``.
-
-The bus object ``io`` is duck-typed (see :class:`IOProtocol`); :mod:`hexacnc.daemon.busio`
-builds it from ``drivers.cyclic`` and boots the drives before the loop starts.
+A fault switches to the controlled stop (:class:`~hexacnc.daemon.stopgen.StrutStop`: jerk-limited
+per strut), then - once the struts stand at their final command - the drives are disabled by
+controlword and the fault latched until ``CMD_RESET``. The bus object ``io`` is duck-typed
+(:class:`IOProtocol`); :mod:`hexacnc.daemon.busio` builds it.
 """
 from __future__ import annotations
 
@@ -28,42 +23,47 @@ import os
 import time
 from typing import Protocol
 
+from drivers.cia402 import CW_DISABLE_VOLTAGE
+
 from ..transform import CycleTransform, OK as CT_OK
 from . import shm as S
-from .faults import (F_DEADLINE, F_DRIVE, F_EMCY, F_ENABLE, F_FOLLOWING, F_HEARTBEAT, F_LIMIT,
-                     F_NONE, F_SETPOINT, F_SUPERVISOR, F_BUS, F_TEST, fault_code_name)
+from .faults import F_BUS, F_DEADLINE, F_ENABLE, F_LIMIT, F_NONE, F_SETPOINT, F_SUPERVISOR, F_TEST
+from .faults import fault_message  # noqa: F401 (re-export)
+from .cyclestats import CycleStats, publish_status
+from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
+from .enablewalk import ENABLE_TIMEOUT_NS, EnableWalk, op_enabled  # noqa: F401 (re-export)
 from .stopgen import StrutStop
+from .supervise import DriveSupervisor, following_limits_mm
 
 log = logging.getLogger("hexacnc.loop")
 
 #: The loop sleeps until ``[cycle] spin_s`` (default 200 us) before each deadline, then spins; at
-#: most SPIN_FRACTION of the period (SCHED_FIFO throttling, 95 % by default, the hot CPU's kernel
-#: threads and everything else on the machine need the rest).  The VM's sleep overshoot often
-#: exceeds 100 us: in 20 s of the bare loop (hexacnc.daemon.rt) with 45 us of work, 2513 / 696 / 65
-#: wake-ups were late by over 100 us with a 100 / 200 / 350 us spin.  350 us suits a CPU that is
-#: the hot loop's alone; on a loaded 2-CPU machine it starved the rest (the supervisor's feeder
-#: missed refills) and, with a second daemon on the same CPU, ran into SCHED_FIFO throttling.
+#: most SPIN_FRACTION of the period (SCHED_FIFO throttling and the rest of the machine need the
+#: rest; measurements: docs/architecture.md, "Wake-up").
 SPIN_FRACTION = 0.8
 #: publish the status block every n cycles (and on every state change)
 PUBLISH_EVERY = 8
-#: time allowed for the CiA 402 enable walk (ns)
-ENABLE_TIMEOUT_NS = 2_000_000_000
+#: setpoint ring index mask
+RING_MASK = S.RING_ROWS - 1
 #: a strut command step below this (mm per cycle) counts as standstill
 STANDSTILL_MM = 1e-7
+#: a stop that ends with the drives disabled waits until every measured length is this close to its
+#: final command (mm), at most SETTLE_NS
+SETTLE_MM = 0.0003
+SETTLE_NS = 100_000_000
 #: thermal/spindle growth offsets are slewed at most this fast (mm/s), every THERMAL_EVERY cycles
 THERMAL_SLEW_MM_S = 0.002
 THERMAL_EVERY = 16
 
-# CiA 402 controlwords / statusword masks (values from CiA 402-2; the tables live in drivers.cia402)
-CW_DISABLE_VOLTAGE = 0x0000
-CW_SHUTDOWN = 0x0006
-CW_SWITCH_ON = 0x0007
-CW_ENABLE_OPERATION = 0x000F
-CW_FAULT_RESET = 0x0080
-
-# test-only command: stall the loop for arg microseconds once (deadline-burst test)
+# test-only commands: stall the loop for arg microseconds once (deadline-burst test); raise in the
+# cycle (a crashing hot loop: the drives must stop on their own, the supervisor must notice)
 CMD_STALL = 16
-
+CMD_CRASH = 17
+#: the supervisor's presence is checked every this many cycles (getppid) besides the parent-death signal
+SUPERVISOR_CHECK_EVERY = 32
+#: the history of commands the following-error check matches samples to covers the feedback
+#: time-out plus this margin (s)
+HISTORY_MARGIN_S = 0.05
 
 class IOProtocol(Protocol):
     """What the loop needs from the bus codec (all lists preallocated, length 6)."""
@@ -89,27 +89,6 @@ def spin_ns(period_ns: int, spin_s: float) -> int:
     return min(int(round(spin_s * 1e9)), int(SPIN_FRACTION * period_ns))
 
 
-def _op_enabled(sw: int) -> bool:
-    return sw >= 0 and (sw & 0x6F) == 0x27
-
-
-def _next_cw(sw: int, prev_cw: int) -> int:
-    """Controlword that moves a drive with statusword ``sw`` one step towards Operation Enabled."""
-    if sw < 0 or (sw & 0x4F) == 0:                 # unknown / not ready: wait
-        return prev_cw
-    if sw & 0x08:                                  # fault: rising edge on bit 7 (transition 15)
-        return CW_FAULT_RESET if prev_cw != CW_FAULT_RESET else CW_DISABLE_VOLTAGE
-    if (sw & 0x4F) == 0x40:                        # switch on disabled -> 2
-        return CW_SHUTDOWN
-    if (sw & 0x6F) == 0x21:                        # ready to switch on -> 3
-        return CW_SWITCH_ON
-    if (sw & 0x6F) == 0x23:                        # switched on -> 4
-        return CW_ENABLE_OPERATION
-    if (sw & 0x6F) == 0x07:                        # quick stop active -> 12 (disable voltage)
-        return CW_DISABLE_VOLTAGE
-    return CW_ENABLE_OPERATION
-
-
 class HotLoop:
     """The cycle. ``run()`` returns when told to shut down."""
 
@@ -128,13 +107,23 @@ class HotLoop:
         self.ipm = float(bus.increments_per_mm)
         self.off = [float(v) for v in cfg.strut_offset_mm]
         self.hb_timeout_ns = int(bus.heartbeat_timeout_ms * 1_000_000)
-        self.follow_mm = float(cy.following_error_mm)
+        fb_to = float(getattr(cy, "feedback_timeout_s", 0.35))
+        self.sup = DriveSupervisor(io, self.dt, following_limits_mm(cfg), bus.heartbeat_timeout_ms * 1e-3,
+                                   fb_to, fb_to + HISTORY_MARGIN_S, bus.heartbeat_ms * 1e-3)
         self.max_in_row = int(cy.max_overruns_in_row)
         self.sp_timeout_ns = int(cy.setpoint_timeout_s * 1e9)
         self.stop = StrutStop(cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,
                               cfg.min_length_mm, cfg.max_length_mm, self.dt)
         self.lmin = [float(v) for v in cfg.min_length_mm]
         self.lmax = [float(v) for v in cfg.max_length_mm]
+        off, ipm = self.off, self.ipm
+        self.inv_ipm = 1.0 / ipm
+        self.lo_inc = [math.ceil((self.lmin[i] - off[i]) * ipm - 1e-9) for i in range(6)]
+        self.hi_inc = [math.floor((self.lmax[i] - off[i]) * ipm + 1e-9) for i in range(6)]
+        self.th_step = (float(getattr(cfg.thermal, "max_offset_rate_mm_s", THERMAL_SLEW_MM_S))
+                        * self.dt * THERMAL_EVERY)
+        self.stats = CycleStats(sh, self.period_ns)
+        self.ppid = 0
         # preallocated state
         self.out = [0.0] * 6          # strut command this cycle, mm
         self.l0 = [0.0] * 6           # command history (last, one before, two before)
@@ -142,9 +131,12 @@ class HotLoop:
         self.l2 = [0.0] * 6
         self.act = [0.0] * 6          # measured lengths, mm
         self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
-        self.cw = [-1] * 6            # last controlword requested per drive
-        self.emcy_seen = list(io.emcy_count)
-        self.follow_max = [0.0] * 6
+        self.walk = EnableWalk(io, self.lmin, self.lmax)
+        #: the enable walk may run ([daemon] enable_at_start, else from the first reset/enable)
+        self.enable_ok = bool(getattr(cfg.daemon, "enable_at_start", True))
+        self.follow_max = self.sup.follow_max
+        self.exit_signal = 0          # signal that ordered the stop and exit (0: none)
+        self.settle_t0 = 0            # when the commands of a stop that ends disabled came to rest
         self.state = S.ST_BOOT
         self.fault = F_NONE
         self.fault_strut = 0
@@ -153,16 +145,13 @@ class HotLoop:
         self.after_stop = S.ST_IDLE   # state once the controlled stop is done
         self.streaming = False
         self.starve_ns = 0
-        self.enable_t0 = 0
-        #: the enable walk may run ([daemon] enable_at_start, else from the first reset/enable)
-        self.enable_ok = bool(getattr(cfg.daemon, "enable_at_start", True))
         self.line = 0
         self.cmd_seen = sh.h[S.H_CMD_SEQ]
         self.exit_after = -1
         self.resync = False
         self.stats_reset = False
-        self.hist_cmd = [[0.0] * 2 for _ in range(6)]
         self.travel = [0.0] * 6
+        self.sends = 0
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -181,7 +170,7 @@ class HotLoop:
         res = hx.forward(geo)
         X = [float(res.pose[0]), float(res.pose[1]), float(res.pose[2]),
              math.radians(res.pose[3]), math.radians(res.pose[4]), math.radians(res.pose[5])]
-        ct._have_prev = 0
+        ct.forget_motion()
         code = ct.command(*X)
         if code != CT_OK:
             log.error("hot loop: measured position is outside the limits: %s", ct.describe(code))
@@ -189,7 +178,7 @@ class HotLoop:
         ct.reset_pose(X)
         ct.feedback(self.act)
         X = list(ct.pose_act)
-        ct._have_prev = 0
+        ct.forget_motion()
         ct.command(*X)
         ct.reset(ct.cmd_mm)
         ct.reset_pose(X)
@@ -197,14 +186,8 @@ class HotLoop:
             self.hold[i] = X[i]
             self.out[i] = ct.cmd_mm[i]
             self.l0[i] = self.l1[i] = self.l2[i] = ct.cmd_mm[i]
-        self._fill_hist(self.l0)
+        self.sup.fill(self.l0)
         self.streaming = False
-
-    def _fill_hist(self, lengths) -> None:
-        for i, h in enumerate(self.hist_cmd):
-            v = lengths[i]
-            for k in range(len(h)):
-                h[k] = v
 
     def _rehold_from(self, lengths) -> None:
         """After a stop: hold the pose whose commands are ``lengths`` (FK), guards at standstill."""
@@ -226,15 +209,32 @@ class HotLoop:
             self.fault_strut = strut
             self.fault_arg = arg
             self.fault_text = ""
+            self.sh.h[S.H_FAULT_NS] = time.monotonic_ns()
         if self.state in (S.ST_IDLE, S.ST_RUNNING):
             self.stop.start(self.l0, self.l1, self.l2)
             self.state = S.ST_STOPPING
         self.after_stop = S.ST_FAULT
 
+    def _settled(self, now: int) -> bool:
+        """After a stop that ends disabled: True once every measured length is within
+        ``SETTLE_MM`` of its final command, or ``SETTLE_NS`` after the commands stopped (a drive
+        that does not follow is disabled anyway). Disabling a strut still catching up with its
+        command would leave the next enable's targets (the measured positions) a step away from
+        the last commands."""
+        if self.settle_t0 == 0:
+            self.settle_t0 = now
+        if now - self.settle_t0 <= SETTLE_NS:
+            act = self.act
+            out = self.out
+            for i in range(6):
+                d = act[i] - out[i]
+                if d > SETTLE_MM or d < -SETTLE_MM:
+                    return False
+        self.settle_t0 = 0
+        return True
+
     def _disable(self) -> None:
-        for i in range(6):
-            self.io.set_controlword(i, CW_DISABLE_VOLTAGE)
-            self.cw[i] = CW_DISABLE_VOLTAGE
+        self.walk.set_all(CW_DISABLE_VOLTAGE)
 
     def _command(self, code: int, arg: int, now: int) -> None:
         st = self.state
@@ -250,18 +250,19 @@ class HotLoop:
                 self.fault_strut = self.fault_arg = 0
                 self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
                 self.state = S.ST_BOOT
-                self.enable_t0 = now
-                for i in range(6):
-                    self.emcy_seen[i] = self.io.emcy_count[i]
-                    self.follow_max[i] = 0.0
+                self.walk.begin(now)
+                self.sup.arm(now)
             elif st == S.ST_BOOT and not self.enable_ok:     # waiting for enable since the start
                 self.enable_ok = True
-                self.enable_t0 = now
+                self.walk.begin(now)
+                self.sup.arm(now)
         elif code in (S.CMD_SHUTDOWN, S.CMD_DISABLE):
             self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
             if st in (S.ST_IDLE, S.ST_RUNNING):
                 self.stop.start(self.l0, self.l1, self.l2)
                 self.state = S.ST_STOPPING
+                self.after_stop = S.ST_DISABLED
+            elif st == S.ST_STOPPING and self.after_stop == S.ST_IDLE:
                 self.after_stop = S.ST_DISABLED
             elif st in (S.ST_BOOT,):
                 self._disable()
@@ -274,441 +275,77 @@ class HotLoop:
             self.stats_reset = True
         elif code == CMD_STALL:
             time.sleep(arg * 1e-6)
+        elif code == CMD_CRASH:
+            raise RuntimeError("hot loop crash requested by a test command")
+
+    def _on_signal(self, signum: int) -> None:
+        """SIGTERM/SIGHUP to the hot process: controlled stop, drives disabled, exit (as
+        CMD_SHUTDOWN; the signal is reported in ``H_EXIT_SIGNAL``)."""
+        self.exit_signal = signum
+        self.sh.h[S.H_EXIT_SIGNAL] = signum
+        self._command(S.CMD_SHUTDOWN, 0, 0)
 
     def publish(self, t0: int) -> None:
-        sh = self.sh
-        h = sh.h
-        s = sh.s
-        ct = self.ct
-        h[S.H_STATUS_SEQ] += 1
-        h[S.H_STATE] = self.state
-        h[S.H_FAULT] = self.fault
-        h[S.H_FAULT_STRUT] = self.fault_strut
-        h[S.H_FAULT_ARG] = self.fault_arg
-        h[S.H_LINE] = self.line
-        pc = ct.pose_cmd
-        pa = ct.pose_act
-        out = self.out
-        act = self.act
-        io = self.io
-        fm = self.follow_max
-        l0 = self.l0
-        l1 = self.l1
-        inv_dt = 1.0 / self.dt
-        for i in range(6):
-            s[S.S_POSE_CMD + i] = pc[i]
-            s[S.S_POSE_ACT + i] = pa[i]
-            s[S.S_STRUT_CMD + i] = out[i]
-            s[S.S_STRUT_ACT + i] = act[i]
-            s[S.S_FOLLOW_MAX + i] = fm[i]
-            s[S.S_STRUT_VEL + i] = (l0[i] - l1[i]) * inv_dt
-            h[S.H_STATUSWORDS + i] = io.statusword[i]
-            h[S.H_DRIVE_STATE + i] = 1 if _op_enabled(io.statusword[i]) else 0
-        s[S.S_FK_RES] = ct.fk_residual_mm
-        tr = self.travel
-        th = ct.thermal_mm
-        for i in range(6):
-            s[S.S_TRAVEL + i] = tr[i]
-            s[S.S_THERMAL_APP + i] = th[i]
-        s[S.S_SPINDLE_APP] = ct.spindle_growth_mm
-        h[S.H_STATUS_SEQ] += 1
+        """The status block for the supervisor (seqlock), see :func:`.cyclestats.publish_status`."""
+        publish_status(self)
 
     # ------------------------------------------------------------------ the cycle
     def run(self, max_cycles: int = -1) -> int:
-        sh = self.sh
-        h = sh.h
-        ring = sh.ring
-        hist_late = sh.hist_late
-        hist_comp = sh.hist_comp
-        io = self.io
-        ct = self.ct
-        stop = self.stop
-        out = self.out
-        act = self.act
-        hold = self.hold
-        l0 = self.l0
-        l1 = self.l1
-        l2 = self.l2
-        off = self.off
-        ipm = self.ipm
-        inv_ipm = 1.0 / ipm
-        target = io.target
-        pos = io.pos
-        hb_ns = io.hb_ns
-        emcy_count = io.emcy_count
-        emcy_seen = self.emcy_seen
-        pos_count = io.pos_count
-        pos_seen = [0] * 6
-        travel = self.travel
-        shs = sh.s
-        th_step = float(getattr(self.cfg.thermal, "max_offset_rate_mm_s", THERMAL_SLEW_MM_S)) * self.dt * THERMAL_EVERY
-        th_app = ct.thermal_mm
-        # commands of the last n_hist cycles (ring, 6 per slot) for the following-error check: a
-        # fresh sample is compared with the commands sent within its transport allowance, which is
-        # 2 feedback periods + 2 cycles (at least 5 ms) plus the feedback backlog measured per drive
-        # (SYNCs sent / divider - samples received since enabling), capped at n_hist cycles: 256
-        # (128 ms at 0.5 ms; was 64: a loaded VM stalls the drives' process for 30-50 ms, which the
-        # measured backlog covers but the old cap did not - a spurious fault). The drives check
-        # their following error exactly (0x6065/0x6066); a drive that stops answering altogether
-        # is caught by its heartbeat time-out.
-        div = max(1, int(getattr(self.cfg.bus, "feedback_divider", 1)))
-        n_hist = 256
-        min_w = min(n_hist, max(2 * div + 2, int(math.ceil(0.005 / self.dt))))
-        # per strut, written twice (slot k and k + n_hist): any window of the last w <= n_hist
-        # commands is one contiguous slice ending at h_slot + n_hist (min/max in C, no Python scan)
-        hist_cmd = self.hist_cmd = [[0.0] * (2 * n_hist) for _ in range(6)]
-        self._fill_hist(self.l0)
-        sends = 0
-        fb_base = 0
-        fb_cnt = list(pos_count)
-        h_slot = 0
-        statusword = io.statusword
-        follow_max = self.follow_max
-        follow_lim = self.follow_mm
-        hb_to = self.hb_timeout_ns
-        period = self.period_ns
-        max_in_row = self.max_in_row
-        sp_timeout = self.sp_timeout_ns
+        """The cycle until shut down (or ``max_cycles`` cycles of this call): wait for the
+        deadline, then feedback in, supervision, offsets, next setpoint, transform and guard (or
+        the stop / enable walk), frames out, forward kinematics, statistics."""
+        self._enter_run()
+        stats = self.stats = CycleStats(self.sh, self.period_ns)
+        h = self.sh.h
         mono = time.monotonic_ns
-        sleep = time.sleep
-        spin = self.spin_ns
-        mask = S.RING_ROWS - 1
-        ROW = S.ROW
-        lmin = self.lmin
-        lmax = self.lmax
-        lo_inc = [math.ceil((lmin[i] - off[i]) * ipm - 1e-9) for i in range(6)]
-        hi_inc = [math.floor((lmax[i] - off[i]) * ipm + 1e-9) for i in range(6)]
-        ST_IDLE, ST_RUNNING, ST_STOPPING, ST_FAULT, ST_DISABLED, ST_BOOT = (
-            S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING, S.ST_FAULT, S.ST_DISABLED, S.ST_BOOT)
-
-        s_bus = getattr(io, "bus_load", 0.0)
-        sh.s[S.S_BUS_LOAD] = s_bus
-        sh.s[S.S_PERIOD] = self.dt
-        h[S.H_PID] = os.getpid()
-        ppid = os.getppid()
-        overruns = 0
-        in_row = 0
-        max_row = 0
-        lat_max = 0
-        comp_max = 0
-        cycles = 0
+        phase = stats.phase
+        ct = self.ct
+        act = self.act
         last_state = -1
-        # per-phase compute time (ns): sums and maxima since the last statistics reset
-        ps0 = ps1 = ps2 = ps3 = ps4 = ps5 = 0
-        pm0 = pm1 = pm2 = pm3 = pm4 = pm5 = 0
-        H_PS = S.H_PHASE_SUM_NS
-        H_PM = S.H_PHASE_MAX_NS
-        t_end = 0
-        if self.state == ST_BOOT:
-            self.enable_t0 = mono()
-
+        t_end = t1 = 0
         gc.collect()
         gc.freeze()
         gc.disable()
-        deadline = mono() + period
+        deadline = mono() + self.period_ns
         try:
             while True:
-                # ---------------------------------------------------------- wait
-                rem = deadline - mono()
-                if rem > spin:
-                    sleep((rem - spin) * 1e-9)
-                while mono() < deadline:
-                    pass
-                t0 = mono()
-                if t_end:                   # the previous cycle's statistics and publishing
-                    d = t_end - t1
-                    ps5 += d
-                    if d > pm5:
-                        pm5 = d
+                t0 = self.wait_until(deadline)
+                if t_end:                           # the previous cycle's statistics and publishing
+                    phase(5, t_end - t1)
                 h[S.H_LOOP_BEAT_NS] = t0
-                # ---------------------------------------------------------- feedback in
-                io.poll(t0)
-                for i in range(6):
-                    act[i] = pos[i] * inv_ipm + off[i]
-                seq = h[S.H_CMD_SEQ]
-                if seq != self.cmd_seen:
-                    self.cmd_seen = seq
-                    self._command(h[S.H_CMD], h[S.H_CMD_ARG], t0)
-                    h[S.H_CMD_ACK] = seq
-                    if self.stats_reset:
-                        self.stats_reset = False
-                        overruns = in_row = max_row = lat_max = comp_max = 0
-                        ps0 = ps1 = ps2 = ps3 = ps4 = ps5 = 0
-                        pm0 = pm1 = pm2 = pm3 = pm4 = pm5 = 0
-                        for j in range(2 * S.N_PHASES):
-                            h[H_PS + j] = 0
-                        h[S.H_OVERRUNS] = 0
-                        h[S.H_MAX_IN_ROW] = 0
-                        h[S.H_LAT_MAX_NS] = 0
-                        h[S.H_COMP_MAX_NS] = 0
-                        h[S.H_STATS_CYCLES0] = cycles
-                state = self.state
+                self.feedback_in(t0)
                 ta = mono()
-                d = ta - t0
-                ps0 += d
-                if d > pm0:
-                    pm0 = d
-                # ---------------------------------------------------------- supervision
-                if state == ST_RUNNING or state == ST_IDLE:
-                    for i in range(6):
-                        hb = hb_ns[i]
-                        if t0 - hb > hb_to:
-                            self._fault(F_HEARTBEAT, i + 1, (t0 - hb) // 1_000_000 if hb else -1)
-                            break
-                        if emcy_count[i] != emcy_seen[i]:
-                            emcy_seen[i] = emcy_count[i]
-                            self._fault(F_EMCY, i + 1, io.emcy_code[i])
-                            break
-                        sw = statusword[i]
-                        if (sw & 0x6F) != 0x27:
-                            self._fault(F_DRIVE, i + 1, sw)
-                            break
-                        if pos_count[i] != pos_seen[i]:
-                            # a fresh sample: the position at one of the last SYNCs; the error is
-                            # its distance to the commands sent within the transport allowance
-                            pos_seen[i] = pos_count[i]
-                            a_i = act[i]
-                            w = min_w + div * ((sends - fb_base) // div - (pos_count[i] - fb_cnt[i]))
-                            if w > n_hist:
-                                w = n_hist
-                            elif w < min_w:
-                                w = min_w
-                            k = h_slot + n_hist
-                            win = hist_cmd[i][k - w:k]
-                            lo = min(win)
-                            hi = max(win)
-                            e = lo - a_i if a_i < lo else (a_i - hi if a_i > hi else 0.0)
-                            if e > follow_max[i]:
-                                follow_max[i] = e
-                            if e > follow_lim:
-                                self._fault(F_FOLLOWING, i + 1, int(e * 1000.0))
-                                break
-                    state = self.state
-                # ---------------------------------------------------------- thermal / spindle offsets
-                if (cycles & (THERMAL_EVERY - 1)) == 0 and state != ST_STOPPING:
-                    for i in range(6):
-                        d = shs[S.S_THERMAL_TGT + i] - th_app[i]
-                        if d != 0.0:
-                            th_app[i] += th_step if d > th_step else (-th_step if d < -th_step else d)
-                    d = shs[S.S_SPINDLE_TGT] - ct.spindle_growth_mm
-                    if d != 0.0:
-                        ct.spindle_growth_mm += th_step if d > th_step else (-th_step if d < -th_step else d)
-                # ---------------------------------------------------------- setpoint + transform
+                phase(0, ta - t0)
+                self.supervise(t0)
+                self.offsets()
                 tb = mono()
-                d = tb - ta
-                ps1 += d
-                if d > pm1:
-                    pm1 = d
-                if state == ST_RUNNING or state == ST_IDLE:
-                    r = h[S.H_RING_R]
-                    if r < h[S.H_RING_W]:
-                        b = (r & mask) * ROW
-                        hold[0] = ring[b]
-                        hold[1] = ring[b + 1]
-                        hold[2] = ring[b + 2]
-                        hold[3] = ring[b + 3]
-                        hold[4] = ring[b + 4]
-                        hold[5] = ring[b + 5]
-                        self.line = int(ring[b + 6])
-                        self.streaming = not (int(ring[b + 7]) & S.FLAG_END)
-                        h[S.H_RING_R] = r + 1
-                        self.starve_ns = 0
-                        if state == ST_IDLE:
-                            state = self.state = ST_RUNNING
-                        if not self.streaming:
-                            h[S.H_END_SEEN] = r + 1
-                    elif self.streaming:
-                        d = l0[0] - l1[0]
-                        moving = False
-                        for i in range(6):
-                            d = l0[i] - l1[i]
-                            if d > STANDSTILL_MM or d < -STANDSTILL_MM:
-                                moving = True
-                        if moving:
-                            h[S.H_UNDERRUNS] += 1
-                            self._fault(F_SETPOINT, 0, 1)
-                        elif self.starve_ns == 0:
-                            self.starve_ns = t0
-                        elif t0 - self.starve_ns > sp_timeout:
-                            self._fault(F_SETPOINT, 0, 2)
-                        state = self.state
-                    elif state == ST_RUNNING:
-                        state = self.state = ST_IDLE
-                if state == ST_RUNNING or state == ST_IDLE:
-                    code = ct.command(hold[0], hold[1], hold[2], hold[3], hold[4], hold[5])
-                    if code == CT_OK:
-                        cm = ct.cmd_mm
-                        for i in range(6):
-                            out[i] = cm[i]
-                    else:
-                        self._fault(F_LIMIT, ct.fail_index + 1, code)
-                        sh.s[S.S_FAULT_VALUE] = ct.fail_value
-                        state = self.state
-                if state == ST_STOPPING:
-                    if not stop.step(out):
-                        if self.after_stop == ST_IDLE:
-                            self._rehold_from(out)
-                            state = self.state = ST_IDLE
-                        else:
-                            self._disable()
-                            state = self.state = self.after_stop
-                elif state == ST_BOOT:
-                    # enable walk: the targets track the actual positions so enabling moves nothing
-                    for i in range(6):
-                        v = act[i]
-                        out[i] = lmin[i] if v < lmin[i] else (lmax[i] if v > lmax[i] else v)
-                    if self.enable_ok:
-                        all_on = True
-                        for i in range(6):
-                            if pos_count[i] == 0:       # no position yet: never enable blind
-                                all_on = False
-                                break
-                            if act[i] < lmin[i] or act[i] > lmax[i]:
-                                all_on = False
-                                if t0 - self.enable_t0 > ENABLE_TIMEOUT_NS // 4:
-                                    self.enable_t0 = -ENABLE_TIMEOUT_NS   # refuse now
-                                break
-                        for i in range(6 if all_on else 0):
-                            sw = statusword[i]
-                            if not _op_enabled(sw):
-                                all_on = False
-                                cw = _next_cw(sw, self.cw[i])
-                                if cw != self.cw[i]:
-                                    io.set_controlword(i, cw)
-                                    self.cw[i] = cw
-                        if all_on:
-                            for i in range(6):
-                                if not _op_enabled(statusword[i]):
-                                    all_on = False
-                        if all_on:
-                            for i in range(6):
-                                io.set_controlword(i, CW_ENABLE_OPERATION)
-                                self.cw[i] = CW_ENABLE_OPERATION
-                            self.seed_from_feedback()
-                            self.resync = True
-                            fb_base = sends
-                            for i in range(6):
-                                fb_cnt[i] = pos_count[i]
-                            for i in range(6):
-                                emcy_seen[i] = emcy_count[i]
-                            state = self.state = ST_IDLE
-                            h[S.H_READY] = 1
-                        elif t0 - self.enable_t0 > ENABLE_TIMEOUT_NS:
-                            bad = 0
-                            arg = 0
-                            for i in range(6):
-                                if pos_count[i] == 0:
-                                    bad, arg = i + 1, -1
-                                    break
-                                if act[i] < lmin[i] or act[i] > lmax[i]:
-                                    bad, arg = i + 1, -2
-                                    break
-                                if not _op_enabled(statusword[i]):
-                                    bad, arg = i + 1, statusword[i]
-                                    break
-                            self.fault = F_ENABLE
-                            self.fault_strut = bad
-                            self.fault_arg = arg
-                            self._disable()
-                            state = self.state = ST_FAULT
-                            if h[S.H_READY] == 0:
-                                h[S.H_READY] = -1
-                # ---------------------------------------------------------- out to the bus
+                phase(1, tb - ta)
+                self.next_setpoint(t0)
+                self.transform(t0)
                 tc = mono()
-                d = tc - tb
-                ps2 += d
-                if d > pm2:
-                    pm2 = d
-                hb_ = h_slot
-                hb2 = h_slot + n_hist
-                h_slot = h_slot + 1 if h_slot + 1 < n_hist else 0
-                for i in range(6):
-                    v = out[i]
-                    d = v - l0[i]
-                    travel[i] += d if d >= 0.0 else -d
-                    hs = hist_cmd[i]
-                    hs[hb_] = v
-                    hs[hb2] = v
-                    t = round((v - off[i]) * ipm)
-                    target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
-                    l2[i] = l1[i]
-                    l1[i] = l0[i]
-                    l0[i] = v
-                sends += 1
-                if io.send() != 0 and state != ST_FAULT and self.fault == F_NONE:
-                    self._fault(F_BUS, 0, 1)
-                # ---------------------------------------------------------- feedback: FK
+                phase(2, tc - tb)
+                self.frames_out()
                 td = mono()
-                d = td - tc
-                ps3 += d
-                if d > pm3:
-                    pm3 = d
-                if state != ST_BOOT:
-                    ct.feedback(act)
-                # ---------------------------------------------------------- statistics
+                phase(3, td - tc)
+                if self.state != S.ST_BOOT:
+                    ct.feedback(act)                # FK of the measured lengths
                 t1 = mono()
-                d = t1 - td
-                ps4 += d
-                if d > pm4:
-                    pm4 = d
-                late = t0 - deadline
-                comp = t1 - t0
-                k = late // 1000
-                hist_late[k if k < 4095 else 4095] += 1
-                k = comp // 1000
-                hist_comp[k if k < 4095 else 4095] += 1
-                if late > lat_max:
-                    lat_max = late
-                    h[S.H_LAT_MAX_NS] = late
-                if comp > comp_max:
-                    comp_max = comp
-                    h[S.H_COMP_MAX_NS] = comp
-                cycles += 1
-                h[S.H_CYCLES] = cycles
-                deadline += period
-                if self.resync:             # a slow-path cycle (enable, reseed): realign, no overrun
-                    self.resync = False
-                    if t1 > deadline:
-                        deadline = t1 + period
-                elif t1 > deadline:
-                    missed = (t1 - deadline) // period + 1
-                    deadline += (missed - 1) * period
-                    overruns += missed
-                    in_row += missed
-                    h[S.H_OVERRUNS] = overruns
-                    if in_row > max_row:
-                        max_row = in_row
-                        h[S.H_MAX_IN_ROW] = max_row
-                    # a burst matters while moving; holding still, the drives keep the position
-                    if in_row > max_in_row and self.state == ST_RUNNING:
-                        self._fault(F_DEADLINE, 0, in_row)
-                else:
-                    in_row = 0
-                if self.state != last_state or cycles % PUBLISH_EVERY == 0:
+                phase(4, t1 - td)
+                deadline = self.account(t0, t1, deadline)
+                if self.state != last_state or stats.cycles % PUBLISH_EVERY == 0:
                     last_state = self.state
-                    h[H_PS] = ps0
-                    h[H_PS + 1] = ps1
-                    h[H_PS + 2] = ps2
-                    h[H_PS + 3] = ps3
-                    h[H_PS + 4] = ps4
-                    h[H_PS + 5] = ps5
-                    h[H_PM] = pm0
-                    h[H_PM + 1] = pm1
-                    h[H_PM + 2] = pm2
-                    h[H_PM + 3] = pm3
-                    h[H_PM + 4] = pm4
-                    h[H_PM + 5] = pm5
+                    stats.publish_phases()
                     self.publish(t0)
-                    if (cycles & 1023) == 0:
-                        self._check_supervisor(t0, ppid)
-                        self.resync = True
-                if self.exit_after > 0 and self.state in (ST_DISABLED, ST_FAULT):
+                if self.exit_after > 0 and self.state in (S.ST_DISABLED, S.ST_FAULT):
                     self.exit_after += 1
                     if self.exit_after > 20:
                         break
-                if cycles == max_cycles:
+                if stats.cycles == max_cycles:
                     break
                 t_end = mono()
+        except BaseException:
+            h[S.H_EXIT] = 2             # crashed: the supervisor reports it, the drives stop on their own
+            raise
         finally:
             gc.enable()
             gc.unfreeze()
@@ -716,105 +353,231 @@ class HotLoop:
         h[S.H_EXIT] = 1
         return 0
 
-    def _check_supervisor(self, now: int, ppid: int) -> None:
-        """The supervisor process died (we were re-parented): stop, disable, exit.
+    def _enter_run(self) -> None:
+        sh = self.sh
+        sh.s[S.S_BUS_LOAD] = getattr(self.io, "bus_load", 0.0)
+        sh.s[S.S_PERIOD] = self.dt
+        sh.h[S.H_PID] = os.getpid()
+        self.ppid = sh.h[S.H_SUP_PID] or os.getppid()
+        if os.getppid() != self.ppid:
+            SIGNALS[1] = 1              # the supervisor died before we could watch it
+        self.sup.fill(self.l0)
+        if self.state == S.ST_BOOT:
+            self.walk.begin(time.monotonic_ns())
+
+    def wait_until(self, deadline: int) -> int:
+        """Sleep until ``[cycle] spin_s`` before the deadline, spin to it; returns the wake time."""
+        mono = time.monotonic_ns
+        rem = deadline - mono()
+        if rem > self.spin_ns:
+            time.sleep((rem - self.spin_ns) * 1e-9)
+        while mono() < deadline:
+            pass
+        return mono()
+
+    def feedback_in(self, t0: int) -> None:
+        """Signals and the supervisor's presence, feedback frames (positions -> measured lengths
+        ``act``), a command from the supervisor."""
+        if SIGNALS[0] or SIGNALS[1] or (self.stats.cycles & (SUPERVISOR_CHECK_EVERY - 1)) == 0:
+            self._check_signals(t0, self.ppid)
+        io = self.io
+        io.poll(t0)
+        pos = io.pos
+        act = self.act
+        off = self.off
+        k = self.inv_ipm
+        for i in range(6):
+            act[i] = pos[i] * k + off[i]
+        h = self.sh.h
+        seq = h[S.H_CMD_SEQ]
+        if seq != self.cmd_seen:
+            self.cmd_seen = seq
+            self._command(h[S.H_CMD], h[S.H_CMD_ARG], t0)
+            h[S.H_CMD_ACK] = seq
+            if self.stats_reset:
+                self.stats_reset = False
+                self.stats.reset()
+
+    def supervise(self, t0: int) -> None:
+        """Drive supervision (:class:`~hexacnc.daemon.supervise.DriveSupervisor`) while enabled."""
+        st = self.state
+        if st == S.ST_RUNNING or st == S.ST_IDLE:
+            sup = self.sup
+            code = sup.check(t0, self.act, self.sends)
+            if code:
+                self._fault(code, sup.strut, sup.arg)
+
+    def offsets(self) -> None:
+        """Thermal and spindle growth slewed towards the supervisor's targets (every THERMAL_EVERY cycles)."""
+        if (self.stats.cycles & (THERMAL_EVERY - 1)) or self.state == S.ST_STOPPING:
+            return
+        shs = self.sh.s
+        ct = self.ct
+        th_app = ct.thermal_mm
+        step = self.th_step
+        for i in range(6):
+            d = shs[S.S_THERMAL_TGT + i] - th_app[i]
+            if d != 0.0:
+                th_app[i] += step if d > step else (-step if d < -step else d)
+        d = shs[S.S_SPINDLE_TGT] - ct.spindle_growth_mm
+        if d != 0.0:
+            ct.spindle_growth_mm += step if d > step else (-step if d < -step else d)
+
+    def next_setpoint(self, t0: int) -> None:
+        """The next row of the setpoint ring into ``hold`` (idle -> running); an empty ring holds
+        the last pose after an END row, else it is a dead setpoint source."""
+        st = self.state
+        if st != S.ST_RUNNING and st != S.ST_IDLE:
+            return
+        h = self.sh.h
+        r = h[S.H_RING_R]
+        if r < h[S.H_RING_W]:
+            ring = self.sh.ring
+            b = (r & RING_MASK) * S.ROW
+            hold = self.hold
+            hold[0] = ring[b]
+            hold[1] = ring[b + 1]
+            hold[2] = ring[b + 2]
+            hold[3] = ring[b + 3]
+            hold[4] = ring[b + 4]
+            hold[5] = ring[b + 5]
+            self.line = int(ring[b + 6])
+            self.streaming = not (int(ring[b + 7]) & S.FLAG_END)
+            h[S.H_RING_R] = r + 1
+            self.starve_ns = 0
+            if st == S.ST_IDLE:
+                self.state = S.ST_RUNNING
+            if not self.streaming:
+                h[S.H_END_SEEN] = r + 1
+        elif self.streaming:
+            self._starving(t0)
+        elif st == S.ST_RUNNING:
+            self.state = S.ST_IDLE
+
+    def _starving(self, t0: int) -> None:
+        l0, l1 = self.l0, self.l1
+        for i in range(6):
+            d = l0[i] - l1[i]
+            if d > STANDSTILL_MM or d < -STANDSTILL_MM:     # moving: fault at once
+                self.sh.h[S.H_UNDERRUNS] += 1
+                self._fault(F_SETPOINT, 0, 1)
+                return
+        if self.starve_ns == 0:
+            self.starve_ns = t0
+        elif t0 - self.starve_ns > self.sp_timeout_ns:
+            self._fault(F_SETPOINT, 0, 2)
+
+    def transform(self, t0: int) -> None:
+        """Strut commands ``out`` of this cycle: IK + sag + thermal + limit guard of the held pose,
+        or the next step of the controlled stop, or of the enable walk."""
+        st = self.state
+        if st == S.ST_RUNNING or st == S.ST_IDLE:
+            self.guard()
+            st = self.state
+        if st == S.ST_STOPPING:
+            self.stopping(t0)
+        elif st == S.ST_BOOT:
+            self.enabling(t0)
+
+    def guard(self) -> None:
+        ct = self.ct
+        hold = self.hold
+        code = ct.command(hold[0], hold[1], hold[2], hold[3], hold[4], hold[5])
+        if code == CT_OK:
+            cm = ct.cmd_mm
+            out = self.out
+            for i in range(6):
+                out[i] = cm[i]
+        else:
+            self._fault(F_LIMIT, ct.fail_index + 1, code)
+            self.sh.s[S.S_FAULT_VALUE] = ct.fail_value
+
+    def stopping(self, t0: int) -> None:
+        if self.stop.step(self.out):
+            return
+        if self.after_stop == S.ST_IDLE:
+            self._rehold_from(self.out)
+            self.state = S.ST_IDLE
+        elif self._settled(t0):                 # disable once the struts stand where commanded
+            self._disable()
+            self.state = self.after_stop
+
+    def enabling(self, t0: int) -> None:
+        if not self.enable_ok:              # [daemon] enable_at_start false: hold, disabled, until enable
+            self.walk.track(self.act, self.out)
+            return
+        r = self.walk.step(t0, self.act, self.out)
+        if r > 0:
+            self.seed_from_feedback()
+            self.sup.arm(t0)
+            self.resync = True
+            self.state = S.ST_IDLE
+            self.sh.h[S.H_READY] = 1
+        elif r < 0:
+            self.fault = F_ENABLE
+            self.fault_strut = self.walk.bad
+            self.fault_arg = self.walk.arg
+            self._disable()
+            self.state = S.ST_FAULT
+            if self.sh.h[S.H_READY] == 0:
+                self.sh.h[S.H_READY] = -1
+
+    def frames_out(self) -> None:
+        """Drive increments of ``out`` (clamped to the strut range), command history, send."""
+        out = self.out
+        l0, l1, l2 = self.l0, self.l1, self.l2
+        travel = self.travel
+        off = self.off
+        ipm = self.ipm
+        lo_inc, hi_inc = self.lo_inc, self.hi_inc
+        target = self.io.target
+        for i in range(6):
+            v = out[i]
+            d = v - l0[i]
+            travel[i] += d if d >= 0.0 else -d
+            t = round((v - off[i]) * ipm)
+            target[i] = lo_inc[i] if t < lo_inc[i] else (hi_inc[i] if t > hi_inc[i] else t)
+            l2[i] = l1[i]
+            l1[i] = l0[i]
+            l0[i] = v
+        self.sends += 1
+        self.sup.record(self.sends, out)
+        if self.io.send() != 0 and self.state != S.ST_FAULT and self.fault == F_NONE:
+            self._fault(F_BUS, 0, 1)
+
+    def account(self, t0: int, t1: int, deadline: int) -> int:
+        """Statistics of this cycle; a burst of overruns while moving is a fault (holding still,
+        the drives keep the position). Returns the next deadline."""
+        resync = self.resync
+        self.resync = False
+        stats = self.stats
+        before = stats.overruns
+        deadline = stats.account(t0, t1, deadline, resync)
+        if stats.overruns != before and stats.in_row > self.max_in_row and self.state == S.ST_RUNNING:
+            self._fault(F_DEADLINE, 0, stats.in_row)
+        return deadline
+
+    def _check_signals(self, now: int, ppid: int) -> None:
+        """A stop signal (SIGTERM/SIGHUP) or the supervisor's death (parent-death signal, or we
+        were re-parented): controlled stop, drives disabled, exit.
 
         A live but slow supervisor is not a fault by itself: while streaming, an empty ring is
         (dead setpoint source); at rest the drives just hold.
         """
-        if os.getppid() != ppid:
+        sig = SIGNALS[0]
+        if sig:
+            SIGNALS[0] = 0
+            if not self.exit_signal:
+                self._on_signal(sig)
+        if SIGNALS[1] or os.getppid() != ppid:
+            if os.getppid() == ppid:        # a parent *thread* ended, not the process: ignore
+                SIGNALS[1] = 0
+                return
             beat = self.sh.h[S.H_SUP_BEAT_NS]
-            if self.state in (S.ST_IDLE, S.ST_RUNNING):
+            if self.fault == F_NONE:
                 self._fault(F_SUPERVISOR, 0, (now - beat) // 1_000_000 if beat else -1)
-            elif self.state == S.ST_BOOT:       # e.g. waiting for enable: nothing moves, just end
+            if self.state == S.ST_BOOT:
                 self._disable()
-                self.state = S.ST_DISABLED
+                self.state = S.ST_FAULT
             if self.exit_after < 0:
                 self.exit_after = 1     # nobody left to reset us: stop, disable, exit
-
-
-def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: str = "") -> str:
-    """Human-readable cause of a fault (slow path)."""
-    name = fault_code_name(code)
-    if code == F_HEARTBEAT:
-        return (f"lost heartbeat of drive {strut}" + (f" ({arg} ms since the last one)" if arg >= 0
-                                                       else " (none received)"))
-    if code == F_EMCY:
-        return f"EMCY from drive {strut}: 0x{arg & 0xFFFF:04X}" + (f" {emcy_text}" if emcy_text else "")
-    if code == F_FOLLOWING:
-        return f"following error of strut {strut}: {arg / 1000.0:.3f} mm over the limit"
-    if code == F_LIMIT:
-        return f"setpoint outside limits: {detail}" if detail else f"setpoint outside limits (code {arg})"
-    if code == F_DEADLINE:
-        return f"missed-deadline burst: {arg} cycles in a row over the period"
-    if code == F_SETPOINT:
-        return ("dead setpoint source: setpoint ring ran empty while moving" if arg == 1
-                else "dead setpoint source: no setpoint within [cycle] setpoint_timeout_s")
-    if code == F_DRIVE:
-        return f"drive {strut} left Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
-    if code == F_SUPERVISOR:
-        return f"supervisor silent for {arg} ms"
-    if code == F_BUS:
-        return "bus send failed"
-    if code == F_ENABLE:
-        if arg == -2:
-            return f"drive {strut} reports a position outside the strut length range: not enabled"
-        if arg == -1:
-            return f"no position feedback from drive {strut}: not enabled"
-        return f"drive {strut} did not reach Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
-    if code == F_TEST:
-        return "test fault"
-    return name
-
-
-
-def hot_main(cfg, shm_name: str, io_mode: str, period_s: float, realtime: bool, log_level: str,
-             report, sim_args: dict | None = None, cpu: int | None = None) -> None:
-    """Body of the hot process: boot the bus, take privileges, run the cycle.
-
-    ``report(kind, payload)`` sends one message to the supervisor ("ready" or "error").
-    """
-    import sys
-    logging.basicConfig(level=getattr(logging, str(log_level).upper(), logging.INFO), stream=sys.stderr,
-                        format="%(asctime)s hexacnc[hot %(process)d] %(levelname)s %(message)s")
-    logging.getLogger("canopen").setLevel(logging.WARNING)
-    logging.getLogger("can").setLevel(logging.WARNING)
-    sh = S.Shared(shm_name)
-    from . import busio, rt
-    # memory lock and CPU first (slow, and the drives must not wait for the cycle after the boot),
-    # SCHED_FIFO last: threads the bus boot starts must not inherit it
-    locked, m1 = rt.mlockall()
-    (log.info if locked else log.warning)("hot loop: %s", m1)
-    cpu, m2 = rt.pin_cpu(cfg.cycle.cpu if cpu is None else cpu)
-    (log.info if cpu >= 0 else log.warning)("hot loop: %s", m2)
-    io = None
-    try:
-        io = busio.open_io(cfg, io_mode, period_s, sim_args or {})
-    except Exception as exc:
-        log.error("hot loop: bus start failed: %s", exc)
-        sh.h[S.H_READY] = -1
-        report("error", f"{type(exc).__name__}: {exc}")
-        sh.close()
-        return
-    if realtime:
-        fifo, m3 = rt.sched_fifo(cfg.cycle.realtime_priority)
-    else:
-        fifo, m3 = False, "SCHED_FIFO not requested"
-    (log.info if fifo else log.warning)("hot loop: %s", m3)
-    priv = {"sched_fifo": fifo, "mlockall": locked, "affinity_cpu": cpu, "messages": [m1, m2, m3]}
-    sh.h[S.H_PRIV_FIFO] = 1 if priv["sched_fifo"] else 0
-    sh.h[S.H_PRIV_MLOCK] = 1 if priv["mlockall"] else 0
-    sh.h[S.H_PRIV_AFFINITY] = priv["affinity_cpu"] + 1
-    report("ready", {"privileges": priv, "bus_load": getattr(io, "bus_load", 0.0),
-                     "io_info": getattr(io, "info", {})})
-    loop = HotLoop(cfg, sh, io, priv=priv, period_s=period_s)
-    try:
-        loop.run()
-    finally:
-        try:
-            io.close()
-        finally:
-            n = sh.h[S.H_CYCLES]
-            sh.h[S.H_STATE] = S.ST_EXITED
-            sh.close()
-    log.info("hot loop: exited after %d cycles", n)

@@ -179,6 +179,8 @@ class SocketServer(Admission):
             self._close_listeners()
             raise
         self._motion_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-motion")
+        # stop/pause/resume/reset never wait behind a program being interpreted and planned
+        self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control")
         self._wait_pool = ThreadPoolExecutor(self.max_clients * _MAX_WAITS_PER_CLIENT,
                                              thread_name_prefix="hexacnc-wait")
         self._thread = threading.Thread(target=self._run, name="hexacnc-socket", daemon=True)
@@ -197,10 +199,10 @@ class SocketServer(Admission):
         for c in list(self._conns.values()):
             self._drop(c, "server closing")
         self._close_listeners()
-        for pool in (self._motion_pool, self._wait_pool):
+        for pool in (self._motion_pool, self._wait_pool, getattr(self, "_control_pool", None)):
             if pool is not None:
                 pool.shutdown(wait=False, cancel_futures=True)
-        self._motion_pool = self._wait_pool = None
+        self._motion_pool = self._wait_pool = self._control_pool = None
 
     def __enter__(self) -> "SocketServer":
         return self.start()
@@ -538,7 +540,8 @@ class SocketServer(Admission):
             self._wake()
         with self._motion_cv:
             self._motion_submitted += 1
-        self._motion_pool.submit(job)
+        control = req.op in ("stop", "pause", "resume", "reset") and getattr(self, "_control_pool", None)
+        (self._control_pool if control else self._motion_pool).submit(job)
 
     def _op_program(self, conn: _Conn, req: P.Request) -> None:
         if not self._take_control(conn, req):

@@ -4,23 +4,111 @@ Runs :class:`drivers.simdrive.SimDrives` (six CiA 402 nodes from the EDS) on
 :class:`~hexacnc.daemon.pipebus.PipeBus` ends inherited from the supervisor, or on side 1 of
 :class:`~hexacnc.daemon.shmbus.ShmBus` frame rings.  Arguments come as one pickle on stdin:
 ``{"cfg": MachineConfig, "fds": [fd per bus] | "shm": [segment name per bus], "faults": [spec, ...]}``.
-Prints ``READY`` once the nodes are up; runs until SIGTERM/SIGINT or until the supervisor's
-end of stdin... (it stops when its parent dies: the pipe buses report EOF).
+Prints ``READY`` once the nodes are up.
+
+The drives stand for hardware: signals meant for the daemon (Ctrl-C to the process group,
+SIGTERM/SIGHUP to the unit) are ignored, so the drives are still there while the hot loop stops
+the motion and disables them.  The rest of stdin is a line protocol from the supervisor:
+
+* ``STOP`` - end now (the supervisor has stopped the hot loop);
+* end of file without ``STOP`` - the supervisor died: run on while the master (the hot loop, which
+  stops the motion and disables the drives on its own) still sends SYNCs, end
+  ``MASTER_SILENT_S`` after the last one;
+* ``inject KIND NODE [VALUE]`` - fault injection for tests and ``hexacnc bench faults``
+  (see :func:`inject`).
 """
 from __future__ import annotations
 
 import logging
 import os
 import pickle
+import random
 import signal
 import sys
 import threading
+import time
 
 #: the simulated drives look for frames this often (s); 0.4 of the default 0.5 ms cycle
 POLL_INTERVAL_S = 0.0002
+#: after the supervisor died: end this long after the master's last SYNC
+MASTER_SILENT_S = 1.0
+
+log = logging.getLogger("hexacnc.simhost")
+
+INJECTIONS = ("nmt", "emcy", "silent", "offset", "drop", "stuck")
+
+
+def inject(sim, kind: str, node: int, value: float = 0.0) -> None:
+    """Fault injection into the running simulated drives (all under the drives' lock):
+
+    * ``nmt NODE CMD``: the NMT command CMD (e.g. 0x81 reset node, 0x80 pre-operational) reaches NODE;
+    * ``emcy NODE CODE``: NODE faults with EMCY CODE;
+    * ``silent NODE``: NODE stops sending PDOs (position and statusword); its heartbeat goes on;
+    * ``offset NODE MM``: NODE reports its position MM off (a following error the drive hides);
+    * ``drop 0 FRACTION``: that fraction of every drive's position frames (TPDO1) is lost;
+    * ``stuck NODE``: NODE's strut stops moving whatever the demand.
+    """
+    if kind == "drop":
+        frac = float(value)
+        send = sim.send
+        tpdo1 = {nd.tpdo1_cob_id for nd in sim.plan.nodes}
+        rnd = random.Random(1)
+
+        def lossy(bus_index, cob_id, data):
+            if cob_id in tpdo1 and rnd.random() < frac:
+                return
+            send(bus_index, cob_id, data)
+        sim.send = lossy
+        return
+    d = sim.by_node.get(node)
+    if d is None:
+        raise ValueError(f"inject {kind}: no node {node}")
+    with sim.lock:
+        if kind == "nmt":
+            d.on_nmt(int(value))
+        elif kind == "emcy":
+            d.fault(int(value))
+        elif kind == "silent":
+            d.send_tpdo = lambda tp, now: None
+        elif kind == "offset":
+            off = int(round(float(value) * sim.increments_per_mm))
+            cob = 0x180 + node
+            for tp in d.tpdos:
+                if tp.cob_id == cob:
+                    tp.getters = [lambda: d.pos_inc + off]
+        elif kind == "stuck":
+            d.stuck = True
+        else:
+            raise ValueError(f"inject: unknown kind {kind!r} (one of {', '.join(INJECTIONS)})")
+
+
+def _number(text: str) -> float:
+    try:
+        return int(text, 0)
+    except ValueError:
+        return float(text)
+
+
+def _serve_stdin(sim) -> bool:
+    """Read the supervisor's lines until STOP (True) or end of file (False: the supervisor died)."""
+    for raw in sys.stdin.buffer:
+        parts = raw.decode(errors="replace").split()
+        if not parts:
+            continue
+        if parts[0] == "STOP":
+            return True
+        if parts[0] == "inject" and len(parts) >= 3:
+            try:
+                inject(sim, parts[1], int(parts[2], 0), _number(parts[3]) if len(parts) > 3 else 0.0)
+                log.warning("injected %s", " ".join(parts[1:]))
+            except (ValueError, KeyError) as exc:
+                log.error("bad injection %r: %s", raw, exc)
+    return False
 
 
 def main() -> int:
+    for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+        signal.signal(s, signal.SIG_IGN)
     args = pickle.load(sys.stdin.buffer)
     logging.basicConfig(level=args.get("log_level", "WARNING"), stream=sys.stderr,
                         format="simdrive %(levelname)s %(message)s")
@@ -33,7 +121,7 @@ def main() -> int:
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
     except (OSError, AttributeError) as exc:
-        logging.getLogger("hexacnc.simhost").warning("simulated drives without SCHED_FIFO: %s", exc)
+        log.warning("simulated drives without SCHED_FIFO: %s", exc)
     # look for frames on a timer instead of being woken by each write: the wake-up would be paid by
     # the hot loop on its CPU every cycle (see PipeBus); the drives answer within this interval
     poll_s = float(args.get("poll_interval_s", POLL_INTERVAL_S))
@@ -43,10 +131,6 @@ def main() -> int:
     else:
         buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *a: stop.set())
-    signal.signal(signal.SIGINT, lambda *a: stop.set())
-    ppid = os.getppid()
     sim = SimDrives(cfg, buses, faults=faults)
     if getattr(cfg, "simulation_truth", ""):     # touch-probe input from the true machine (hexacnc.sim.probesignal)
         from ..sim.probesignal import attach_probe_signal
@@ -57,9 +141,23 @@ def main() -> int:
     try:
         sim.start()
         print("READY", flush=True)
-        while not stop.wait(0.2):
-            if os.getppid() != ppid:
-                break
+        done = threading.Event()
+        ordered = [False]
+
+        def serve():
+            ordered[0] = _serve_stdin(sim)
+            done.set()
+        threading.Thread(target=serve, name="simhost-stdin", daemon=True).start()
+        done.wait()
+        if not ordered[0]:
+            t_eof = time.monotonic()
+            log.warning("supervisor gone: the drives run on until the master is silent")
+            while True:
+                with sim.lock:
+                    last = max([d.last_sync_s for d in sim.drives] + [t_eof])
+                if time.monotonic() - last > MASTER_SILENT_S:
+                    break
+                time.sleep(0.05)
     finally:
         sim.stop()
         for b in buses:

@@ -9,6 +9,14 @@ can be told to fail: ``hb_lost``, ``emcy(code)``, ``stuck`` (stops following).
 from __future__ import annotations
 
 from drivers import cia402
+from drivers.cia402 import SW_DRIVE_FOLLOWS, SW_REMOTE
+
+#: statuswords of the model (CiA 402 states, remote bit 9 set; CSP bit 12 "follows" when enabled)
+SW_SWITCH_ON_DISABLED = 0x0040 | SW_REMOTE
+SW_READY = 0x0021 | SW_REMOTE
+SW_SWITCHED_ON = 0x0023 | SW_REMOTE
+SW_OP_ENABLED = 0x0027 | SW_REMOTE | SW_DRIVE_FOLLOWS
+SW_FAULT_BIT = 0x0008
 
 
 class SimIO:
@@ -20,7 +28,10 @@ class SimIO:
         self.target = [0] * 6
         self.pos = [0] * 6
         self.pos_count = [0] * 6
-        self.statusword = [0x0240] * 6          # switch on disabled
+        self.pos_sync = [0] * 6                 # SYNC each sample answers (the last send)
+        self.nmt_state = [5] * 6                # NMT operational
+        self.sends = 0
+        self.statusword = [SW_SWITCH_ON_DISABLED] * 6
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
@@ -39,6 +50,7 @@ class SimIO:
         self.sent = []                          # (targets) history for tests, bounded by the test
 
     def set_controlword(self, i: int, cw: int) -> None:
+        """The drive side of the one CiA 402 state machine (:func:`drivers.cia402.drive_step`)."""
         prev, self._cw[i] = self._cw[i], cw
         state = cia402.state_from_status(self.statusword[i])
         for _ in range(2):                      # 0x0F from Ready to switch on: transitions 3 then 4
@@ -48,12 +60,13 @@ class SimIO:
             if num in (4, 16):
                 self._latched[i] = None
             state, prev = new, cw
-        self.statusword[i] = cia402.drive_statusword(state)
+        sw = cia402.drive_statusword(state)
+        self.statusword[i] = sw | SW_DRIVE_FOLLOWS if cia402.is_operation_enabled(sw) else sw
 
     def emcy(self, i: int, code: int) -> None:
         self.emcy_code[i] = code
         self.emcy_count[i] += 1
-        self.statusword[i] = 0x0208 | 0x0200
+        self.statusword[i] = SW_FAULT_BIT | SW_REMOTE
 
     def poll(self, now_ns: int) -> int:
         dt = self.dt
@@ -69,11 +82,13 @@ class SimIO:
                 self._x[i] += step
             self.pos[i] = round(self._x[i] * self.ipm)
             self.pos_count[i] += 1
+            self.pos_sync[i] = self.sends
         return 6
 
     def send(self) -> int:
         for i in range(6):
             self._latched[i] = self.target[i]
+        self.sends += 1
         self.frames_tx += 4
         return 0
 

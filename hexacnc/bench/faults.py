@@ -1,0 +1,442 @@
+"""``hexacnc bench faults``: every way the daemon can end or a drive can fail, measured on the frames.
+
+Each path runs the daemon with the simulated drives on the shared-memory frame rings, puts the
+machine in motion (a program of long lines at 150 mm/s, or a point-to-point move), provokes the
+path and reads what the drives received off the rings (:class:`~hexacnc.bench.ringtap.RingTap`):
+
+* ``detected``: the stop started (targets decelerated) or the hot loop's loss was reported;
+* ``latency_s``: from the provocation to the first SYNC whose commanded speed fell below 98 %
+  of the speed at the provocation (signals, stop), or to the fault latched in the hot loop
+  (drive faults), or to the supervisor's report (hot loop lost);
+* ``stop_distance_mm``: per strut, from the provocation to rest;
+* ``peak_fraction``: peak strut velocity/acceleration/jerk during the stop as a fraction of the
+  limits (finite differences over 1/2/8 cycles, see :func:`~hexacnc.bench.ringtap.motion_peaks`);
+* ``drives_disabled``: every drive's last statusword on the ring is a disabled state;
+* ``spurious``: a fault other than the path's own.
+
+Paths: SIGINT/SIGTERM/SIGHUP to the supervisor, to the hot loop and to the process group;
+SIGKILL and SIGSTOP of the supervisor and of the hot loop; the drives' process stalled 0.4 s;
+50 % of the position frames lost (then a 2 mm error); a silent drive with a live heartbeat; NMT
+reset of one drive mid-move; an EMCY; a 2 mm following error; stop during the planning of a
+1e6-line program; and a soak (``--soak-s``) with drive stalls below the bound, counting faults.
+Timing figures depend on the machine's load (printed as ``loadavg``).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from drivers import cia402
+from ..config import load_config
+from .ringtap import RingTap, motion_peaks
+
+HELP = "safety chain: detection, latency, stop distance and peaks of every end and drive fault path"
+PROGRAM = "G21 G90 G64 P0.02\nG0 X0 Y0 Z20\n" + "G1 X60 F9000\nG1 X-60\n" * 6 + "G1 X0\nM2\n"
+DISABLED = (cia402.SWITCH_ON_DISABLED, cia402.READY_TO_SWITCH_ON, cia402.FAULT, cia402.NOT_READY)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--soak-s", type=float, default=600.0,
+                        help="length of the soak with drive stalls below the bound (s; 0: skip)")
+    parser.add_argument("--lines", type=int, default=1_000_000, help="lines of the program planned during a stop")
+    parser.add_argument("--only", default="", help="comma-separated path names (default: all)")
+
+
+def machine_text() -> str:
+    """The default machine, tolerant of deadline bursts of a loaded VM (the bench's own figures)."""
+    text = (resources.files("hexacnc") / "data" / "default.toml").read_text()
+    return re.sub(r"max_overruns_in_row = \d+", "max_overruns_in_row = 1000", text)
+
+
+def speed(L: np.ndarray, period_s: float) -> np.ndarray:
+    """Largest strut speed per SYNC (mm/s)."""
+    return np.max(np.abs(np.diff(L, axis=0)), axis=1) / period_s if len(L) > 1 else np.zeros(0)
+
+
+def judge(tap: RingTap, cfg, t0: float, t_detect: float | None = None) -> dict:
+    """Figures of the stop after ``t0`` from the frames (see the module doc)."""
+    time.sleep(0.05)
+    tap.drain()
+    t, L = tap.lengths_mm(t0 - 0.01)
+    out: dict = {}
+    dt = cfg.cycle.period_s
+    if len(L) > 2:
+        v = speed(L, dt)
+        slow = np.nonzero(v < 0.98 * v[0])[0]
+        if t_detect is None and len(slow) and v[0] > 1.0:
+            t_detect = float(t[slow[0] + 1])
+        rest = np.nonzero(v < 1e-6)[0]
+        end = rest[0] + 1 if len(rest) else len(L) - 1
+        pk = motion_peaks(L[: end + 1], dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3)
+        out.update(speed_at_start_mm_s=round(float(v[0]), 1), at_rest=bool(len(rest)),
+                   stop_distance_mm=[round(float(x), 3) for x in np.abs(L[end] - L[0])],
+                   peak_fraction={k: round(x, 3) for k, x in pk.items()})
+    states = [cia402.state_from_status(s) if s is not None else None for s in tap.last_statuswords()]
+    out["drives_disabled"] = all(s in DISABLED for s in states)
+    out["latency_s"] = round(t_detect - t0, 4) if t_detect is not None else None
+    out["detected"] = t_detect is not None
+    return out
+
+
+# -- hexacnc run as a user starts it ---------------------------------------------------------
+class RunProcess:
+    """``hexacnc run`` in its own process group, log collected, frame rings tapped."""
+
+    def __init__(self, tmp: Path):
+        self.sock = str(tmp / "h.sock")
+        cfgp = tmp / "machine.toml"
+        cfgp.write_text(machine_text())
+        self.cfg = load_config(str(cfgp))
+        self.tmp = tmp
+        self.proc = subprocess.Popen([sys.executable, "-m", "hexacnc", "run", "--no-realtime", "--socket",
+                                      self.sock, "--config", str(cfgp)], stdout=subprocess.DEVNULL,
+                                     stderr=subprocess.PIPE, text=True, start_new_session=True)
+        self.log: list[str] = []
+        threading.Thread(target=lambda: self.log.extend(self.proc.stderr), daemon=True).start()
+        self.tap = None
+        self.kids: dict[str, int] = {}
+
+    def wait_log(self, needle: str, timeout_s: float = 60.0) -> str:
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            for line in list(self.log):
+                if needle in line:
+                    return line
+            if self.proc.poll() is not None:
+                break
+            time.sleep(0.05)
+        raise RuntimeError(f"{needle!r} not in the daemon's log: {''.join(self.log)[-1500:]}")
+
+    def start_moving(self) -> None:
+        names = self.wait_log("frame rings:").split("frame rings:")[1].split()
+        self.tap = RingTap(self.cfg, names).start()
+        self.wait_log("running (cycle")
+        self.kids = children(self.proc.pid)
+        prog = self.tmp / "part.ngc"
+        prog.write_text(PROGRAM)
+        subprocess.run([sys.executable, "-m", "hexacnc", "send", str(prog), "--no-wait", "--socket", self.sock],
+                       check=True, capture_output=True, timeout=120)
+        t_end = time.monotonic() + 30
+        while time.monotonic() < t_end:         # on the X lines (the struts move unequally), at speed
+            t, L = self.tap.lengths_mm(time.monotonic() - 0.05)
+            if len(L) > 10:
+                v = np.abs(L[-1] - L[-11]) / (10 * self.cfg.cycle.period_s)
+                if v.max() > 60.0 and v.max() - v.min() > 20.0:
+                    return
+            time.sleep(0.02)
+        raise RuntimeError("the program did not move")
+
+    def end(self, timeout_s: float = 30.0) -> int | None:
+        try:
+            return self.proc.wait(timeout_s)
+        except subprocess.TimeoutExpired:
+            return None
+        finally:
+            t_end = time.monotonic() + 5.0      # children left alone (supervisor killed) end themselves
+            while time.monotonic() < t_end and any(_alive(p) for p in self.kids.values()):
+                time.sleep(0.05)
+            for pid in [self.proc.pid] + list(self.kids.values()):
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+            time.sleep(0.2)
+            if self.tap is not None:
+                self.tap.drain()
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] not in ("Z", "X")
+    except OSError:
+        return False
+
+
+def children(pid: int) -> dict:
+    out = {}
+    for d in os.listdir("/proc"):
+        if not d.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{d}/stat").read_text()
+            cmd = Path(f"/proc/{d}/cmdline").read_bytes().decode(errors="replace")
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            if "hexacnc.daemon.hot" in cmd:
+                out["hot"] = int(d)
+            elif "hexacnc.daemon.simhost" in cmd:
+                out["sim"] = int(d)
+    return out
+
+
+def process_path(target: str, sig: int) -> dict:
+    """One signal to one process (or the group) of a moving ``hexacnc run``."""
+    with tempfile.TemporaryDirectory(prefix="hxbf") as d:
+        r = RunProcess(Path(d))
+        try:
+            r.start_moving()
+            t0_wall = time.time()
+            t0 = time.monotonic()
+            if target == "group":
+                os.killpg(r.proc.pid, sig)
+            else:
+                os.kill(r.proc.pid if target == "supervisor" else r.kids[target], sig)
+            if sig == signal.SIGSTOP and target == "supervisor":
+                time.sleep(2.0)             # the hot loop runs the ring dry: dead setpoint source
+                os.kill(r.proc.pid, signal.SIGCONT)
+                time.sleep(0.5)
+                os.kill(r.proc.pid, signal.SIGTERM)
+            rc = r.end()
+            out = judge(r.tap, r.cfg, t0)
+            text = "".join(r.log)
+        finally:
+            r.end(1.0)
+            if r.tap is not None:
+                r.tap.stop()
+    clean = sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP) and not (sig == signal.SIGINT and target == "hot")
+    m = re.search(r"(FAULT \w+|hot loop (?:hung|process died)[^;\n]*|ended in fault \w+)", text)
+    out.update(exit_status=rc, reported=m.group(1) if m else None,
+               spurious=bool(clean and (m is not None or rc != 0)))
+    if target == "hot" and sig == signal.SIGINT:
+        out["note"] = "SIGINT to the hot loop alone is ignored by design (Ctrl-C reaches the group)"
+        out["detected"] = None
+    if target == "hot" and sig in (signal.SIGKILL, signal.SIGSTOP):
+        out["detected"] = m is not None and rc not in (0, None)
+        out["latency_s"] = _log_latency(text, r"hot loop (hung|process died)", t0_wall)
+        out["note"] = "the drives stop on their own (communication-loss reaction, drive side)"
+    return out
+
+
+def _log_latency(text: str, needle_re: str, t0_wall: float) -> float | None:
+    """Seconds from ``t0_wall`` to the log line matching ``needle_re`` (its timestamp, ms)."""
+    import datetime
+    for line in text.splitlines():
+        if re.search(needle_re, line):
+            try:
+                ts = datetime.datetime.strptime(line[:23], "%Y-%m-%d %H:%M:%S,%f").timestamp()
+            except ValueError:
+                return None
+            return round(ts - t0_wall, 3)
+    return None
+
+
+# -- drive faults (in-process daemon, fault injection into the simulated drives) --------------
+DRIVE_PATHS = {
+    # name: (injection kind, node, value, expected fault code)
+    "following_error_2mm": ("offset", 2, 2.0, "following_error"),
+    "silent_drive_live_heartbeat": ("silent", 3, 0, "feedback_stale"),
+    "nmt_reset_mid_move": ("nmt", 4, 0x81, "nmt_state"),
+    "emcy": ("emcy", 5, 0x2310, "emcy"),
+}
+
+
+def _moving_daemon(cfg, feed_mm_s: float = 150.0):
+    from ..daemon.core import Daemon
+    d = Daemon(cfg, realtime=False)
+    tap = RingTap(cfg, [seg.name for seg in d.sim.segments]).start()
+    pose = np.array(cfg.home_pose, dtype=float)
+    pose[0] += 100.0
+    d.move_to(pose, feed_mm_s)
+    t_end = time.monotonic() + 10
+    while time.monotonic() < t_end:
+        t, L = tap.lengths_mm(time.monotonic() - 0.05)
+        if len(L) > 10 and speed(L, cfg.cycle.period_s)[-1] > 0.4 * feed_mm_s:
+            break
+        time.sleep(0.01)
+    return d, tap
+
+
+def _wait_fault(d, timeout_s: float) -> dict | None:
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        st = d.status()
+        if st["loop_state"] in ("fault", "disabled") or not d.alive:
+            return st["fault"]
+        time.sleep(0.005)
+    return None
+
+
+def drive_path(cfg, kind: str, node: int, value, expect: str, pre=None) -> dict:
+    d, tap = _moving_daemon(cfg)
+    try:
+        if pre is not None:
+            pre(d)
+        t0 = time.monotonic()
+        d.inject_drive(kind, node, value)
+        f = _wait_fault(d, cfg.cycle.feedback_timeout_s + 3.0)
+        t_f = d.sh.h[57] * 1e-9 if f else None
+        time.sleep(0.3)
+        out = judge(tap, cfg, t0, t_detect=t_f)
+        out.update(fault=f and f["code"], message=f and f["message"],
+                   spurious=bool(f and f["code"] != expect))
+        return out
+    finally:
+        d.close()
+        tap.stop()
+
+
+def stall_path(cfg, stall_s: float) -> dict:
+    """The drives' process stopped for ``stall_s`` mid-move (SIGSTOP/SIGCONT)."""
+    d, tap = _moving_daemon(cfg)
+    try:
+        t0 = time.monotonic()
+        os.kill(d.sim.proc.pid, signal.SIGSTOP)
+        time.sleep(stall_s)
+        os.kill(d.sim.proc.pid, signal.SIGCONT)
+        f = _wait_fault(d, 2.0)
+        t_f = d.sh.h[57] * 1e-9 if f else None
+        time.sleep(0.3)
+        out = judge(tap, cfg, t0, t_detect=t_f)
+        out.update(stall_s=stall_s, fault=f and f["code"], message=f and f["message"],
+                   spurious=bool(f and stall_s < cfg.cycle.feedback_timeout_s))
+        return out
+    finally:
+        d.close()
+        tap.stop()
+
+
+def stop_during_planning(cfg, lines: int) -> dict:
+    """A moving machine; a program of ``lines`` lines is sent over the socket and, while it is
+    being interpreted/planned, ``stop``: time to the first decelerating frame."""
+    import socket
+    from ..daemon import protocol as P
+    from ..daemon.server import SocketServer
+    text = "G0 X0 Y0 Z20\n" + "".join(f"G1 X{(i % 100) * 0.5 - 25:.1f} Y{(i % 7) - 3} F3000\n" for i in range(lines))
+    d, tap = _moving_daemon(cfg, 15.0)           # ~7 s of motion
+    tmp = tempfile.mkdtemp(prefix="hxbp", dir="/tmp")
+    big = cfg.replace(daemon=dataclasses.replace(cfg.daemon, max_message_bytes=max(cfg.daemon.max_message_bytes,
+                                                                                   2 * len(text))))
+    srv = SocketServer(d, big, os.path.join(tmp, "b.sock")).start()
+    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+    try:
+        s.connect(srv.socket_path)
+        s.sendall(P.encode({"id": 1, "op": "program", "text": text, "name": f"{lines}-lines.ngc"}))
+        t_end = time.monotonic() + 30.0         # received and decoded: the planning child runs
+        while not d._planning and time.monotonic() < t_end:
+            time.sleep(0.005)
+        time.sleep(0.5)
+        tap.drain()
+        t0 = time.monotonic()
+        s.sendall(P.encode({"id": 2, "op": "stop"}))
+        dec = P.Decoder()
+        got = {}
+        s.settimeout(30.0)
+        while len(got) < 2:
+            dec.feed(s.recv(65536))
+            for m in dec.messages():
+                got[m["id"]] = (round(time.monotonic() - t0, 4), m.get("ok"))
+        out = judge(tap, cfg, t0)
+        f = d.status()["fault"]
+        out.update(lines=lines, program_bytes=len(text), stop_reply_s=got[2][0], program_refused=not got[1][1],
+                   fault=f and f["code"], spurious=f is not None)
+        return out
+    finally:
+        s.close()
+        srv.close()
+        d.close()
+        tap.stop()
+
+
+def soak(cfg, seconds: float, seed: int = 1) -> dict:
+    """Moves back and forth for ``seconds`` while the drives' process is stalled 50-300 ms every
+    ~2 s (below the ``feedback_timeout_s`` bound): faults counted (each one spurious)."""
+    from ..daemon.core import Daemon
+    rnd = np.random.default_rng(seed)
+    d = Daemon(cfg, realtime=False)
+    faults, stalls, moves = [], [], 0
+    try:
+        t_end = time.monotonic() + seconds
+        t_stall = time.monotonic() + 2.0
+        sign = 1.0
+        while time.monotonic() < t_end:
+            st = d.status()
+            if st["state"] == "fault":
+                faults.append(st["fault"]["message"])
+                d.reset()
+                continue
+            if st["state"] == "idle":
+                pose = np.array(cfg.home_pose, dtype=float)
+                pose[0] += 80.0 * sign
+                sign = -sign
+                d.move_to(pose, 150.0)
+                moves += 1
+            if time.monotonic() > t_stall:
+                s = float(rnd.uniform(0.05, 0.3))
+                os.kill(d.sim.proc.pid, signal.SIGSTOP)
+                time.sleep(s)
+                os.kill(d.sim.proc.pid, signal.SIGCONT)
+                stalls.append(round(s, 3))
+                t_stall = time.monotonic() + float(rnd.uniform(1.0, 3.0))
+            time.sleep(0.02)
+        fe = d.status()["following_error_max_mm"]
+    finally:
+        d.close()
+    return {"seconds": seconds, "moves": moves, "stalls": len(stalls), "longest_stall_s": max(stalls, default=0.0),
+            "faults": len(faults), "fault_messages": faults[:10], "following_error_max_mm": fe,
+            "spurious": len(faults)}
+
+
+def _paths(args) -> dict:
+    cfgtext = machine_text()
+    tmp = tempfile.mkdtemp(prefix="hxbc", dir="/tmp")
+    p = Path(tmp) / "m.toml"
+    p.write_text(cfgtext)
+    cfg = load_config(str(p))
+    paths = {}
+    for target in ("supervisor", "hot", "group"):
+        for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+            paths[f"{signal.Signals(sig).name}_{target}"] = (process_path, target, sig)
+    for target in ("supervisor", "hot"):
+        for sig in (signal.SIGKILL, signal.SIGSTOP):
+            paths[f"{signal.Signals(sig).name}_{target}"] = (process_path, target, sig)
+    paths["drives_stalled_0.4s"] = (stall_path, cfg, 0.4)
+    paths["drives_stalled_0.3s"] = (stall_path, cfg, 0.3)
+    for name, (kind, node, value, expect) in DRIVE_PATHS.items():
+        paths[name] = (drive_path, cfg, kind, node, value, expect)
+    paths["frame_loss_50pct_then_2mm"] = (drive_path, cfg, "offset", 1, 2.0, "following_error",
+                                          lambda d: (d.inject_drive("drop", 0, 0.5), time.sleep(0.3)))
+    paths["stop_during_planning"] = (stop_during_planning, cfg, args.lines)
+    if args.soak_s > 0:
+        paths["soak"] = (soak, cfg, args.soak_s)
+    return paths
+
+
+def main(args: argparse.Namespace) -> int:
+    only = {x for x in args.only.split(",") if x}
+    res = {}
+    for name, (fn, *a) in _paths(args).items():
+        if only and name not in only:
+            continue
+        t0 = time.time()
+        try:
+            res[name] = fn(*a)
+        except Exception as exc:        # a path that could not run is a finding, not a crash
+            res[name] = {"error": f"{type(exc).__name__}: {exc}"}
+        res[name]["bench_s"] = round(time.time() - t0, 1)
+        print(f"{name}: {json.dumps(res[name])}", file=sys.stderr, flush=True)
+    stops = [r for r in res.values() if "peak_fraction" in r]
+    summary = {
+        "paths": len(res),
+        "detected": sum(1 for r in res.values() if r.get("detected")),
+        "not_detected": [k for k, r in res.items() if r.get("detected") is False],
+        "drives_disabled": sum(1 for r in res.values() if r.get("drives_disabled")),
+        "max_peak_fraction": {k: max((r["peak_fraction"][k] for r in stops), default=None) for k in ("v", "a", "j")},
+        "spurious": [k for k, r in res.items() if r.get("spurious")],
+        "loadavg": os.getloadavg(),
+    }
+    print(json.dumps({"summary": summary, "paths": res}, indent=1))
+    return 0

@@ -1,0 +1,232 @@
+"""What the drives saw: a read-only tap on the daemon's shared-memory frame rings.
+
+Attaches to the frame ring segments (:mod:`hexacnc.daemon.shmbus`; their names are in the daemon's
+log line ``frame rings: ...`` or ``Daemon.sim.segments``) and copies every record both ways as it
+is published, from a thread polling every ``poll_s`` (the 4096-record rings hold ~0.5 s). It
+never writes to the rings. Decoding uses the layout plan (:func:`drivers.layout.plan_layout`):
+
+* master -> drives: per SYNC the target of every drive (RPDO1), controlwords (RPDO2 or in RPDO1),
+  NMT commands, master heartbeats;
+* drives -> master: statuswords (TPDO2), positions (TPDO1), EMCY, heartbeats and boot-ups.
+
+Used by the safety tests and ``hexacnc bench faults`` to judge a stop by the frames, not by
+what the daemon believes.
+"""
+from __future__ import annotations
+
+import struct
+import threading
+import time
+from dataclasses import dataclass, field
+from multiprocessing import shared_memory
+
+import numpy as np
+
+from drivers import framerec
+from drivers.layout import MASTER_NODE_ID, SYNC_COB_ID, plan_layout
+
+_HDR = framerec.HEADER
+REC = framerec.RECORD
+_OFF_DATA = 5 * 64
+_I_W = (8, 24)
+
+
+@dataclass
+class Seen:
+    """Decoded frames, in order of publication (t: monotonic s when the tap copied them)."""
+    targets: list = field(default_factory=list)      #: per bus, per SYNC: (t, [6 targets inc or None])
+    cw: list = field(default_factory=list)           #: (t, strut, controlword)
+    nmt: list = field(default_factory=list)          #: (t, command, node)
+    master_hb: int = 0
+    status: list = field(default_factory=list)       #: (t, strut, statusword)
+    emcy: list = field(default_factory=list)         #: (t, strut, code)
+    bootup: list = field(default_factory=list)       #: (t, strut)
+    positions: int = 0
+    missed: int = 0                                  #: records overwritten before the tap read them
+
+
+class RingTap:
+    """``RingTap(cfg, names).start()`` ... ``.stop()``; ``.seen`` holds the decoded frames."""
+
+    def __init__(self, cfg, names, poll_s: float = 0.005):
+        self.plan = plan = plan_layout(cfg.bus)
+        self.ipm = float(cfg.bus.increments_per_mm)
+        self.off = np.asarray(cfg.strut_offset_mm, dtype=float)
+        self.poll_s = poll_s
+        self.segs = []
+        for name in names:
+            seg = shared_memory.SharedMemory(name=name)
+            try:
+                from multiprocessing import resource_tracker
+                resource_tracker.unregister(seg._name, "shared_memory")  # type: ignore[attr-defined]
+            except Exception:
+                pass
+            self.segs.append(seg)
+        self.n = [int(np.frombuffer(seg.buf, dtype=np.int64, count=2)[1]) for seg in self.segs]
+        self.pos = [[self._w(b, 0), self._w(b, 1)] for b in range(len(self.segs))]
+        self.seen = Seen(targets=[[] for _ in self.segs])
+        self._last = [None] * 6          # the targets of the last RPDOs seen, per strut
+        rx = {}
+        for frame in plan.frames:
+            rx[(frame.bus, frame.cob_id)] = ("rpdo1", frame)
+        for nd in plan.nodes:
+            if nd.rpdo2_cob_id is not None:
+                rx[(nd.bus, nd.rpdo2_cob_id)] = ("cw", nd.index)
+        self._rx_master = rx
+        self._rx_drive = {}
+        for nd in plan.nodes:
+            self._rx_drive[nd.tpdo2_cob_id] = ("status", nd.index)
+            self._rx_drive[nd.tpdo1_cob_id] = ("pos", nd.index)
+            self._rx_drive[0x080 + nd.node_id] = ("emcy", nd.index)
+            self._rx_drive[0x700 + nd.node_id] = ("hb", nd.index)
+        self._stop = threading.Event()
+        self._thread = None
+        self.lock = threading.Lock()
+
+    def _w(self, b: int, side: int) -> int:
+        return int(np.frombuffer(self.segs[b].buf, dtype=np.int64, count=1, offset=8 * _I_W[side])[0])
+
+    def start(self) -> "RingTap":
+        self._thread = threading.Thread(target=self._run, name="ringtap", daemon=True)
+        self._thread.start()
+        return self
+
+    def stop(self) -> Seen:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(2.0)
+        self.drain()
+        for seg in self.segs:
+            try:
+                seg.close()
+            except BufferError:
+                pass
+        self.segs = []
+        return self.seen
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.poll_s):
+            self.drain()
+
+    def drain(self) -> None:
+        with self.lock:
+            now = time.monotonic()
+            for b, seg in enumerate(self.segs):
+                for side in (0, 1):
+                    w = self._w(b, side)
+                    r = self.pos[b][side]
+                    n = self.n[b]
+                    if w - r > n:
+                        self.seen.missed += w - r - n
+                        r = w - n
+                    base = _OFF_DATA + side * n * REC
+                    buf = seg.buf
+                    while r < w:
+                        p = base + (r % n) * REC
+                        arb, flags, length = _HDR.unpack_from(buf, p)
+                        data = bytes(buf[p + _HDR.size:p + _HDR.size + length])
+                        if side == 0:
+                            self._master(now, b, arb, data)
+                        else:
+                            self._drive(now, arb, data)
+                        r += 1
+                    self.pos[b][side] = w
+
+    def _master(self, t: float, b: int, arb: int, data: bytes) -> None:
+        s = self.seen
+        if arb == SYNC_COB_ID:
+            s.targets[b].append((t, [self._last[i] for i in self.plan.bus_nodes[b]]))
+            return
+        if arb == 0x700 + MASTER_NODE_ID:
+            s.master_hb += 1
+            return
+        if arb == 0 and len(data) >= 2:
+            s.nmt.append((t, data[0], data[1]))
+            return
+        hit = self._rx_master.get((b, arb))
+        if hit is None:
+            return
+        kind, x = hit
+        if kind == "cw":
+            s.cw.append((t, x, struct.unpack_from("<H", data)[0]))
+        else:
+            for i, off in x.slots:
+                self._last[i] = struct.unpack_from("<i", data, off)[0]
+                if x.has_controlword:
+                    cw = struct.unpack_from("<H", data, off - 2)[0]
+                    if not s.cw or s.cw[-1][1:] != (i, cw):
+                        s.cw.append((t, i, cw))
+
+    def _drive(self, t: float, arb: int, data: bytes) -> None:
+        hit = self._rx_drive.get(arb)
+        if hit is None:
+            return
+        kind, i = hit
+        s = self.seen
+        if kind == "status" and len(data) >= 2:
+            s.status.append((t, i, struct.unpack_from("<H", data)[0]))
+        elif kind == "pos":
+            s.positions += 1
+        elif kind == "emcy" and len(data) >= 2:
+            s.emcy.append((t, i, struct.unpack_from("<H", data)[0]))
+        elif kind == "hb" and data and data[0] & 0x7F == 0:
+            s.bootup.append((t, i))
+
+    # -- analysis ---------------------------------------------------------------------------
+    def lengths_mm(self, since_t: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+        """(times, (N, 6) commanded strut lengths in mm) of the SYNCs after ``since_t`` (the buses'
+        SYNC series aligned at their ends: every cycle sends one SYNC on every bus)."""
+        with self.lock:
+            per_bus = [[(t, v) for t, v in rows if t >= since_t and None not in v] for rows in self.seen.targets]
+        n = min(len(rows) for rows in per_bus)
+        if n == 0:
+            return np.zeros(0), np.zeros((0, 6))
+        inc = np.zeros((n, 6))
+        for b, rows in enumerate(per_bus):
+            cols = self.plan.bus_nodes[b]
+            inc[:, list(cols)] = np.array([v for _, v in rows[len(rows) - n:]], dtype=float)
+        t = np.array([r[0] for r in per_bus[0][len(per_bus[0]) - n:]])
+        return t, inc / self.ipm + self.off
+
+    def last_controlwords(self) -> list:
+        out = [None] * 6
+        with self.lock:
+            for _, i, cw in self.seen.cw:
+                out[i] = cw
+        return out
+
+    def last_statuswords(self) -> list:
+        out = [None] * 6
+        with self.lock:
+            for _, i, sw in self.seen.status:
+                out[i] = sw
+        return out
+
+
+def motion_peaks(L: np.ndarray, period_s: float, vmax, amax, jmax) -> dict:
+    """Peak |v|, |a|, |j| per strut of a command stream (one row per SYNC) as fractions of the limits.
+
+    Differences over 1, 2 and 8 cycles for v, a and j: the 0.1 um increments would otherwise make
+    the jerk of single-cycle third differences up to 16x the 200,000 mm/s^3 limit by rounding alone."""
+    if len(L) < 26:
+        return {"v": 0.0, "a": 0.0, "j": 0.0}
+    dt = period_s
+    v = np.diff(L, axis=0) / dt
+    h2 = 2
+    a = (L[2 * h2:] - 2 * L[h2:-h2] + L[:-2 * h2]) / (h2 * dt) ** 2
+    h3 = 8
+    j = (L[3 * h3:] - 3 * L[2 * h3:-h3] + 3 * L[h3:-2 * h3] - L[:-3 * h3]) / (h3 * dt) ** 3
+    return {"v": float(np.max(np.abs(v) / np.asarray(vmax))),
+            "a": float(np.max(np.abs(a) / np.asarray(amax))),
+            "j": float(np.max(np.abs(j) / np.asarray(jmax)))}
+
+
+def stop_figures(tap: RingTap, cfg, period_s: float, t_from: float) -> dict:
+    """Stop distance per strut (mm, from ``t_from`` to the last SYNC) and peak v/a/j fractions."""
+    t, L = tap.lengths_mm(t_from)
+    if len(L) == 0:
+        return {"syncs": 0}
+    pk = motion_peaks(L, period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3)
+    return {"syncs": int(len(L)), "stop_distance_mm": [round(float(x), 4) for x in np.abs(L[-1] - L[0])],
+            "peak_fraction": {k: round(v, 3) for k, v in pk.items()},
+            "final_speed_mm_s": round(float(np.max(np.abs(L[-1] - L[-2]))) / period_s, 3) if len(L) > 1 else 0.0}

@@ -1,0 +1,224 @@
+"""Setpoint feeding of the supervisor: the feeder thread, rewinds for commands, the job queue.
+
+:class:`FeedMixin` is part of :class:`hexacnc.daemon.core.Daemon` (it uses the daemon's lock,
+queue, shared memory and status): the feeder thread keeps ``FEED_AHEAD_S`` of rows in the ring in
+chunks with rewind marks; :meth:`FeedMixin._command` applies pause/resume/stop/override
+``REWIND_LEAD_S`` ahead of the hot loop instead of after the queue; on a fault the running job is
+aborted and queued ones are dropped, each with the reason (``Daemon.dropped``).
+"""
+from __future__ import annotations
+
+import logging
+import os
+import time
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import shm as S
+
+log = logging.getLogger("hexacnc.daemon")
+
+#: rows kept queued in the ring while streaming (seconds of motion)
+FEED_AHEAD_S = 0.3
+#: a pause, resume, stop or override takes back the queued rows beyond this lead (seconds) and
+#: re-plans them from the source's state there: commands act within it plus one chunk (25 + 16 ms;
+#: 40 ms gave 41-43 ms reactions, over issue 15's 40 ms), not after FEED_AHEAD_S
+REWIND_LEAD_S = 0.025
+#: rows per feeder chunk: a source snapshot is kept at every chunk start (the rewind points)
+FEED_CHUNK_ROWS = 32
+#: marks tried before a command falls back to acting at the end of the queue
+REWIND_ATTEMPTS = 3
+#: feeder thread period
+FEED_PERIOD_S = 0.002
+
+@dataclass
+class Job:
+    """One queued motion: a program or a point-to-point move."""
+    name: str
+    source: object                    #: ArraySource-like: next_rows, pause, resume, stop, progress
+    start_rad: np.ndarray             #: platform pose the first row starts from (mm, rad)
+    end_rad: np.ndarray               #: platform pose of the END row
+    blocks: int = 0
+    duration_s: float = 0.0
+    end_index: int = -1               #: ring index after the END row, once pushed
+    started: bool = False
+    marks: deque = field(default_factory=deque)   #: (ring index, source snapshot before that row)
+    extra: dict = field(default_factory=dict)
+
+
+
+class FeedMixin:
+    """The feeding half of :class:`~hexacnc.daemon.core.Daemon`."""
+
+    def _feed_loop(self) -> None:
+        sh = self.sh
+        if self.realtime:   # this thread only: keep the ring filled on a loaded machine (when permitted)
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
+                self.info["feeder_sched_fifo"] = True
+            except (OSError, AttributeError):
+                self.info["feeder_sched_fifo"] = False
+        ahead = self._ahead_rows
+        while not self.closed and sh is not None:
+            try:
+                sh.h[S.H_SUP_BEAT_NS] = time.monotonic_ns()
+                self._feed_once(sh, ahead)
+                th = self.thermal
+                if th is not None:
+                    th.sample_travel()
+            except Exception:       # never let the feeder die silently: the loop would fault
+                log.exception("feeder error")
+            time.sleep(FEED_PERIOD_S)
+
+    def _feed_once(self, sh: S.Shared, ahead: int) -> None:
+        with self.lock:
+            hstate = sh.h[S.H_STATE]
+            if hstate == S.ST_FAULT or hstate == S.ST_DISABLED:
+                if self.current is not None or self.queue:
+                    self._abort_jobs("fault" if hstate == S.ST_FAULT else "drives disabled")
+                self._log_fault_once()
+                return
+            job = self.current
+            if job is None:
+                if not self.queue or hstate not in (S.ST_IDLE,):
+                    return
+                job = self.queue[0]
+                pose = self._pose_cmd_rad()
+                if float(np.max(np.abs(pose - job.start_rad))) > 1e-6:
+                    # the machine is not where the job was planned from (e.g. after a stop): this
+                    # job and those queued behind it are dropped, each with the reason
+                    self._abort_jobs("the machine moved since the job was planned; send it again")
+                    return
+                self.queue.popleft()
+                self.current = job
+                job.started = True
+                log.info("start %s (%d blocks, %.2f s)", job.name, job.blocks, job.duration_s)
+                self.cv.notify_all()
+            src = job.source
+            if self.feed_hold:
+                return
+            if job.end_index < 0:
+                self._push(job, sh, ahead - sh.ring_fill())
+            elif sh.h[S.H_END_SEEN] >= job.end_index and hstate == S.ST_IDLE:
+                line, pct, left = src.progress()
+                self.last_program = {"name": job.name, "line": line, "percent": 100.0 if not src.stopping
+                                     else pct, "time_left_s": 0.0, "stopped": bool(src.stopping)}
+                self.current = None
+                if self.stop_requested:
+                    self.queue.clear()
+                    self.stop_requested = False
+                log.info("%s %s", "stopped" if src.stopping else "finished", job.name)
+                self.cv.notify_all()
+
+    def _push(self, job: Job, sh: S.Shared, need: int) -> None:
+        """Queue up to ``need`` rows of ``job`` in chunks, keeping a rewind mark at each chunk."""
+        src = job.source
+        marks = job.marks
+        can_mark = hasattr(src, "snapshot")
+        r = sh.h[S.H_RING_R]
+        while marks and marks[0][0] < r:
+            marks.popleft()
+        while need > 0 and not src.finished:
+            if can_mark:
+                marks.append((sh.h[S.H_RING_W], src.snapshot()))
+            rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
+            if len(rows):
+                sh.push_rows(rows)
+            need -= max(1, len(rows))
+        if src.finished and job.end_index < 0:
+            job.end_index = sh.h[S.H_RING_W]
+
+    def _command(self, action) -> bool:
+        """Apply ``action`` (the source's pause, resume, stop or override) to the rows the drives
+        get ``REWIND_LEAD_S`` from now, not after the whole queue (caller holds the lock).
+
+        The source goes back to its snapshot at the first mark past the lead, the command is
+        applied there and the replacement rows (the full queue length, ~2-3 ms of work) are
+        generated first; only then is the ring's write index lowered to the mark and the new rows
+        written, so the queue stays full and the hot loop never waits for the generation.
+        Continuity holds because the source continues from exactly the state it was in when it
+        produced that row the first time.  If the hot loop got past the mark meanwhile (a
+        descheduled supervisor), the source returns to where it was and the next mark is tried;
+        when there is nothing to take back the command acts on the end of the queue.  Returns
+        whether rows were taken back.
+        """
+        job, sh = self.current, self.sh
+        src = job.source if job is not None else None
+        if src is None or sh is None or self.feed_hold or not job.marks or not hasattr(src, "snapshot"):
+            action()
+            return False
+        end_snap = src.snapshot()
+        for _attempt in range(REWIND_ATTEMPTS):
+            k_min = sh.h[S.H_RING_R] + self._rewind_rows
+            w = sh.h[S.H_RING_W]
+            for i, (k, snap) in enumerate(job.marks):
+                if k >= k_min:
+                    break
+            else:
+                break
+            if k >= w:
+                break
+            src.restore(snap)
+            action()
+            marks, chunks, idx, need = [], [], k, self._ahead_rows
+            while need > 0 and not src.finished:
+                marks.append((idx, src.snapshot()))
+                rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
+                chunks.append(rows)
+                idx += len(rows)
+                need -= max(1, len(rows))
+            if sh.retract(k):
+                for rows in chunks:
+                    if len(rows):
+                        sh.push_rows(rows)
+                while len(job.marks) > i:
+                    job.marks.pop()
+                job.marks.extend(marks)
+                job.end_index = sh.h[S.H_RING_W] if src.finished else -1
+                self.rewinds[0] += 1
+                return True
+            src.restore(end_snap)           # the hot loop got there first: try a later mark
+        action()
+        self.rewinds[1] += 1
+        return False
+
+    def _abort_jobs(self, why: str) -> None:
+        for job in self.queue:          # queued behind the running one: dropped, never silently
+            self.dropped.append({"name": job.name, "reason": why})
+            log.warning("%s dropped from the queue: %s", job.name, why)
+        del self.dropped[:-32]
+        if self.current is not None:
+            line, pct, left = self.current.source.progress()
+            self.last_program = {"name": self.current.name, "line": line, "percent": pct,
+                                 "time_left_s": left, "aborted": why}
+            log.warning("%s aborted at line %d: %s", self.current.name, line, why)
+        self.current = None
+        self.queue.clear()
+        self.stop_requested = False
+        self.cv.notify_all()        # queued rows left in the ring are dropped by the hot loop on reset
+
+    def _log_fault_once(self) -> None:
+        h = self.sh.h
+        n = h[S.H_CYCLES] if h[S.H_FAULT] else 0
+        if h[S.H_FAULT] and self._last_fault_logged == 0:
+            self._last_fault_logged = n or 1
+            f = self._fault_dict(self.sh.read_status())
+            log.error("FAULT %s: %s", f["code"], f["message"])
+        elif not h[S.H_FAULT]:
+            self._last_fault_logged = 0
+
+    # ------------------------------------------------------------------ helpers
+    def _pose_cmd_rad(self) -> np.ndarray:
+        h, s = self.sh.read_status()
+        return np.array(s[S.S_POSE_CMD:S.S_POSE_CMD + 6])
+
+    def _planned_start(self) -> np.ndarray:
+        """Where the next queued job will start: the end of the last queued one, or now."""
+        if self.queue:
+            return self.queue[-1].end_rad.copy()
+        if self.current is not None:
+            return self.current.end_rad.copy()
+        return self._pose_cmd_rad()
+

@@ -1,0 +1,193 @@
+"""Motion commands of the supervisor: queue moves and programs, pause, resume, stop, reset.
+
+:class:`MotionMixin` is part of :class:`hexacnc.daemon.core.Daemon`. Programs are interpreted and
+planned in a bounded child process (:mod:`.planproc`) outside the daemon's lock; ``stop`` kills a
+plan in progress and drops queued jobs with the reason.
+"""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from ..errors import HexacncError
+from . import shm as S
+from .feed import ArraySource, point_to_point
+from .feeding import Job
+
+
+class MotionMixin:
+    """The motion-command half of :class:`~hexacnc.daemon.core.Daemon`."""
+
+    def _require_motion_ok(self) -> None:
+        if self.sh is None or not self.alive:
+            raise HexacncError("the daemon is not running")
+        st = self.sh.h[S.H_STATE]
+        if st == S.ST_FAULT:
+            raise HexacncError("the daemon is in fault: reset first ("
+                               + self._fault_dict(self.sh.read_status())["message"] + ")")
+        if st == S.ST_DISABLED:
+            raise HexacncError("the drives are disabled: reset to enable them")
+        if st == S.ST_BOOT and self.awaiting_enable:
+            raise HexacncError("the drives are disabled, waiting for enable ([daemon] enable_at_start is "
+                               "false): a controller sends 'enable' (or 'reset') first")
+        if st == S.ST_STOPPING or self.stop_requested:
+            raise HexacncError("a stop is in progress; wait for idle")
+
+    def _queue(self, job: Job) -> None:
+        with self.lock:
+            self._require_motion_ok()
+            self.queue.append(job)
+            self.cv.notify_all()
+
+    def move_to(self, pose_deg, feed_mm_s: float, name: str = "move_to") -> dict:
+        """Queue a straight jerk-limited move of the **platform** pose to ``pose_deg`` (mm/deg)."""
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+        # planning and checks outside the lock: the feeder thread must never wait for them
+        rows = point_to_point(self.cfg, self.hx, start, pose_deg, float(feed_mm_s), self.period_s)
+        return self._queue_planned(rows, start, name)
+
+    def queue_rows(self, rows, name: str = "rows", check: bool = True) -> dict:
+        """Queue precomputed rows (N, 8) that start at the current pose (tests, tools)."""
+        from .feed import check_rows
+        rows = np.asarray(rows, dtype=float)
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+        if check:
+            check_rows(self.cfg, self.hx, np.vstack([np.r_[start, 0, 0][None, :], rows]), self.period_s)
+        return self._queue_planned(rows, start, name)
+
+    def _queue_planned(self, rows: np.ndarray, start: np.ndarray, name: str) -> dict:
+        src = ArraySource(self.cfg, self.hx, rows, self.period_s, name)
+        job = Job(name=name, source=src, start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
+                  duration_s=(len(rows) - 1) * self.period_s)
+        with self.lock:
+            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                raise HexacncError("another motion was queued meanwhile; plan again")
+            self._queue(job)
+        return {"blocks": 1, "duration_s": job.duration_s}
+
+    def load_program(self, text: str, name: str) -> dict:
+        """Parse, plan and check the whole program, then queue it. Raises GcodeError/PlanError."""
+        from .planproc import PlanJob
+        from .program import ProgramSource
+        with self.lock:
+            self._require_motion_ok()
+            start = self._planned_start()
+            stops = self._stops
+        # interpreted and planned in a child with bounded memory and time (started outside the
+        # lock: stop/pause never wait for it); a stop kills it
+        pj = PlanJob(self.cfg, text, name, start, self.period_s)
+        with self.lock:
+            self._planning.add(pj)
+            if self._stops != stops:        # a stop came while the child was being started
+                pj.cancel()
+        try:
+            plan, blocks, duration_s, end_rad, _summary = pj.result()
+        finally:
+            with self.lock:
+                self._planning.discard(pj)
+        job = Job(name=name, source=ProgramSource(plan, self.period_s, name), start_rad=start, end_rad=end_rad,
+                  blocks=blocks, duration_s=duration_s)
+        with self.lock:
+            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                raise HexacncError("another motion was queued while this program was planned; send it again")
+            self._queue(job)
+        return {"blocks": blocks, "duration_s": duration_s}
+
+    def _cancel_planning(self) -> None:
+        for pj in list(self._planning):
+            pj.cancel()
+
+    def pause(self) -> dict:
+        with self.lock:
+            if self.current is None:
+                raise HexacncError("nothing to pause: no program is running")
+            self._command(self.current.source.pause)
+        return self.status()
+
+    def resume(self) -> dict:
+        with self.lock:
+            if self.current is None or not getattr(self.current.source, "paused", False):
+                raise HexacncError("nothing to resume: not paused")
+            self._require_motion_ok()
+            self._command(self.current.source.resume)
+        return self.status()
+
+    def set_feed_override(self, factor: float) -> None:
+        with self.lock:
+            if self.current is not None:
+                src = self.current.source
+                self._command(lambda: src.set_feed_override(factor))
+
+    def stop(self) -> dict:
+        """Controlled stop: decelerate along the path (jerk-limited), drop the queue, stay enabled."""
+        with self.lock:
+            if self.sh is None:
+                raise HexacncError("the daemon is not running")
+            self._stops += 1
+            self._cancel_planning()         # a program still being interpreted or planned: dropped
+            for job in self.queue:
+                self.dropped.append({"name": job.name, "reason": "stop requested"})
+            del self.dropped[:-32]
+            self.queue.clear()
+            if self.current is not None:
+                self.stop_requested = True
+                self._command(self.current.source.stop)
+            elif self.sh.h[S.H_STATE] == S.ST_RUNNING:
+                self.sh.command(S.CMD_STOP)
+            self.cv.notify_all()
+        return self.status()
+
+    def reset(self, timeout_s: float = 5.0) -> dict:
+        """Clear a fault: fault reset and re-enable by controlword; returns the status."""
+        with self.lock:
+            if self.sh is None or not self.alive:
+                raise HexacncError("the daemon is not running")
+            st = self.sh.h[S.H_STATE]
+            if st not in (S.ST_FAULT, S.ST_DISABLED) and not (st == S.ST_BOOT and self.awaiting_enable):
+                return self.status()
+            self.awaiting_enable = False
+            self._abort_jobs("reset")
+            self.last_program = None
+            self.sh.h[S.H_READY] = 0
+            self.sh.command(S.CMD_RESET)
+        t_end = time.monotonic() + timeout_s
+        while time.monotonic() < t_end:
+            st = self.sh.h[S.H_STATE]
+            if st == S.ST_IDLE and self.sh.h[S.H_READY] == 1:
+                break
+            time.sleep(0.01)
+        st = self.status()
+        if st["state"] == "fault":
+            raise HexacncError(f"reset failed: {st['fault']['message']}")
+        return st
+
+    def enable(self, timeout_s: float = 5.0) -> dict:
+        """Enable the drives (op ``enable``): the :meth:`reset` path; returns the status."""
+        return self.reset(timeout_s)
+
+    def inject_fault(self, code: int = 0) -> None:
+        """Tests: latch an internal fault (controlled stop follows)."""
+        from .faults import F_TEST
+        self.sh.command(S.CMD_FAULT_TEST, code or F_TEST)
+
+    def stall_loop_us(self, us: int) -> None:
+        """Tests: make the hot loop sleep once for ``us`` microseconds (deadline burst)."""
+        from .loop import CMD_STALL
+        self.sh.command(CMD_STALL, int(us))
+
+    def crash_loop(self) -> None:
+        """Tests: make the hot loop raise in its cycle (a crashing hot process)."""
+        from .loop import CMD_CRASH
+        self.sh.command(CMD_CRASH)
+
+    def inject_drive(self, kind: str, node: int, value=0) -> None:
+        """Tests and ``hexacnc bench faults``: fault injection into the simulated drives process
+        (:func:`hexacnc.daemon.simhost.inject`)."""
+        if not hasattr(self.sim, "inject"):
+            raise HexacncError("fault injection needs the simulated drives on shm or pipe buses")
+        self.sim.inject(kind, node, value)
