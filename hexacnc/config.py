@@ -330,15 +330,14 @@ class BusConfig:
     increments_per_mm: float = 10000.0
     heartbeat_ms: int = 100
     heartbeat_timeout_ms: int = 350
-    #: drives stop on their own (quick stop) when the master is silent this long (configured at boot:
-    #: heartbeat consumer 0x1016, RPDO/SYNC time-outs); the hot loop's master heartbeat comes 4x as often
-    comm_loss_timeout_s: float = 0.02
     simulate: bool = True                      #: start the simulated drives process
     simulate_profile: str = "permissive"       #: permissive | strict (simulated drives, see drivers/README.md)
     node_eds: tuple = ()                       #: per node: EDS/DCF path ("" = bundled default), from [bus] nodes
     node_identity: tuple = ()                  #: per node: (vendor, product, revision), -1 = from the EDS
     boot_timeout_s: float = 15.0               #: boot-up messages after NMT reset
-    comm_loss_timeout_s: float = 0.02          #: drives stop themselves when the master is silent this long
+    #: drives stop on their own (quick stop) when the master is silent this long (configured at boot:
+    #: heartbeat consumer 0x1016, RPDO/SYNC time-outs); the hot loop's master heartbeat comes 4x as often
+    comm_loss_timeout_s: float = 0.02
     feed_mm_per_rev: float = 0.0               #: strut travel per driving-shaft revolution (0: units unchecked)
     write_factor_group: bool = False           #: write 0x6092 feed constant from increments_per_mm x feed_mm_per_rev
 
@@ -718,7 +717,6 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
         simulate=b.getbool("simulate", bd.simulate),
         simulate_profile=b.getchoice("simulate_profile", ("permissive", "strict"), bd.simulate_profile),
         boot_timeout_s=b.getfloat("boot_timeout_s", bd.boot_timeout_s, above=0.0, maxval=600.0),
-        comm_loss_timeout_s=b.getfloat("comm_loss_timeout_s", bd.comm_loss_timeout_s, minval=0.001, maxval=10.0),
         feed_mm_per_rev=b.getfloat("feed_mm_per_rev", bd.feed_mm_per_rev, minval=0.0, maxval=1e4),
         write_factor_group=b.getbool("write_factor_group", bd.write_factor_group),
     )
