@@ -173,10 +173,12 @@ def _cause_entries(cfg, fit_meas, extended, selection: Selection, sig, known, ba
     for c in selection.chosen:
         b = base_cause(c)
         params, std, definition = _cause_params(cfg, extended, c)
-        rnd = table[b]["rounds"][table[b]["selected_in_round"] - 1]
+        rnd = table[b].get("selected_entry") or {"cv_gain": None, "delta_bic": None}
         if c != b and "per_strut" in rnd:
             rnd = rnd["per_strut"]
         wo = selection.without[c]
+        if rnd.get("cv_gain") is None:   # joined through a swap: its gain over the model without it
+            rnd = {"cv_gain": wo.cv_rms / extended.cv_rms, "delta_bic": extended.bic - wo.bic}
         swaps = selection.swaps.get(c, [])
         close_swaps = [a["name"] for a in swaps if a["delta_bic"] < opts.min_swap_delta_bic]
         sig_pairs = [p["b"] if p["a"] == c else p["a"] for p in sig["inseparable_pairs"]

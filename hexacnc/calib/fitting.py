@@ -31,7 +31,7 @@ class Options:
     folds: int = 5
     min_cv_gain: float = 0.03            #: relative CV RMS reduction a cause must bring
     min_delta_bic: float = 10.0
-    max_causes: int = 3
+    max_causes: int = 4
     rereference_rows: int | None = None  #: None: auto (only for holdout sessions not seen in the fit)
     rereference: str = "offsets"         #: offsets | offsets+frame
     prior_joint_mm: float = 5.0
@@ -49,6 +49,7 @@ class Model:
     cv_rms: float = math.nan             #: whitened CV residual RMS
     bic: float = math.nan
     nl_degree: int = 3                   #: strut_nonlinearity degree used by this model
+    nl_linear: bool = True               #: strut_nonlinearity includes its gain (P1) term
 
 
 def noise_defaults(cfg, noise_mm, noise_deg) -> tuple[float, float, bool]:
@@ -126,7 +127,7 @@ NL_DEGREES = (3, 5, 7)
 def set_nl(ctx: Context, model: "Model") -> None:
     """Context options of strut_nonlinearity for the layouts built from now on."""
     ctx.nl_degree = getattr(model, "nl_degree", ctx.nl_degree)
-    ctx.nl_linear = "strut_scale" not in model.causes
+    ctx.nl_linear = "strut_scale" not in model.causes and getattr(model, "nl_linear", True)
 
 
 def fit_candidate(cfg, ctx: Context, chosen: list[str], c: str, frame0, opts: "Options", warm: FitResult,

@@ -44,20 +44,24 @@ class Selector:
         self.cfg, self.meas, self.ctx, self.frame0, self.opts, self.known = cfg, meas, ctx, frame0, opts, known
         self.cache: dict = {}
 
-    def fit_set(self, causes: list[str], warm: Model | None, degree: int = 3, cv: bool = True) -> Model:
-        """Geometry + ``causes`` (strut_nonlinearity of ``degree``; its gain term unless strut_scale is in)."""
-        key = (tuple(causes), degree if "strut_nonlinearity" in causes else 0)
+    def fit_set(self, causes: list[str], warm: Model | None, degree: int = 3, cv: bool = True,
+                linear: bool = True) -> Model:
+        """Geometry + ``causes`` (strut_nonlinearity of ``degree``; with its gain term when ``linear`` and
+        strut_scale is not in)."""
+        nl = "strut_nonlinearity" in causes
+        linear = bool(linear) and "strut_scale" not in causes
+        key = (tuple(causes), degree if nl else 0, linear if nl else True)
         m = self.cache.get(key)
         if m is None:
             keep = self.ctx.nl_degree, self.ctx.nl_linear
             try:
-                self.ctx.nl_degree, self.ctx.nl_linear = degree, "strut_scale" not in causes
+                self.ctx.nl_degree, self.ctx.nl_linear = degree, linear
                 r = fit_model(self.cfg, self.ctx, list(causes), self.frame0, self.opts,
                               warm=warm.fit if warm is not None else None)
             finally:
                 self.ctx.nl_degree, self.ctx.nl_linear = keep
             r.noise_known = self.known
-            m = Model(list(causes), r, bic=bic(r, self.known), nl_degree=degree)
+            m = Model(list(causes), r, bic=bic(r, self.known), nl_degree=degree, nl_linear=linear)
             self.cache[key] = m
         if cv and m.cv_rms != m.cv_rms:   # NaN: not scored yet
             m.cv_rms = cv_score(self.cfg, self.meas, self.ctx, m.fit, m.causes, self.frame0, self.opts)
@@ -66,10 +70,19 @@ class Selector:
     def candidate(self, chosen: list[str], c: str, current: Model) -> Model:
         """chosen + [c]; strut_nonlinearity picks its degree by BIC."""
         if c != "strut_nonlinearity":
-            return self.fit_set(chosen + [c], current, current.nl_degree)
+            return self.fit_set(chosen + [c], current, current.nl_degree, linear=current.nl_linear)
+        # the degree: held-out (CV) evidence first, then BIC among the degrees close to the best CV
+        # (a high degree can win the BIC on the fit data and still extrapolate badly between blocks)
         fits = [self.fit_set(chosen + [c], current, d, cv=False) for d in NL_DEGREES]
-        best = min(fits, key=lambda m: m.bic)
-        return self.fit_set(best.causes, current, best.nl_degree)
+        # cross-validate the lowest degree and the higher ones whose BIC beats it (cost: CV is 5 fits)
+        fits = [m for k, m in enumerate(fits) if k == 0 or m.bic < fits[0].bic - self.opts.min_delta_bic]
+        fits = [self.fit_set(m.causes, current, m.nl_degree) for m in fits]
+        best_cv = min(m.cv_rms for m in fits)
+        return min((m for m in fits if m.cv_rms <= best_cv * (1.0 + self.opts.min_cv_gain)), key=lambda m: m.bic)
+
+    def refit(self, causes: list[str], like: Model, cv: bool = True) -> Model:
+        """``causes`` with ``like``'s strut_nonlinearity options."""
+        return self.fit_set(causes, like, like.nl_degree, cv=cv, linear=like.nl_linear)
 
     def passes(self, new: Model, old: Model) -> bool:
         return (old.cv_rms / new.cv_rms >= 1.0 + self.opts.min_cv_gain
@@ -84,6 +97,14 @@ def _entry(m: Model, current: Model, c: str) -> dict:
     return e
 
 
+#: (smaller, larger): the smaller model is a part of the larger one (a gain error is the P1 term of the map)
+NESTED = (("strut_scale", "strut_nonlinearity"),)
+
+
+def _nested(a: str, b: str) -> bool:
+    return (a, b) in NESTED or (b, a) in NESTED
+
+
 def forward(sel: Selector, baseline: Model, cands: list[str], table: dict, sig: dict, chi2_limit: float,
             variants: dict) -> tuple[Model, list[str]]:
     opts = sel.opts
@@ -91,10 +112,9 @@ def forward(sel: Selector, baseline: Model, cands: list[str], table: dict, sig: 
     while len(chosen) < opts.max_causes:
         if sel.known and current.fit.chi2_red <= chi2_limit:
             break
-        have = {base_cause(x) for x in chosen}
-        best = None
+        passing = []
         for c in cands:
-            if c in have:
+            if c in {base_cause(x) for x in chosen}:
                 continue
             if c == "strut_scale" and "strut_nonlinearity" in chosen:
                 table[c]["verdict"] = "nested in strut_nonlinearity (a gain error is the P1 term of its map)"
@@ -102,27 +122,45 @@ def forward(sel: Selector, baseline: Model, cands: list[str], table: dict, sig: 
             if (sig["separable_fraction"].get(c) or 0.0) < opts.min_separable_fraction:
                 table[c]["verdict"] = "absorbed by geometry: cannot be told apart from a geometric error"
                 continue
-            m = sel.candidate(chosen, c, current)
-            entry = _entry(m, current, c)
-            table[c].setdefault("rounds", []).append(entry)
-            key, mm = c, m
-            v = VARIANTS.get(c) if opts.variants else None
-            if v is not None:
-                mv = sel.fit_set(chosen + [v], current, current.nl_degree)
-                ev = _entry(mv, current, v)
-                ev["form"] = "per_strut"
-                entry["per_strut"] = ev
-                if (sel.passes(mv, m) or not sel.passes(m, current)) and sel.passes(mv, current):
-                    key, mm = v, mv
-                variants[c] = variant_evidence(m, mv, key == v)
-            if sel.passes(mm, current) and (best is None or mm.bic < best[1].bic):
-                best = (key, mm)
-        if best is None:
+            passing += _try_candidate(sel, chosen, c, current, table, variants)
+        if not passing:
             break
-        chosen.append(best[0])
-        table[base_cause(best[0])]["selected_in_round"] = len(chosen)
-        current = best[1]
+        # the held-out (CV) evidence first: among the candidates close to the best CV residual, the BIC decides
+        # (so a nested larger model wins only when the smaller one does not suffice)
+        best_cv = min(m.cv_rms for _, m, _ in passing)
+        near = [p for p in passing if p[1].cv_rms <= best_cv * (1.0 + opts.min_cv_gain)]
+        key, current, entry = min(near, key=lambda p: p[1].bic)
+        chosen = chosen + [key]
+        b = base_cause(key)
+        table[b]["selected_in_round"] = len(chosen)
+        table[b]["selected_entry"] = entry
+        if key == "strut_nonlinearity" and current.nl_linear and "strut_scale" in cands:
+            # the map's gain part is strut_scale: the same model, written so that the re-test checks it apart
+            chosen = chosen[:-1] + ["strut_scale", "strut_nonlinearity"]
+            current = sel.fit_set(chosen, current, current.nl_degree, linear=False)
+            table["strut_scale"]["selected_in_round"] = len(chosen) - 1
+            table["strut_scale"]["selected_entry"] = dict(entry, note="the gain (P1) part of strut_nonlinearity's "
+                                                                     "map, re-tested on its own")
     return current, chosen
+
+
+def _try_candidate(sel: Selector, chosen: list[str], c: str, current: Model, table: dict,
+                   variants: dict) -> list[tuple[str, Model, dict]]:
+    """Fit chosen + c (and its per-strut form); the passing form, if any."""
+    m = sel.candidate(chosen, c, current)
+    entry = _entry(m, current, c)
+    table[c].setdefault("rounds", []).append(entry)
+    key, mm, ent = c, m, entry
+    v = VARIANTS.get(c) if sel.opts.variants else None
+    if v is not None:
+        mv = sel.refit(chosen + [v], current)
+        ev = _entry(mv, current, v)
+        ev["form"] = "per_strut"
+        entry["per_strut"] = ev
+        if (sel.passes(mv, m) or not sel.passes(m, current)) and sel.passes(mv, current):
+            key, mm, ent = v, mv, ev
+        variants[c] = variant_evidence(m, mv, key == v)
+    return [(key, mm, ent)] if sel.passes(mm, current) else []
 
 
 def variant_evidence(common: Model, per: Model, chosen_per: bool) -> dict:
@@ -141,7 +179,7 @@ def retest(sel: Selector, current: Model, chosen: list[str], baseline: Model, dr
         without = {}
         for c in chosen:
             rest = [x for x in chosen if x != c]
-            without[c] = sel.fit_set(rest, current, current.nl_degree) if rest else baseline
+            without[c] = sel.refit(rest, current) if rest else baseline
         if len(chosen) < 2 or not sel.opts.retest:
             break
         weakest = min(chosen, key=lambda c: without[c].cv_rms / current.cv_rms)
@@ -160,7 +198,7 @@ def retest(sel: Selector, current: Model, chosen: list[str], baseline: Model, dr
                 continue
             other = VARIANTS[b] if c == b else b
             alt = chosen[:i] + [other] + chosen[i + 1:]
-            m_alt = sel.fit_set(alt, current, current.nl_degree)
+            m_alt = sel.refit(alt, current)
             common, per = (current, m_alt) if c == b else (m_alt, current)
             use_per = sel.passes(per, common)
             variants[b] = variant_evidence(common, per, use_per)
@@ -172,23 +210,35 @@ def retest(sel: Selector, current: Model, chosen: list[str], baseline: Model, dr
 
 
 def swaps(sel: Selector, current: Model, chosen: list[str], cands: list[str]) -> dict:
-    """Per chosen cause: every other candidate that explains the data about as well in its place."""
+    """Per chosen cause: every other candidate in its place, with the BIC change (negative: better)."""
     out = {}
     have = {base_cause(x) for x in chosen}
     for i, c in enumerate(chosen):
         alts = []
         for d in cands:
-            if d in have or d == base_cause(c):
+            if d in have or d == base_cause(c) or _nested(d, base_cause(c)):
                 continue
             trial = chosen[:i] + [d] + chosen[i + 1:]
             if d == "strut_scale" and "strut_nonlinearity" in trial:
                 continue
-            m = sel.fit_set(trial, current, current.nl_degree, cv=False)
-            alts.append({"name": d, "delta_bic": m.bic - current.bic,
+            m = sel.refit(trial, current, cv=False)
+            alts.append({"name": d, "delta_bic": m.bic - current.bic, "causes": trial,
                          "chi2_red": m.fit.chi2_red if sel.known else None})
         alts.sort(key=lambda a: a["delta_bic"])
         out[c] = alts
     return out
+
+
+def _better_swap(sel: Selector, current: Model, sw: dict) -> Model | None:
+    """A swap that beats the current model by both criteria (the forward search took a stand-in)."""
+    for c, alts in sw.items():
+        for a in alts:
+            if a["delta_bic"] > -sel.opts.min_delta_bic:
+                break
+            m = sel.refit(a["causes"], current)
+            if m.cv_rms <= current.cv_rms:
+                return m
+    return None
 
 
 def select(cfg, meas: Measurements, ctx: Context, frame0, opts: Options, known: bool, baseline: Model,
@@ -200,6 +250,14 @@ def select(cfg, meas: Measurements, ctx: Context, frame0, opts: Options, known: 
     dropped: list = []
     current, chosen, without = retest(sel, current, chosen, baseline, dropped, variants)
     sw = swaps(sel, current, chosen, cands)
+    for _ in range(3):
+        better = _better_swap(sel, current, sw)
+        if better is None:
+            break
+        current, chosen, without = retest(sel, better, list(better.causes), baseline, dropped, variants)
+        sw = swaps(sel, current, chosen, cands)
+    for c in chosen:
+        table[base_cause(c)]["selected_in_round"] = table[base_cause(c)].get("selected_in_round") or -1
     for b in list(variants):
         if b not in {base_cause(x) for x in chosen}:
             variants.pop(b)
