@@ -134,6 +134,10 @@ def test_record_from_the_daemon_socket(cfg, tmp_path):
         assert np.all(np.diff(r["t_s"]) > 0)
         assert np.all(r["struts_cmd_mm"] >= 1000.0)
         assert np.all(np.isnan(r["torque_permille"]))   # the daemon's status carries no torques (yet)
+        js = tmp_path / "h.json"
+        assert cli(["health", "--live", "--socket", os.path.join(d, "s.sock"), "--duration", "0.5", "--rate", "20",
+                    "--json", str(js)]) == 0
+        assert json.loads(js.read_text())["status"] == "insufficient_data"   # no torques, temperatures, motion
     finally:
         srv.close()
         daemon.close()

@@ -213,11 +213,11 @@ def _cause_entries(cfg, fit_meas, extended, selection: Selection, sig, known, ba
                 entry["variant"]["holdout_rms_chosen_form"] = hold["e"][e_key]
         if alike:
             group = [b] + alike
-            inseparable.append({"causes": group, "fitted_as": b, "evidence": {
+            inseparable.append({"causes": group, "fitted_as": c, "evidence": {
                 "swap_delta_bic": {a: evidence["swap_delta_bic"].get(a) for a in alike},
                 "signature": [p for p in sig["inseparable_pairs"] if c in (p["a"], p["b"])]},
                 "note": f"the data explain {b} and {' / '.join(alike)} equally well: not named; the model keeps "
-                        f"{b} as a stand-in for the held-out prediction",
+                        f"{c} as a stand-in for the held-out prediction",
                 "what_to_measure": what_to_measure(group, measured, fit_meas)})
             entry["inseparable"] = True
         out.append(entry)

@@ -121,7 +121,8 @@ def plot_map(path: str | Path, m: dict) -> None:
     plt = _plt()
     rows = np.asarray(m["rows"])
     zs = np.unique(np.round(rows[:, 2], 6))
-    fig, axes = plt.subplots(1, len(zs), figsize=(4.2 * len(zs), 3.8), squeeze=False)
+    fig, axes = plt.subplots(1, len(zs), figsize=(4.8 * len(zs), 4.0), squeeze=False)
+    fig.subplots_adjust(wspace=0.4)
     vmax = float(rows[:, 9].max())
     for ax, z in zip(axes[0], zs):
         sel = np.isclose(rows[:, 2], z)
