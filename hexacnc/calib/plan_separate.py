@@ -72,8 +72,8 @@ def cause_rows(cfg, P: np.ndarray, causes: list[str], cond: dict, keep: np.ndarr
     dX[:, 3:] = np.degrees(dX[:, 3:])
     sig = np.array([noise_mm] * 3 + [noise_deg] * 3)
     dy = dX / sig[None, :, None]
-    d = np.sqrt(np.einsum("nij,nij->j", dy, dy) / n) + 1e-300   # per column: unit RMS sensitivity per pose
-    return dy[:, keep, :], d, [B.shape[2] for B in cols]
+    dy = dy[:, keep, :]
+    return dy, np.sqrt(np.einsum("nij,nij->j", dy, dy) / n), [B.shape[2] for B in cols]
 
 
 def _gain(rows: np.ndarray, Ainv: np.ndarray) -> np.ndarray:
@@ -131,11 +131,15 @@ def plan_separate(cfg, causes: list[str], n_poses: int, measure_set: str = "xyza
     geo = geo * column_scale(cfg, geo.shape[2])[None, None, :]
     ng = geo.shape[2]
     conds = _conditions(causes, payload_kg, delta_T_K)
-    parts, scale = [], None
+    crs = []
     for cond in conds:
-        cr, d, sizes = cause_rows(cfg, P, causes, cond, keep, noise_mm, noise_deg)
-        scale = d if scale is None else scale
-        parts.append(np.concatenate([geo, cr / scale], axis=2))
+        cr, _, sizes = cause_rows(cfg, P, causes, cond, keep, noise_mm, noise_deg)
+        crs.append(cr)
+    # per cause column: unit RMS sensitivity over every candidate and condition (a column that is zero
+    # under one condition, e.g. thermal growth at the reference temperature, keeps the others' scale)
+    scale = np.sqrt(np.mean([np.einsum("nij,nij->j", cr, cr) / len(P) for cr in crs], axis=0))
+    scale[scale <= 0] = 1.0
+    parts = [np.concatenate([geo, cr / scale], axis=2) for cr in crs]
     rows = np.concatenate(parts)                       # (C*M, m, ng + k)
     which = np.repeat(np.arange(len(conds)), len(P))
     pose_idx = np.tile(np.arange(len(P)), len(conds))

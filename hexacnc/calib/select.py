@@ -244,7 +244,7 @@ def _better_swap(sel: Selector, current: Model, sw: dict) -> Model | None:
 def select(cfg, meas: Measurements, ctx: Context, frame0, opts: Options, known: bool, baseline: Model,
            cands: list[str], table: dict, sig: dict, chi2_limit: float) -> Selection:
     sel = Selector(cfg, meas, ctx, frame0, opts, known)
-    sel.cache[((), 0)] = baseline
+    sel.cache[((), 0, True)] = baseline
     variants: dict = {}
     current, chosen = forward(sel, baseline, cands, table, sig, chi2_limit, variants)
     dropped: list = []
