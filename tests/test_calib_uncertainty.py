@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from hexacnc.calib import synth
-from hexacnc.calib.diagnose import Options, diagnose, fit_model
+from hexacnc.calib.diagnose import Options, fit_model
 from hexacnc.calib.model import Context, forward_batch
 from hexacnc.calib.uncertainty import grid_poses, tool_tip_covariance
 from hexacnc.cli import main as cli

@@ -40,7 +40,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--jugglebot", default=str(_REPO.parent / "shared" / "data" / "jugglebot"),
                    help="directory of the Jugglebot data (skipped when absent)")
     p.add_argument("--skip-jugglebot", action="store_true")
-    p.add_argument("--rows", help="also write the rows as JSON lines to this file")
+    p.add_argument("--rows", help="also write the rows as JSON lines to this file, one as each scenario ends")
 
 
 def scenarios(singles_only: bool = False) -> list[tuple[str, ...]]:
@@ -165,10 +165,18 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     rows = []
     k = 0
-    for measured in [m.strip() for m in args.data.split(",") if m.strip()]:
-        for effs in scenarios(args.singles_only):
-            rows.append(run_one(cfg, effs, measured, args.seed + k, args.poses, args.holdout_poses))
-            k += 1
+    sink = open(args.rows, "w", encoding="utf-8") if args.rows else None   # rows as they come (progress)
+    try:
+        for measured in [m.strip() for m in args.data.split(",") if m.strip()]:
+            for effs in scenarios(args.singles_only):
+                rows.append(run_one(cfg, effs, measured, args.seed + k, args.poses, args.holdout_poses))
+                k += 1
+                if sink is not None:
+                    sink.write(json.dumps(rows[-1]) + "\n")
+                    sink.flush()
+    finally:
+        if sink is not None:
+            sink.close()
     out = {"rows": rows, "summary": summary(rows),
            "targets": {"named_exactly": "no missing, no extra cause (or inseparable ones reported as such)",
                        "holdout_rms_over_noise_floor": RMS_TARGET, "parameter_z_rms": Z_TARGET,
@@ -176,7 +184,5 @@ def main(args: argparse.Namespace) -> int:
            "noise_floor": "instrument noise x sqrt(number of measured position coordinates) (per-row vector RMS)"}
     if not args.skip_jugglebot:
         out["jugglebot"] = jugglebot(Path(args.jugglebot))
-    if args.rows:
-        Path(args.rows).write_text("".join(json.dumps(r) + "\n" for r in rows), encoding="utf-8")
     print(json.dumps(out, indent=1))
     return 0

@@ -28,9 +28,9 @@ import numpy as np
 from ..errors import DataError
 from ..kinematics import Hexapod
 from . import limit_blas_threads
-from .fitting import (DEFAULT_NOISE_MM, NL_DEGREES, Model, Options, bic, check_readings, cv_score,  # noqa: F401
+from .fitting import (DEFAULT_NOISE_MM, NL_DEGREES, Model, Options, bic, check_readings, cv_score,
                       fit_candidate, fit_model, folds, noise_defaults, set_nl, use_frame)
-from .holdout import (evaluate_holdout, reference_groups, rereferenced_thetas, session_shift,  # noqa: F401
+from .holdout import (evaluate_holdout, reference_groups, rereferenced_thetas, session_shift,
                       session_unseen)
 from .identify import FitResult, fit, parameter_table, strongest_correlations, unidentifiable_directions
 from .measurements import Measurements
@@ -38,6 +38,12 @@ from .model import VARIANTS, Context, Evaluator, base_cause, build_layout, initi
 from .select import Selection, select
 from .separability import measured_letters, signature_analysis, what_to_measure
 from .uncertainty import tool_tip_map
+
+#: re-exported for the callers of the former single module (bench calib, calib commands, tests)
+__all__ = ["DEFAULT_NOISE_MM", "NL_DEGREES", "Diagnosis", "Model", "Options", "bic", "check_readings", "cv_score",
+           "diagnose", "evaluate_holdout", "fit_candidate", "fit_model", "hexapod_from_fit", "noise_defaults",
+           "nominal_rms", "reference_groups", "rereferenced_thetas", "session_shift", "session_unseen", "set_nl",
+           "signature_analysis", "suspicious_rows", "use_frame"]
 
 
 @dataclass
