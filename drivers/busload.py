@@ -23,7 +23,7 @@ import dataclasses
 import math
 from typing import Any
 
-from hexacnc.errors import BusError
+from .errors import BusError
 
 from .layout import plan_layout
 
@@ -192,7 +192,7 @@ def main(argv=None) -> int:
     import sys
 
     from hexacnc.config import load_config
-    from hexacnc.errors import HexacncError
+    from .errors import ControlError as HexacncError
 
     ap = argparse.ArgumentParser(prog="python -m drivers.busload", description=__doc__.splitlines()[0])
     ap.add_argument("--config", help="machine description (TOML); default: the embedded default")

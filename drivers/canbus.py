@@ -30,7 +30,7 @@ import can
 from can.interfaces.udp_multicast import UdpMulticastBus
 from can.interfaces.udp_multicast.utils import unpack_message
 
-from hexacnc.errors import BusError
+from .errors import BusError
 
 UDP_PORT = 43113
 IP_MULTICAST_ALL = getattr(socket, "IP_MULTICAST_ALL", 49)

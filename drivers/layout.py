@@ -23,7 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from hexacnc.errors import BusError
+from .errors import BusError
 
 #: node id of the master's heartbeat (consumed by the drives through 0x1016)
 MASTER_NODE_ID = 0x7F

@@ -23,7 +23,7 @@ import can
 import canopen
 from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
-from hexacnc.errors import BusError
+from .errors import BusError
 
 from . import EDS_PATH, cia402
 from .cyclic import limits_inc

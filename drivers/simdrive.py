@@ -46,7 +46,7 @@ from typing import Sequence
 import can
 import canopen
 
-from hexacnc.errors import BusError, ConfigError
+from .errors import BusError, ConfigError
 
 from . import EDS_PATH
 from .layout import plan_layout
@@ -255,7 +255,7 @@ def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None
 
 def main(argv: Sequence[str] | None = None) -> int:
     from hexacnc.config import load_config
-    from hexacnc.errors import HexacncError
+    from .errors import ControlError as HexacncError
     from .canbus import open_buses
 
     ap = argparse.ArgumentParser(prog="python -m drivers.simdrive", description="simulated CiA 402 strut drives")

@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING, Callable
 import canopen
 from canopen.sdo import SdoAbortedError
 
-from hexacnc.errors import BusError, ConfigError
+from .errors import BusError, ConfigError
 
 from . import cia402
 from .strutmodel import StrutModel

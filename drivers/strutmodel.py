@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 from typing import Callable, Protocol
 
-from hexacnc.errors import ConfigError
+from .errors import ConfigError
 
 
 # --------------------------------------------------------------------------------------------

@@ -16,6 +16,9 @@ import math
 
 import numpy as np
 
+from .cyclecodes import CODES
+from .pose import ROTATION_STATEMENTS
+
 
 def _lin(terms: list[tuple[str, float]]) -> str:
     """``c1*v1 + c2*v2 ...`` with zero constants dropped and unit constants simplified."""
@@ -54,18 +57,38 @@ def generate_source(ct) -> str:
     Jt = hx.jacobian_twist_rad(hx.home_rad)
     Jt[:, 3:] /= hx.char_length_mm
     perm = static_pivot_order(Jt)
-    pos = [perm.index(i) for i in range(6)]
-    sc = ct._scale
-    minp = ct._min_pivot
     L: list[str] = []
     w = L.append
+    names = _lu_names()
+    _emit_ik(ct, w, perm)
+    _emit_lu(ct, w, names)
+    _emit_sag(ct, w, perm)
+    _emit_guard(ct, w)
+    w("")
+    _emit_feedback(ct, w, perm, names)
+    return "\n".join(L) + "\n"
+
+
+def _lu_names() -> list[str]:
+    """Names of the LU factors the command stores for the feedback (L below, U on/above the diagonal)."""
+    return [f"m{r}{k}" for k in range(6) for r in range(k + 1, 6)] + \
+           [f"a{k}{cc}" for k in range(6) for cc in range(k, 6)]
+
+
+def _emit_rotation(w, indent: str) -> None:
+    for stmt in ROTATION_STATEMENTS:
+        w(indent + stmt)
+
+
+def _emit_ik(ct, w, perm: list[int]) -> None:
+    """Input check, rotation, spindle growth, strut lengths, joint cones and the Jacobian rows."""
+    pos = [perm.index(i) for i in range(6)]
+    sc = ct._scale
     w("def command(self, x, y, z, a, b, c):")
     w("    if not (x - x == 0.0 and y - y == 0.0 and z - z == 0.0 and a - a == 0.0 and b - b == 0.0 and c - c == 0.0):")
-    w("        return 6")
+    w("        return LIMIT_INPUT")
     w("    ca = cos(a); sa = sin(a); cb = cos(b); sb = sin(b); cc = cos(c); sc = sin(c)")
-    w("    r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa")
-    w("    r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa")
-    w("    r20 = -sb; r21 = cb * sa; r22 = cb * ca")
+    _emit_rotation(w, "    ")
     w("    pc = self.pose_cmd; pc[0] = x; pc[1] = y; pc[2] = z; pc[3] = a; pc[4] = b; pc[5] = c")
     ax, ay, az = ct._axis
     w("    g = self.spindle_growth_mm")
@@ -88,21 +111,25 @@ def generate_source(ct) -> str:
         w("    li = sqrt(sx * sx + sy * sy + sz * sz)")
         w(f"    Lm[{i}] = li")
         w(f"    if li < {ct._lmin[i]!r} or li > {ct._lmax[i]!r}:")
-        w(f"        self.fail_index = {i}; self.fail_value = li; return 1")
+        w(f"        self.fail_index = {i}; self.fail_value = li; return LIMIT_LENGTH")
         w("    ux = sx / li; uy = sy / li; uz = sz / li")
         w(f"    cj = {_lin([('ux', ex), ('uy', ey), ('uz', ez)])}")
         w(f"    if cj < {ct._cos_max[i]!r}:")
-        w(f"        self.fail_index = {i}; self.fail_value = cj; return 2")
+        w(f"        self.fail_index = {i}; self.fail_value = cj; return LIMIT_JOINT")
         wx = _lin([('r00', qx), ('r01', qy), ('r02', qz)])
         wy = _lin([('r10', qx), ('r11', qy), ('r12', qz)])
         wz = _lin([('r20', qx), ('r21', qy), ('r22', qz)])
         w(f"    cj = -(ux * ({wx}) + uy * ({wy}) + uz * ({wz}))")
         w(f"    if cj < {ct._cos_max[i]!r}:")
-        w(f"        self.fail_index = {i + 6}; self.fail_value = cj; return 2")
+        w(f"        self.fail_index = {i + 6}; self.fail_value = cj; return LIMIT_JOINT")
         w(f"    a{k}0 = ux; a{k}1 = uy; a{k}2 = uz")
         w(f"    a{k}3 = (ry * uz - rz * uy) * {sc!r}; a{k}4 = (rz * ux - rx * uz) * {sc!r}; "
           f"a{k}5 = (rx * uy - ry * ux) * {sc!r}")
-    # LU with the static pivot order
+
+
+def _emit_lu(ct, w, names: list[str]) -> None:
+    """LU factorisation with the static pivot order; a small pivot hands over to the general routine."""
+    minp = ct._min_pivot
     w("    # LU factorisation, fixed pivot order; small pivot -> general routine")
     for k in range(6):
         w(f"    if -{minp!r} < a{k}{k} < {minp!r}:")
@@ -113,37 +140,39 @@ def generate_source(ct) -> str:
             w(f"    m{r}{k} = a{r}{k} * iv")
             if k + 1 < 6:
                 w("    " + "; ".join(f"a{r}{cc} -= m{r}{k} * a{k}{cc}" for cc in range(k + 1, 6)))
-    # store factors for feedback
-    names = [f"m{r}{k}" for k in range(6) for r in range(k + 1, 6)] + \
-            [f"a{k}{cc}" for k in range(6) for cc in range(k, 6)]
     w("    F = self._lu_fast")
     w("    " + "; ".join(f"F[{j}] = {n}" for j, n in enumerate(names)))
     w("    self._factored = True; self._fast = True")
-    # sag
+
+
+def _emit_sag(ct, w, perm: list[int]) -> None:
+    """Strut forces from the carrier's weight (J^T f = wrench, with the stored LU) and the sag."""
+    sc = ct._scale
     w("    sag = self.sag_mm")
     w("    if self.sag_enabled:")
     Fx, Fy, Fz = ct._F
     cx, cy, cz = ct._cog
     w(f"        gx = {_lin([('r00', cx), ('r01', cy), ('r02', cz)])}")
     w(f"        gy = {_lin([('r10', cx), ('r11', cy), ('r12', cz)])}")
-        # wrench (rotation rows scaled like J's columns)
     w(f"        gz = {_lin([('r20', cx), ('r21', cy), ('r22', cz)])}")
+    # wrench (rotation rows scaled like J's columns)
     w(f"        w0 = {Fx!r}; w1 = {Fy!r}; w2 = {Fz!r}")
     w(f"        w3 = (gy * {Fz!r} - gz * {Fy!r}) * {sc!r}")
     w(f"        w4 = (gz * {Fx!r} - gx * {Fz!r}) * {sc!r}")
     w(f"        w5 = (gx * {Fy!r} - gy * {Fx!r}) * {sc!r}")
-    # U^T z = w
-    for i in range(6):
+    for i in range(6):          # U^T z = w
         terms = " ".join(f"- a{j}{i} * z{j}" for j in range(i))
         w(f"        z{i} = (w{i} {terms}) / a{i}{i}")
-    # L^T y = z
-    for i in range(5, -1, -1):
+    for i in range(5, -1, -1):  # L^T y = z
         terms = " ".join(f"- m{j}{i} * y{j}" for j in range(i + 1, 6))
         w(f"        y{i} = z{i} {terms}")
     w("        f = self.force_N")
     for k in range(6):
         w(f"        f[{perm[k]}] = y{k}; sag[{perm[k]}] = y{k} * {ct._inv_k[perm[k]]!r}")
-    # guard and commands
+
+
+def _emit_guard(ct, w) -> None:
+    """Commands (length - sag - thermal, calibrated map) and the velocity/acceleration guard."""
     w("    th = self.thermal_mm; cmd = self.cmd_mm; p1 = self._prev; p2 = self._prev2")
     for i in range(6):
         w(f"    v{i} = Lm[{i}] - sag[{i}] - th[{i}]")
@@ -153,17 +182,19 @@ def generate_source(ct) -> str:
     for i in range(6):
         w(f"        d1 = v{i} - p1[{i}]")
         w(f"        if d1 > {ct._dl_max[i]!r} or d1 < -{ct._dl_max[i]!r}:")
-        w(f"            self.fail_index = {i}; self.fail_value = d1 / {ct.dt!r}; return 3")
+        w(f"            self.fail_index = {i}; self.fail_value = d1 / {ct.dt!r}; return LIMIT_VELOCITY")
         w(f"        d2 = d1 - p1[{i}] + p2[{i}]")
         w(f"        if d2 > {ct._ddl_max[i]!r} or d2 < -{ct._ddl_max[i]!r}:")
-        w(f"            self.fail_index = {i}; self.fail_value = d2 / {ct.dt * ct.dt!r}; return 4")
+        w(f"            self.fail_index = {i}; self.fail_value = d2 / {ct.dt * ct.dt!r}; return LIMIT_ACCELERATION")
     w("    else:")
     w("        self._have_prev += 1")
     for i in range(6):
         w(f"    p2[{i}] = p1[{i}]; p1[{i}] = v{i}; cmd[{i}] = v{i}")
-    w("    return 0")
-    w("")
-    # ---------------------------------------------------------------- feedback
+    w("    return OK")
+
+
+def _emit_feedback(ct, w, perm: list[int], names: list[str]) -> None:
+    """Forward kinematics: Newton steps with the command's stored LU, from an extrapolated guess."""
     w("def feedback(self, lengths):")
     w("    if not self._fast:")
     w("        return self._feedback_generic(lengths)")
@@ -189,9 +220,23 @@ def generate_source(ct) -> str:
     w("    it = 0")
     w("    while True:")
     w("        ca = cos(X3); sa = sin(X3); cb = cos(X4); sb = sin(X4); cc = cos(X5); sc = sin(X5)")
-    w("        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa")
-    w("        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa")
-    w("        r20 = -sb; r21 = cb * sa; r22 = cb * ca")
+    _emit_rotation(w, "        ")
+    _emit_fk_step(ct, w, perm)
+    w("    self.fk_iterations = it; self.fk_residual_mm = res")
+    w("    if not res <= tol:")
+    w("        " + "; ".join(f"X[{j}] = last[{j}]" for j in range(6)))
+    w("        self._nhist = 1")
+    w("        return FK_NOT_CONVERGED")
+    w("    " + "; ".join(f"h2[{j}] = h1[{j}]; h1[{j}] = last[{j}]; last[{j}] = X{j}; X[{j}] = X{j}"
+                         for j in range(6)))
+    w("    if n < 3:")
+    w("        self._nhist = n + 1")
+    w("    return OK")
+
+
+def _emit_fk_step(ct, w, perm: list[int]) -> None:
+    """One Newton step of the forward kinematics (inside the loop): residuals, solve, pose update."""
+    sc = ct._scale
     for i in range(6):
         px, py, pz = ct._p[i]
         bx, by, bz = ct._b[i]
@@ -202,8 +247,7 @@ def generate_source(ct) -> str:
     w("        res = max(abs(e0), abs(e1), abs(e2), abs(e3), abs(e4), abs(e5))")
     w(f"        if res <= tol or it >= {ct._max_iter} or res != res:")
     w("            break")
-    # forward with L on permuted rhs
-    for i in range(6):
+    for i in range(6):          # forward with L on the permuted rhs
         terms = " ".join(f"- m{i}{j} * q{j}" for j in range(i))
         w(f"        q{i} = e{perm[i]} {terms}")
     for i in range(5, -1, -1):
@@ -213,17 +257,6 @@ def generate_source(ct) -> str:
     w("        da = (cc * ox + sc * oy) / cb")
     w("        X0 += d0; X1 += d1; X2 += d2; X3 += da; X4 += cc * oy - sc * ox; X5 += oz + sb * da")
     w("        it += 1")
-    w("    self.fk_iterations = it; self.fk_residual_mm = res")
-    w("    if not res <= tol:")
-    w("        " + "; ".join(f"X[{j}] = last[{j}]" for j in range(6)))
-    w("        self._nhist = 1")
-    w("        return 7")
-    w("    " + "; ".join(f"h2[{j}] = h1[{j}]; h1[{j}] = last[{j}]; last[{j}] = X{j}; X[{j}] = X{j}"
-                         for j in range(6)))
-    w("    if n < 3:")
-    w("        self._nhist = n + 1")
-    w("    return 0")
-    return "\n".join(L) + "\n"
 
 
 def _horner(coeffs, var: str) -> str:
@@ -270,12 +303,12 @@ def _emit_calibrated_command(ct, w) -> None:
             w(f"        t, gp = self.strut_map.solve_t({i}, v{i}, t)")
             w("        if t != t:")
             w(f"            cs[{j}] = {-(o + A[0]) / A[1]!r}; cs[{j + 1}] = {1.0 / A[1]!r}")
-            w(f"            self.fail_index = {i}; self.fail_value = v{i}; return 8")
+            w(f"            self.fail_index = {i}; self.fail_value = v{i}; return LIMIT_CALIBRATION")
             w("    g = 1.0 / gp")
             w(f"    cs[{j}] = t - v{i} * g; cs[{j + 1}] = g")
             w(f"    v{i} = t * {h!r} + {o + c!r}")
         w(f"    if not {ct._lmin[i]!r} <= v{i} <= {ct._lmax[i]!r}:")   # NaN never reaches a drive
-        w(f"        self.fail_index = {i + 6}; self.fail_value = v{i}; return 1")
+        w(f"        self.fail_index = {i + 6}; self.fail_value = v{i}; return LIMIT_LENGTH")
 
 
 def _emit_calibrated_feedback(ct, w, i: int) -> None:
@@ -290,7 +323,7 @@ def _emit_calibrated_feedback(ct, w, i: int) -> None:
 def bind_fast_path(ct) -> str:
     """Compile the generated source and bind ``command``/``feedback`` to ``ct``; returns the source."""
     src = generate_source(ct)
-    ns: dict = {"cos": math.cos, "sin": math.sin, "sqrt": math.sqrt}
+    ns: dict = {"cos": math.cos, "sin": math.sin, "sqrt": math.sqrt, **CODES}
     exec(compile(src, f"<hexacnc cycle {ct.cfg.name}>", "exec"), ns)
     ct._lu_fast = [0.0] * 36
     ct.command = ns["command"].__get__(ct)

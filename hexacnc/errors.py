@@ -6,13 +6,10 @@ Wrap lower-level exceptions with ``raise ... from exc``.
 """
 from __future__ import annotations
 
-
-class HexacncError(Exception):
-    """Base of all hexacnc errors."""
-
-
-class ConfigError(HexacncError):
-    """A machine description (TOML) is malformed or out of range."""
+# The root, ConfigError and BusError are defined by the drive layer (it imports nothing from
+# hexacnc); they are the same classes here.
+from drivers.errors import BusError, ConfigError  # noqa: F401 (re-exported)
+from drivers.errors import ControlError as HexacncError
 
 
 class DataError(HexacncError):
@@ -21,10 +18,6 @@ class DataError(HexacncError):
 
 class KinematicsError(HexacncError):
     """A pose is unreachable, singular, or outside strut/joint limits."""
-
-
-class BusError(HexacncError):
-    """The drive bus or a drive misbehaves, or a bus layout does not fit."""
 
 
 class ProtocolError(HexacncError):

@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import KinematicsError
-from .pose import matrices_from_euler, matrix_from_euler, pose_to_deg, pose_to_rad, rate_matrix
+from .pose import (matrices_from_euler, matrix_from_euler, pose_to_deg, pose_to_rad, rate_matrix,
+                   rotation_elements_batch)
 
 #: forward-kinematics status values (returned, never raised)
 FK_OK = "ok"
@@ -41,6 +42,37 @@ class FKResult:
     @property
     def ok(self) -> bool:
         return self.status == FK_OK
+
+
+def strut_lengths_batch(X: np.ndarray, plat: np.ndarray, base: np.ndarray, r=None) -> np.ndarray:
+    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics.
+
+    ``r``: :func:`hexacnc.pose.rotation_elements_batch` of ``X[:, 3:]`` if already at hand.  In-place arithmetic in the
+    order ``x + r0 px + r1 py + r2 pz - b`` (the same rounding as the plain expression).
+    """
+    r = rotation_elements_batch(X[:, 3:]) if r is None else r
+    N = X.shape[0]
+    L = np.empty((N, 6))
+    t = np.empty(N)
+    acc = np.empty(N)
+    sq = np.empty(N)
+    for i in range(6):
+        px, py, pz = plat[i]
+        for c in range(3):
+            np.multiply(r[3 * c], px, out=acc)
+            np.add(X[:, c], acc, out=acc)
+            np.multiply(r[3 * c + 1], py, out=t)
+            acc += t
+            np.multiply(r[3 * c + 2], pz, out=t)
+            acc += t
+            acc -= base[i, c]
+            if c == 0:
+                np.multiply(acc, acc, out=sq)
+            else:
+                np.multiply(acc, acc, out=t)
+                sq += t
+        np.sqrt(sq, out=L[:, i])
+    return L
 
 
 class Hexapod:
@@ -105,9 +137,9 @@ class Hexapod:
         P = np.asarray(poses, dtype=float)
         if P.ndim != 2 or P.shape[1] != 6:
             raise KinematicsError(f"poses must be an (N,6) array, got shape {P.shape}")
-        R = matrices_from_euler(np.radians(P[:, 3:]))
-        s = P[:, None, :3] + np.einsum("nij,kj->nki", R, self.plat) - self.base[None]
-        return np.sqrt(np.einsum("nki,nki->nk", s, s))
+        X = P.copy()
+        X[:, 3:] = np.radians(P[:, 3:])
+        return strut_lengths_batch(X, self.plat, self.base)
 
     def strut_vectors_batch(self, poses) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Strut vectors s (N,6,3), lengths (N,6) and rotated platform joints R p (N,6,3)."""

@@ -17,35 +17,47 @@ import numpy as np
 _HALF_PI = 0.5 * math.pi
 
 
+#: the rotation ``Rz(c) Ry(b) Rx(a)`` as Python statements over ``ca, sa, cb, sb, cc, sc`` (cosines and
+#: sines of a, b, c) defining ``r00 .. r22``: the one expansion that generated code
+#: (:mod:`hexacnc.cyclegen`) inlines; :func:`rotation_elements` evaluates the same expressions.
+ROTATION_STATEMENTS = (
+    "r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa",
+    "r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa",
+    "r20 = -sb; r21 = cb * sa; r22 = cb * ca",
+)
+
+
+def _elements(ca, sa, cb, sb, cc, sc):
+    """The nine elements of ``Rz(c) Ry(b) Rx(a)`` (row-major) from cosines and sines (floats or arrays)."""
+    return (cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa,
+            sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa,
+            -sb, cb * sa, cb * ca)
+
+
+def rotation_elements(a_rad: float, b_rad: float, c_rad: float) -> tuple:
+    """``(r00, r01, r02, r10, r11, r12, r20, r21, r22)`` of ``Rz(c) Ry(b) Rx(a)``: plain floats."""
+    return _elements(math.cos(a_rad), math.sin(a_rad), math.cos(b_rad), math.sin(b_rad),
+                     math.cos(c_rad), math.sin(c_rad))
+
+
+def rotation_elements_batch(abc_rad: np.ndarray) -> tuple:
+    """Batch :func:`rotation_elements`: ``abc_rad`` (N,3) radians -> nine (N,) arrays (row-major)."""
+    a, b, c = abc_rad[:, 0], abc_rad[:, 1], abc_rad[:, 2]
+    return _elements(np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c))
+
+
 def matrix_from_euler(a_rad: float, b_rad: float, c_rad: float) -> np.ndarray:
     """Rotation matrix (3,3) ``Rz(c) @ Ry(b) @ Rx(a)``."""
-    ca, sa = math.cos(a_rad), math.sin(a_rad)
-    cb, sb = math.cos(b_rad), math.sin(b_rad)
-    cc, sc = math.cos(c_rad), math.sin(c_rad)
-    return np.array([
-        [cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa],
-        [sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa],
-        [-sb, cb * sa, cb * ca],
-    ])
+    return np.array(rotation_elements(a_rad, b_rad, c_rad)).reshape(3, 3)
 
 
 def matrices_from_euler(abc_rad: np.ndarray) -> np.ndarray:
     """Batch version: ``abc_rad`` (N,3) radians -> (N,3,3)."""
     abc = np.asarray(abc_rad, dtype=float)
-    ca, sa = np.cos(abc[:, 0]), np.sin(abc[:, 0])
-    cb, sb = np.cos(abc[:, 1]), np.sin(abc[:, 1])
-    cc, sc = np.cos(abc[:, 2]), np.sin(abc[:, 2])
-    R = np.empty((abc.shape[0], 3, 3))
-    R[:, 0, 0] = cc * cb
-    R[:, 0, 1] = cc * sb * sa - sc * ca
-    R[:, 0, 2] = cc * sb * ca + sc * sa
-    R[:, 1, 0] = sc * cb
-    R[:, 1, 1] = sc * sb * sa + cc * ca
-    R[:, 1, 2] = sc * sb * ca - cc * sa
-    R[:, 2, 0] = -sb
-    R[:, 2, 1] = cb * sa
-    R[:, 2, 2] = cb * ca
-    return R
+    R = np.empty((abc.shape[0], 9))
+    for k, e in enumerate(rotation_elements_batch(abc)):
+        R[:, k] = e
+    return R.reshape(-1, 3, 3)
 
 
 def euler_from_matrix(R: np.ndarray) -> tuple[float, float, float]:
@@ -69,6 +81,21 @@ def rate_matrix(a_rad: float, b_rad: float, c_rad: float) -> np.ndarray:
     return np.array([[cc * cb, -sc, 0.0],
                      [sc * cb, cc, 0.0],
                      [-sb, 0.0, 1.0]])
+
+
+def rate_matrices(abc_rad: np.ndarray) -> np.ndarray:
+    """Batch :func:`rate_matrix`: ``abc_rad`` (N,3) radians -> (N,3,3) E with omega = E @ abc_rates."""
+    abc = np.asarray(abc_rad, dtype=float)
+    b, c = abc[:, 1], abc[:, 2]
+    cb, sb, cc, sc = np.cos(b), np.sin(b), np.cos(c), np.sin(c)
+    E = np.zeros((abc.shape[0], 3, 3))
+    E[:, 0, 0] = cc * cb
+    E[:, 0, 1] = -sc
+    E[:, 1, 0] = sc * cb
+    E[:, 1, 1] = cc
+    E[:, 2, 0] = -sb
+    E[:, 2, 2] = 1.0
+    return E
 
 
 def matrix_from_quaternion(q: np.ndarray) -> np.ndarray:

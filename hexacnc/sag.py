@@ -67,28 +67,6 @@ def sag_compensation_mm(hx: Hexapod, pose, **load) -> np.ndarray:
     return -sag_elongation_mm(hx, pose, **load)
 
 
-def sag_pose_deviation(hx: Hexapod, pose, **load) -> np.ndarray:
-    """First-order pose deviation (6,) of the uncompensated machine under load.
-
-    The paper's form ``dX = Jd^-1 c^-1 J'^-T m g``: coordinates at the carrier's
-    centre of gravity (mm) and Euler angles (deg).
-    """
-    X = pose_to_rad(pose)
-    cog = np.asarray(hx.cfg.center_of_gravity_mm, dtype=float)
-    Jt_cog = hx.jacobian_twist_rad(X, cog)
-    R = matrix_from_euler(X[3], X[4], X[5])
-    # wrench about the COG: the carrier's own weight has no moment there
-    w0 = gravity_wrench(hx, X, **load)
-    w_cog = w0.copy()
-    w_cog[3:] = w0[3:] - np.cross(R @ cog, w0[:3])
-    f = np.linalg.solve(Jt_cog.T, w_cog)
-    e = f / np.asarray(hx.cfg.stiffness_N_per_mm, dtype=float)
-    Jd = hx.jacobian_cog(pose)
-    d = np.linalg.solve(Jd, e)
-    d[3:] = np.degrees(d[3:])
-    return d
-
-
 @dataclass
 class EquilibriumResult:
     pose: np.ndarray          #: (6,) mm/deg, platform origin

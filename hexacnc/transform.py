@@ -32,16 +32,10 @@ import math
 import numpy as np
 
 from .kinematics import Hexapod
+from .pose import rotation_elements
 
-OK = 0
-LIMIT_LENGTH = 1
-LIMIT_JOINT = 2
-LIMIT_VELOCITY = 3
-LIMIT_ACCELERATION = 4
-LIMIT_SINGULAR = 5
-LIMIT_INPUT = 6
-FK_NOT_CONVERGED = 7
-LIMIT_CALIBRATION = 8
+from .cyclecodes import (FK_NOT_CONVERGED, LIMIT_ACCELERATION, LIMIT_CALIBRATION, LIMIT_INPUT,  # noqa: F401
+                         LIMIT_JOINT, LIMIT_LENGTH, LIMIT_SINGULAR, LIMIT_VELOCITY, OK)
 
 STATUS_TEXT = {
     OK: "ok",
@@ -187,12 +181,7 @@ class CycleTransform:
         if not (x - x == 0.0 and y - y == 0.0 and z - z == 0.0 and a - a == 0.0 and b - b == 0.0
                 and c - c == 0.0):
             return LIMIT_INPUT
-        ca = math.cos(a); sa = math.sin(a)
-        cb = math.cos(b); sb = math.sin(b)
-        cc = math.cos(c); sc = math.sin(c)
-        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa
-        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa
-        r20 = -sb; r21 = cb * sa; r22 = cb * ca
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_elements(a, b, c)
         pc = self.pose_cmd
         pc[0] = x; pc[1] = y; pc[2] = z; pc[3] = a; pc[4] = b; pc[5] = c
         g = self.spindle_growth_mm
@@ -240,24 +229,36 @@ class CycleTransform:
         if not self._lu():
             self.fail_index = -1
             return LIMIT_SINGULAR
-        sag = self.sag_mm
         if self.sag_enabled:
-            # wrench about the platform origin: F and (R cog) x F, rotation rows scaled like J
-            Fx, Fy, Fz = self._F
-            cx, cy, cz = self._cog
-            gx = r00 * cx + r01 * cy + r02 * cz
-            gy = r10 * cx + r11 * cy + r12 * cz
-            gz = r20 * cx + r21 * cy + r22 * cz
-            w = self._w
-            w[0] = Fx; w[1] = Fy; w[2] = Fz
-            w[3] = (gy * Fz - gz * Fy) * sc_
-            w[4] = (gz * Fx - gx * Fz) * sc_
-            w[5] = (gx * Fy - gy * Fx) * sc_
-            self._solve_transposed(w, self.force_N)
-            f = self.force_N
-            ik = self._inv_k
-            for i in range(6):
-                sag[i] = f[i] * ik[i]
+            self._sag_generic(r00, r01, r02, r10, r11, r12, r20, r21, r22)
+        return self._guard_generic()
+
+    def _sag_generic(self, r00, r01, r02, r10, r11, r12, r20, r21, r22) -> None:
+        """Strut forces of the carrier's weight (J^T f = wrench, factored J) and the sag they cause."""
+        # wrench about the platform origin: F and (R cog) x F, rotation rows scaled like J
+        sc_ = self._scale
+        Fx, Fy, Fz = self._F
+        cx, cy, cz = self._cog
+        gx = r00 * cx + r01 * cy + r02 * cz
+        gy = r10 * cx + r11 * cy + r12 * cz
+        gz = r20 * cx + r21 * cy + r22 * cz
+        w = self._w
+        w[0] = Fx; w[1] = Fy; w[2] = Fz
+        w[3] = (gy * Fz - gz * Fy) * sc_
+        w[4] = (gz * Fx - gx * Fz) * sc_
+        w[5] = (gx * Fy - gy * Fx) * sc_
+        self._solve_transposed(w, self.force_N)
+        f = self.force_N
+        ik = self._inv_k
+        sag = self.sag_mm
+        for i in range(6):
+            sag[i] = f[i] * ik[i]
+
+    def _guard_generic(self) -> int:
+        """Commands = length - sag - thermal (through the calibrated map), velocity/acceleration guard."""
+        L = self.length_mm
+        lmin = self._lmin; lmax = self._lmax
+        sag = self.sag_mm
         th = self.thermal_mm
         cmd = self.cmd_mm
         prev = self._prev; prev2 = self._prev2
@@ -368,12 +369,7 @@ class CycleTransform:
 
     def _lengths_at(self, X, out) -> None:
         x, y, z, a, b, c = X
-        ca = math.cos(a); sa = math.sin(a)
-        cb = math.cos(b); sb = math.sin(b)
-        cc = math.cos(c); sc = math.sin(c)
-        r00 = cc * cb; r01 = cc * sb * sa - sc * ca; r02 = cc * sb * ca + sc * sa
-        r10 = sc * cb; r11 = sc * sb * sa + cc * ca; r12 = sc * sb * ca - cc * sa
-        r20 = -sb; r21 = cb * sa; r22 = cb * ca
+        r00, r01, r02, r10, r11, r12, r20, r21, r22 = rotation_elements(a, b, c)
         for i in range(6):
             px, py, pz = self._p[i]
             bx, by, bz = self._b[i]
@@ -481,11 +477,6 @@ class CycleTransform:
     def pose_act_deg(self) -> list[float]:
         p = self.pose_act
         return [p[0], p[1], p[2], math.degrees(p[3]), math.degrees(p[4]), math.degrees(p[5])]
-
-
-def transform_from_config(cfg, hexapod: Hexapod | None = None) -> CycleTransform:
-    """Factory used by the daemon."""
-    return CycleTransform(cfg, hexapod)
 
 
 def as_array(values) -> np.ndarray:

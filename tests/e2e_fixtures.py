@@ -17,7 +17,7 @@ from hexacnc.config import load_config
 from hexacnc.daemon import protocol as P
 from hexacnc.daemon.server import SocketServer
 
-core = pytest.importorskip("hexacnc.daemon.core", reason="the daemon (hexacnc.daemon.core) is not there yet")
+from hexacnc.daemon import core
 
 
 @pytest.fixture(scope="module")

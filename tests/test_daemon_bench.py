@@ -13,6 +13,9 @@ from hexacnc.daemon.loop import spin_ns
 from hexacnc.daemon.shm import PHASE_NAMES
 
 
+pytestmark = pytest.mark.e2e
+
+
 def test_bare_loop_measures_its_work_and_counts_every_missed_deadline():
     # work shorter than the period: each cycle's measured compute covers the busy-wait
     r = rt.bare_loop(0.0005, 0.05, spin_ns(500_000, 0.0002) * 1e-9, work_s=0.0001)
@@ -37,6 +40,7 @@ def test_spin_comes_from_the_config_capped_to_a_fraction_of_the_period(tmp_path)
         load_config(str(bad))
 
 
+@pytest.mark.slow
 def test_bench_loop_prints_the_json_contract():
     r = subprocess.run([sys.executable, "-m", "hexacnc", "bench", "loop", "--duration", "1",
                         "--bare-seconds", "0.2"], capture_output=True, text=True, timeout=120)

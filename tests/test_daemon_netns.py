@@ -19,7 +19,7 @@ from hexacnc.daemon.core import Daemon
 from hexacnc.daemon.feed import point_to_point
 from hexacnc.transform import CycleTransform
 
-pytestmark = pytest.mark.netns
+pytestmark = [pytest.mark.bus, pytest.mark.netns]
 
 PERIOD = 0.004          # the Python simulated drives and decoder keep up with udp_multicast at this rate
 
@@ -86,6 +86,7 @@ def _check_within_limits(cfg, D, until=None):
     assert np.all(a <= cfg.max_acceleration_mm_s2 * 1.05 + 2.0 / k / PERIOD ** 2)
 
 
+@pytest.mark.slow
 def test_drives_enabled_and_frames_equal_ik_of_setpoints(request):
     if not netns_or_rerun(request):
         return

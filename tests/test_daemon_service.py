@@ -8,9 +8,14 @@ import tempfile
 import time
 from pathlib import Path
 
+import pytest
+
 from hexacnc.commands.run import Watchdog
 from hexacnc.daemon import shm as S
 from hexacnc.daemon.sdnotify import Notifier
+
+pytestmark = pytest.mark.e2e
+
 
 REPO = Path(__file__).resolve().parent.parent
 
@@ -76,6 +81,7 @@ def test_watchdog_pets_only_while_cycles_advance():
         s.close()
 
 
+@pytest.mark.slow
 def test_run_duration_notifies_ready_watchdog_and_exits_zero():
     d, path, s = _listener()
     env = dict(os.environ, NOTIFY_SOCKET=path, WATCHDOG_USEC="600000")

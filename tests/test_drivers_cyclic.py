@@ -11,6 +11,9 @@ from drivers.cyclic import (EV_FEEDBACK, SEND_LIMIT, SEND_OK, increments_to_leng
 from drivers.testing import PdoDecoder, SimRig
 
 
+pytestmark = pytest.mark.bus
+
+
 def cycle(io, targets, period_s=0.0005):
     ev = io.send(targets)
     assert ev == SEND_OK

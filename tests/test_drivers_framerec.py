@@ -14,6 +14,9 @@ from drivers.layout import plan_layout
 from hexacnc.config import load_config
 from hexacnc.daemon.pipebus import PipeBus, socket_pairs
 
+pytestmark = pytest.mark.bus
+
+
 LAYOUTS = [
     dict(layout="single", buses=1, feedback_divider=1),
     dict(layout="paired", buses=2, feedback_divider=3),

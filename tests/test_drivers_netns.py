@@ -18,7 +18,7 @@ from drivers.master import Master
 from drivers.simdrive import spawn
 from drivers.testing import PdoDecoder, netns_or_rerun
 
-pytestmark = pytest.mark.netns
+pytestmark = [pytest.mark.bus, pytest.mark.netns]
 
 CHANNEL = "239.74.163.20"
 
@@ -28,6 +28,7 @@ def udp_cfg():
     return cfg.replace(bus=dataclasses.replace(cfg.bus, interface="udp_multicast", channel=CHANNEL))
 
 
+@pytest.mark.slow
 def test_echo_filter_between_processes_and_buses(request):
     if not netns_or_rerun(request):
         return

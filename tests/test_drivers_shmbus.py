@@ -18,6 +18,9 @@ from hexacnc.config import load_config
 from hexacnc.daemon.pipebus import PipeBus, socket_pairs
 from hexacnc.daemon.shmbus import ShmBus, create_segments, release_segments
 
+pytestmark = pytest.mark.bus
+
+
 LAYOUTS = [
     dict(layout="single", buses=1, feedback_divider=1),
     dict(layout="paired", buses=2, feedback_divider=3),

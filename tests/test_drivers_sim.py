@@ -12,6 +12,9 @@ from drivers.simdrive import FaultSpec, SecondOrderStrut
 from drivers.testing import SimRig
 
 
+pytestmark = pytest.mark.bus
+
+
 def run(io, n, targets, period_s=0.0005):
     """n cycles of targets(k) -> OR of poll events; returns (events, cycles run)."""
     ev = 0

@@ -19,11 +19,14 @@ from hexacnc.daemon import protocol as P
 from hexacnc.kinematics import Hexapod
 from hexacnc import sag as sagmod
 
-core = pytest.importorskip("hexacnc.daemon.core", reason="the daemon (hexacnc.daemon.core) is not there yet")
+from hexacnc.daemon import core  # noqa: E402,F401  (a broken import fails the suite, never skips it)
 
 
 from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtures)
 from e2e_fixtures import wait_standstill  # noqa: E402
+
+
+pytestmark = pytest.mark.e2e
 
 
 def _finite6(v):
@@ -133,6 +136,7 @@ def test_garbage_on_the_socket_does_not_disturb_a_running_move(cfg, machine, cli
     assert client.call("wait", timeout_s=30.0)["state"] == "idle"
 
 
+@pytest.mark.slow
 def test_hexacnc_run_serves_status_to_hexacnc_status_processes(tmp_path):
     """Separate processes, as a user runs them: ``hexacnc run`` then ``hexacnc status``."""
     import json

@@ -20,6 +20,9 @@ from hexacnc.pose import matrix_from_euler
 
 from e2e_fixtures import client, running_machine  # noqa: F401  (shared fixtures; cfg and machine are overridden below)
 
+pytestmark = pytest.mark.e2e
+
+
 SCALE = 1800.0
 RATE_MM_S = 0.0035      # the most the 0.5 ms cycle's acceleration guard allows (3.9 um/s)
 
@@ -50,6 +53,7 @@ def _expected_cmd(cfg, hx, st):
     return hx.lengths(p) + sagmod.sag_compensation_mm(hx, p) - np.array(st["thermal"]["offsets_mm"])
 
 
+@pytest.mark.slow
 def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, client):
     daemon, srv = machine
     hx = Hexapod(cfg)

@@ -19,6 +19,9 @@ from hexacnc.daemon import protocol as P
 
 from e2e_fixtures import machine, client  # noqa: F401  (shared fixtures; cfg is overridden below)
 
+pytestmark = pytest.mark.e2e
+
+
 RATE_MM_S = 0.0035
 MAX_MM = 0.002
 STALE_S = 2.0

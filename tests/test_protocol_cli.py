@@ -18,6 +18,9 @@ from hexacnc.daemon.server import SocketServer
 from test_protocol_fake import FakeDaemon
 
 
+pytestmark = pytest.mark.e2e
+
+
 @pytest.fixture
 def env():
     cfg = load_config(None)

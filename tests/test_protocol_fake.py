@@ -16,6 +16,9 @@ import pytest
 from hexacnc.errors import GcodeError, HexacncError, PlanError
 
 
+pytestmark = pytest.mark.e2e
+
+
 class FakeDaemon:
     def __init__(self, block_s: float = 0.02):
         self.block_s = block_s

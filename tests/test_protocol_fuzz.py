@@ -23,6 +23,9 @@ from hexacnc.daemon.server import SocketServer
 
 from test_protocol_fake import FakeDaemon
 
+pytestmark = pytest.mark.e2e
+
+
 KEYS = ["id", "op", "text", "name", "timeout_s", "rate_hz", "token", "sub", "x", ""]
 OPS = list(P.OPS) + ["", "fly", "PROGRAM", "status ", "\u00e9"]
 

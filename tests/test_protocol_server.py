@@ -21,6 +21,9 @@ from hexacnc.errors import HexacncError
 from test_protocol_fake import FakeDaemon
 
 
+pytestmark = pytest.mark.e2e
+
+
 @pytest.fixture(scope="module")
 def cfg():
     return load_config(None)

@@ -88,9 +88,7 @@ def test_path_simulation_chunks_and_errors(setup):
 
 
 def test_planner_trajectory_passes_through_program_poses():
-    from hexacnc.sim.program import planner_available, program_trajectory
-    if not planner_available():
-        pytest.skip("hexacnc.gcode / hexacnc.planner not importable")
+    from hexacnc.sim.program import program_trajectory
     cfg = load_config()
     moves = synthetic_program(cfg, 10, seed=5)
     tr, desc = program_trajectory(cfg, moves, 0.01, "planner")

@@ -68,8 +68,8 @@ def test_simulate_rejects_bad_arguments(tmp_path, capsys):
     assert cli_main(["simulate", "dynamics", "--lines", "1", "--out", str(tmp_path)]) == 2
 
 
+@pytest.mark.bus
 def test_plugs_into_the_simulated_drives():
-    pytest.importorskip("canopen")
     import math
     import time
 

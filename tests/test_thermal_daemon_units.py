@@ -153,7 +153,6 @@ def test_spindle_probe_lag_key(cfg):
 def test_supervisor_spindle_lag_and_target_ramp_without_a_daemon(cfg):
     """ThermalSupervisor on a bare shared-memory block (no hot loop, no thread): the shaft lags the
     housing probe by [spindle] probe_lag_s, and the targets ramp at the rate limit."""
-    import time
     from hexacnc.daemon import shm as S
     from hexacnc.daemon.thermalsup import ThermalSupervisor
     c = cfg.replace(spindle=dataclasses.replace(cfg.spindle, probe_lag_s=300.0),
@@ -171,9 +170,8 @@ def test_supervisor_spindle_lag_and_target_ramp_without_a_daemon(cfg):
         # targets: from what the loop applies (0) towards the estimate at max_offset_rate_mm_s
         t0, sp0 = ts.tgt_wall, sh.s[S.S_SPINDLE_TGT]
         assert 0.0 <= sp0 < ts.spindle_est
-        time.sleep(0.2)
-        with ts.lock:
-            ts._write_targets(time.monotonic())
+        with ts.lock:                       # 0.2 s later on the supervisor's clock (no sleep)
+            ts._write_targets(t0 + 0.2)
         dt = ts.tgt_wall - t0
         step = sh.s[S.S_SPINDLE_TGT] - sp0
         assert step == pytest.approx(min(ts.spindle_est - sp0, c.thermal.max_offset_rate_mm_s * dt), abs=1e-12)

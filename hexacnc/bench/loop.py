@@ -155,14 +155,9 @@ def _phase(daemon, seconds: float) -> dict:
     return c
 
 
-def main(args: argparse.Namespace) -> int:
+def _bench_config(args: argparse.Namespace):
     import dataclasses
-    import logging
     from ..config import load_config
-    from ..daemon.core import Daemon
-    from ..daemon.server import SocketServer
-
-    logging.basicConfig(level=logging.WARNING)
     cfg = load_config(args.config)
     if args.period_s:
         cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, period_s=args.period_s))
@@ -170,78 +165,63 @@ def main(args: argparse.Namespace) -> int:
         cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, spin_s=args.spin_s))
     if not args.keep_burst_fault:   # a benchmark measures through bursts instead of stopping at the first
         cfg = cfg.replace(cycle=dataclasses.replace(cfg.cycle, max_overruns_in_row=1000))
-    period = cfg.cycle.period_s
-    out: dict = {"bench": "loop", "machine": cfg.name, "period_s": period, "spin_s": cfg.cycle.spin_s, "seconds_per_phase": args.seconds,
-                 "cpus": os.cpu_count(), "max_overruns_in_row_fault": cfg.cycle.max_overruns_in_row,
-                 "load_average_at_start": list(os.getloadavg()),
-                 "other_hexacnc_hot_loops_at_start": other_hot_loops()}
-    sock_dir = tempfile.mkdtemp(prefix="hexacnc-bench-")
-    sock = os.path.join(sock_dir, "hexacnc.sock")
-    with Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime) as d:
-        out["io"] = d.info.get("io_info")
-        out["bus_load"] = d.info.get("bus_load")
-        out["bus"] = d.info.get("bus_summary")
-        priv = d.info.get("privileges") or {}
-        out["privileges"] = {"sched_fifo": priv.get("sched_fifo"), "mlockall": priv.get("mlockall"),
-                             "affinity_cpu": priv.get("affinity_cpu"), "messages": priv.get("messages")}
-        out["processes"] = _processes(d)
-        if not args.skip_idle:
-            out["idle"] = _phase(d, args.seconds)
-        server = SocketServer(d, cfg, sock).start()
-        try:
-            start = np.array(d.status()["pose_cmd"], dtype=float)
-            start[3:] = np.radians(start[3:])
-            rows = lissajous_rows(cfg, start, args.seconds + 1.0, period)
-            d.queue_rows(rows, name="bench-lissajous")
-            polls = [0]
-            stop = threading.Event()
+    return cfg
 
-            def local_poll():
-                while not stop.is_set():
-                    d.status()
-                    polls[0] += 1
-                    time.sleep(0.01)
 
-            th = threading.Thread(target=local_poll, daemon=True)
-            th.start()
-            poller = subprocess.Popen([sys.executable, "-c", _POLLER, sock, str(args.poll_hz), str(args.seconds)],
-                                      stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-            time.sleep(0.3)
-            streaming = _phase(d, args.seconds)
-            stop.set()
-            th.join(2)
-            try:
-                so, se = poller.communicate(timeout=30)
-                streaming["socket_status_polls"] = int(so.strip() or 0)
-                if poller.returncode:
-                    streaming["socket_poller_error"] = se.strip()[-500:]
-            except (subprocess.TimeoutExpired, ValueError):
-                poller.kill()
-            streaming["supervisor_status_polls"] = polls[0]
-            streaming["path_rows"] = len(rows)
-            out["streaming"] = streaming
-            d.stop()
-            d.wait(5)
-        finally:
-            server.close()
-            try:
-                os.rmdir(sock_dir)
-            except OSError:
-                pass
-    out["load_average_at_end"] = list(os.getloadavg())
-    out["other_hexacnc_hot_loops_at_end"] = other_hot_loops()
+def _streaming_phase(d, cfg, args: argparse.Namespace, sock: str) -> dict:
+    """A Lissajous path streams while a local thread and a socket client poll the status."""
+    start = np.array(d.status()["pose_cmd"], dtype=float)
+    start[3:] = np.radians(start[3:])
+    rows = lissajous_rows(cfg, start, args.seconds + 1.0, cfg.cycle.period_s)
+    d.queue_rows(rows, name="bench-lissajous")
+    polls = [0]
+    stop = threading.Event()
+
+    def local_poll():
+        while not stop.is_set():
+            d.status()
+            polls[0] += 1
+            time.sleep(0.01)
+
+    th = threading.Thread(target=local_poll, daemon=True)
+    th.start()
+    poller = subprocess.Popen([sys.executable, "-c", _POLLER, sock, str(args.poll_hz), str(args.seconds)],
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    time.sleep(0.3)
+    streaming = _phase(d, args.seconds)
+    stop.set()
+    th.join(2)
+    try:
+        so, se = poller.communicate(timeout=30)
+        streaming["socket_status_polls"] = int(so.strip() or 0)
+        if poller.returncode:
+            streaming["socket_poller_error"] = se.strip()[-500:]
+    except (subprocess.TimeoutExpired, ValueError):
+        poller.kill()
+    streaming["supervisor_status_polls"] = polls[0]
+    streaming["path_rows"] = len(rows)
+    d.stop()
+    d.wait(5)
+    return streaming
+
+
+def _bare_phase(out: dict, cfg, args: argparse.Namespace) -> None:
     bare_s = args.seconds if args.bare_seconds is None else args.bare_seconds
-    if bare_s > 0:
-        ref = out.get("idle") or out.get("streaming") or {}
-        work_us = (ref.get("compute_us") or {}).get("median") or 0.0
-        cpu = out["privileges"].get("affinity_cpu")
-        out["bare_loop"] = bare_loop(period, bare_s, work_us * 1e-6,
-                                     cfg.cycle.realtime_priority if not args.no_realtime else 0,
-                                     cpu if isinstance(cpu, int) and cpu >= 0 else -1, cfg.cycle.spin_s)
-        out["bare_loop"]["note"] = ("the hot loop's wake-up (sleep, then spin the last "
-                                    f"{out['bare_loop'].get('spin_us')} us) and overrun rule, with a busy-wait "
-                                    "of the idle median compute as the whole cycle, same CPU and privileges, "
-                                    "daemon closed")
+    if bare_s <= 0:
+        return
+    ref = out.get("idle") or out.get("streaming") or {}
+    work_us = (ref.get("compute_us") or {}).get("median") or 0.0
+    cpu = out["privileges"].get("affinity_cpu")
+    out["bare_loop"] = bare_loop(cfg.cycle.period_s, bare_s, work_us * 1e-6,
+                                 cfg.cycle.realtime_priority if not args.no_realtime else 0,
+                                 cpu if isinstance(cpu, int) and cpu >= 0 else -1, cfg.cycle.spin_s)
+    out["bare_loop"]["note"] = ("the hot loop's wake-up (sleep, then spin the last "
+                                f"{out['bare_loop'].get('spin_us')} us) and overrun rule, with a busy-wait "
+                                "of the idle median compute as the whole cycle, same CPU and privileges, "
+                                "daemon closed")
+
+
+def _targets(out: dict) -> dict:
     fifo = bool(out["privileges"].get("sched_fifo"))
     targets = {}
     for name in ("idle", "streaming"):
@@ -266,6 +246,45 @@ def main(args: argparse.Namespace) -> int:
                         f"({bl['overrun_pct']:.3f} %), up to {bl['max_overruns_in_row']} in a row, "
                         f"longest gap {bl['longest_gap_us']:.0f} us with nothing in the cycle"),
         }
-    out["targets"] = targets
+    return targets
+
+
+def main(args: argparse.Namespace) -> int:
+    import logging
+    from ..daemon.core import Daemon
+    from ..daemon.server import SocketServer
+
+    logging.basicConfig(level=logging.WARNING)
+    cfg = _bench_config(args)
+    out: dict = {"bench": "loop", "machine": cfg.name, "period_s": cfg.cycle.period_s, "spin_s": cfg.cycle.spin_s,
+                 "seconds_per_phase": args.seconds,
+                 "cpus": os.cpu_count(), "max_overruns_in_row_fault": cfg.cycle.max_overruns_in_row,
+                 "load_average_at_start": list(os.getloadavg()),
+                 "other_hexacnc_hot_loops_at_start": other_hot_loops()}
+    sock_dir = tempfile.mkdtemp(prefix="hexacnc-bench-")
+    sock = os.path.join(sock_dir, "hexacnc.sock")
+    with Daemon(cfg, io_mode=args.io, realtime=not args.no_realtime) as d:
+        out["io"] = d.info.get("io_info")
+        out["bus_load"] = d.info.get("bus_load")
+        out["bus"] = d.info.get("bus_summary")
+        priv = d.info.get("privileges") or {}
+        out["privileges"] = {"sched_fifo": priv.get("sched_fifo"), "mlockall": priv.get("mlockall"),
+                             "affinity_cpu": priv.get("affinity_cpu"), "messages": priv.get("messages")}
+        out["processes"] = _processes(d)
+        if not args.skip_idle:
+            out["idle"] = _phase(d, args.seconds)
+        server = SocketServer(d, cfg, sock).start()
+        try:
+            out["streaming"] = _streaming_phase(d, cfg, args, sock)
+        finally:
+            server.close()
+            try:
+                os.rmdir(sock_dir)
+            except OSError:
+                pass
+    out["load_average_at_end"] = list(os.getloadavg())
+    out["other_hexacnc_hot_loops_at_end"] = other_hot_loops()
+    _bare_phase(out, cfg, args)
+    out["targets"] = _targets(out)
     print(json.dumps(out, indent=1, default=str))
     return 0

@@ -34,7 +34,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     from ..sim import thermal
-    from ..sim.dynamics import CoupledModel, simulate_path
+    from ..sim.dynamics import simulate_path
     from ..sim.program import program_trajectory, synthetic_program
     from ..sim.report import worst_and_gains
 

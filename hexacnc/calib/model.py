@@ -23,7 +23,7 @@ import numpy as np
 from ..errormodel import PARAM_NAMES, reading_parameter_jacobian
 from ..errors import DataError
 from ..kinematics import Hexapod
-from ..pose import matrices_from_euler
+from ..pose import matrices_from_euler, rate_matrices
 from .measurements import Measurements
 
 #: catalog of candidate causes, in documentation order
@@ -59,20 +59,6 @@ def euler_from_matrices(R: np.ndarray) -> np.ndarray:
     a = np.arctan2(R[:, 2, 1], R[:, 2, 2])
     c = np.arctan2(R[:, 1, 0], R[:, 0, 0])
     return np.column_stack([a, b, c])
-
-
-def rate_matrices(abc: np.ndarray) -> np.ndarray:
-    """(N,3,3) E with omega = E @ abc_rates."""
-    b, c = abc[:, 1], abc[:, 2]
-    cb, sb, cc, sc = np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    E = np.zeros((abc.shape[0], 3, 3))
-    E[:, 0, 0] = cc * cb
-    E[:, 0, 1] = -sc
-    E[:, 1, 0] = sc * cb
-    E[:, 1, 1] = cc
-    E[:, 2, 0] = -sb
-    E[:, 2, 2] = 1.0
-    return E
 
 
 def measure(X: np.ndarray, frame: np.ndarray | None) -> np.ndarray:

@@ -16,6 +16,7 @@ BENCHES: dict[str, str] = {
     "diagnose": "hexacnc.bench.diagnose",
     "simulate": "hexacnc.bench.simulate",
     "hold": "hexacnc.bench.hold",
+    "arch": "hexacnc.bench.arch",
 }
 
 

@@ -87,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
     from ..config import load_config
     from ..daemon.core import Daemon
     from ..daemon.sdnotify import Notifier
+    from ..daemon.server import SocketServer
 
     cfg = load_config(args.config)
     level = args.log_level or cfg.daemon.log_level
@@ -109,15 +110,9 @@ def main(args: argparse.Namespace) -> int:
         log.info("bus: %s", info.get("bus_summary"))
         for m in (info.get("privileges") or {}).get("messages", []):
             log.info("hot loop privileges: %s", m)
-        try:
-            from ..daemon.server import SocketServer
-        except ImportError:
-            SocketServer = None
-            log.warning("socket server not available: running without it")
-        if SocketServer is not None:
-            server = SocketServer(daemon, cfg, args.socket).start()
-            log.info("socket %s (hexacnc send PROGRAM.ngc --socket %s; hexacnc status --socket %s)",
-                     server.socket_path, server.socket_path, server.socket_path)
+        server = SocketServer(daemon, cfg, args.socket).start()
+        log.info("socket %s (hexacnc send PROGRAM.ngc --socket %s; hexacnc status --socket %s)",
+                 server.socket_path, server.socket_path, server.socket_path)
         notifier.notify("READY=1\nSTATUS=drives enabled, cycle running")
         wd_s = notifier.watchdog_s or (cfg.cycle.watchdog_s if notifier.enabled else 0.0)
         if notifier.enabled and wd_s > 0:

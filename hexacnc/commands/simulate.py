@@ -143,7 +143,8 @@ def _controller(args) -> int:
 
 
 def _daemon_thermal(args) -> int:
-    from ..sim import daemonthermal, report
+    from ..daemon import thermalrun as daemonthermal
+    from ..sim import report
     _positive("--hours", args.hours)
     _positive("--rate-hz", args.rate_hz)
     if not (1.0 <= args.scale <= 1e5):

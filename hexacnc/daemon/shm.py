@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from multiprocessing import shared_memory
 
+from ..setpoint import FLAG_END, ROW  # noqa: F401 (the row contract lives in hexacnc.setpoint)
+
 # -- int64 header slots ---------------------------------------------------------------------
 H_MAGIC = 0
 H_RING_W = 1            #: rows written (supervisor)
@@ -82,7 +84,6 @@ N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)
 RING_ROWS = 1 << 15     #: 16 s at 0.5 ms
-ROW = 8                 #: floats per row
 
 # -- commands --------------------------------------------------------------------------------
 CMD_NONE = 0
@@ -105,7 +106,6 @@ STATE_NAMES = {ST_BOOT: "boot", ST_IDLE: "idle", ST_RUNNING: "running", ST_STOPP
                ST_FAULT: "fault", ST_DISABLED: "disabled", ST_EXITED: "exited"}
 
 # -- row flags -------------------------------------------------------------------------------
-FLAG_END = 64           #: last row of a stream (at rest): an empty ring after it is normal (= planner's FLAG_END)
 
 MAGIC = 0x48455841434E43  # "HEXACNC"
 

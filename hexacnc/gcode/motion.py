@@ -11,6 +11,7 @@ from dataclasses import fields
 
 import numpy as np
 
+from ..pose import rotation_elements
 from . import blocks as B
 from .blocks import Block
 from .lexer import Line
@@ -39,14 +40,10 @@ class MotionMixin:
     def _set_tool_length(self, new_len: float) -> None:
         d = new_len - self.tool_len
         if d != 0.0:
-            a, b, c = (math.radians(v) for v in self.pos[3:6])
-            ca, sa, cb, sb, cc, sc = math.cos(a), math.sin(a), math.cos(b), math.sin(b), math.cos(c), math.sin(c)
+            r = rotation_elements(*(math.radians(v) for v in self.pos[3:6]))
             x, y, z = self.tool_axis
-            R = ((cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa),
-                 (sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa),
-                 (-sb, cb * sa, cb * ca))
             for i in range(3):
-                self.pos[i] += d * (R[i][0] * x + R[i][1] * y + R[i][2] * z)
+                self.pos[i] += d * (r[3 * i] * x + r[3 * i + 1] * y + r[3 * i + 2] * z)
             self.pos_arr = None
         self.tool_len = new_len
 

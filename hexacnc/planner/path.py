@@ -31,13 +31,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import PlanError
+from ..kinematics import strut_lengths_batch
+from ..pose import rotation_elements_batch
 from ..gcode import blocks as B
+from .quintic import ARC, BLEND, LINE, NCOEF, SPLINE, pose_deviation, quintic_derivs  # noqa: F401 (re-exported)
+from .quintic import quintic as _quintic
 
-LINE, ARC, BLEND, SPLINE = 0, 1, 2, 3
 _SQRT3 = math.sqrt(3.0)
 _EPS_LEN = 1e-9
-#: coefficients per piece
-NCOEF = 36
 
 
 @dataclass
@@ -170,40 +171,6 @@ def eval_pieces_multi(kind: np.ndarray, coef: np.ndarray, idx: np.ndarray, us: l
     return outs
 
 
-def _quintic(w: np.ndarray, c: np.ndarray) -> np.ndarray:
-    """Quintic Hermite blend at w (broadcast against c[..., :6]); c[..., :36] = [P0, V0, A0, A1, V1, P1]."""
-    w2 = w * w
-    w3 = w2 * w
-    w4 = w3 * w
-    w5 = w4 * w
-    return ((1 - 10 * w3 + 15 * w4 - 6 * w5) * c[..., 0:6] + (w - 6 * w3 + 8 * w4 - 3 * w5) * c[..., 6:12]
-            + (0.5 * w2 - 1.5 * w3 + 1.5 * w4 - 0.5 * w5) * c[..., 12:18]
-            + (0.5 * w3 - w4 + 0.5 * w5) * c[..., 18:24] + (-4 * w3 + 7 * w4 - 3 * w5) * c[..., 24:30]
-            + (10 * w3 - 15 * w4 + 6 * w5) * c[..., 30:36])
-
-
-def quintic_derivs(w: np.ndarray, c: np.ndarray):
-    """First and second derivatives in ``w`` of the quintic Hermite pieces ``c`` (n, 36) at w (n,)."""
-    w = w[:, None]
-    w2 = w * w
-    w3 = w2 * w
-    w4 = w3 * w
-    seg = [c[:, 6 * i:6 * i + 6] for i in range(6)]
-    d1 = ((-30 * w2 + 60 * w3 - 30 * w4) * seg[0] + (1 - 18 * w2 + 32 * w3 - 15 * w4) * seg[1]
-          + (w - 4.5 * w2 + 6 * w3 - 2.5 * w4) * seg[2] + (1.5 * w2 - 4 * w3 + 2.5 * w4) * seg[3]
-          + (-12 * w2 + 28 * w3 - 15 * w4) * seg[4] + (30 * w2 - 60 * w3 + 30 * w4) * seg[5])
-    d2 = ((-60 * w + 180 * w2 - 120 * w3) * seg[0] + (-36 * w + 96 * w2 - 60 * w3) * seg[1]
-          + (1 - 9 * w + 18 * w2 - 10 * w3) * seg[2] + (3 * w - 12 * w2 + 10 * w3) * seg[3]
-          + (-24 * w + 84 * w2 - 60 * w3) * seg[4] + (60 * w - 180 * w2 + 120 * w3) * seg[5])
-    return d1, d2
-
-
-def pose_deviation(diff: np.ndarray) -> np.ndarray:
-    """The path-tolerance distance of pose differences ``diff`` (..., 6) mm/rad: the larger of the
-    x, y, z distance (mm) and the a, b, c distance (deg), as G64 P reads them."""
-    return np.maximum(np.linalg.norm(diff[..., :3], axis=-1), np.linalg.norm(np.degrees(diff[..., 3:]), axis=-1))
-
-
 def eval_raw_derivs(kind: np.ndarray, coef: np.ndarray, u: np.ndarray):
     """Pose, d/du and d2/du2 (each (N,6), mm / rad) of lines, arcs and quintic pieces (analytic)."""
     n = u.shape[0]
@@ -284,13 +251,8 @@ class Path:
         return tip_to_platform(P, self.tool_point[idx])
 
 
-def rot_elems(abc: np.ndarray):
-    """The nine elements of ``Rz(c) Ry(b) Rx(a)`` as (N,) arrays (row-major)."""
-    a, b, c = abc[:, 0], abc[:, 1], abc[:, 2]
-    ca, sa, cb, sb, cc, sc = np.cos(a), np.sin(a), np.cos(b), np.sin(b), np.cos(c), np.sin(c)
-    return (cc * cb, cc * sb * sa - sc * ca, cc * sb * ca + sc * sa,
-            sc * cb, sc * sb * sa + cc * ca, sc * sb * ca - cc * sa,
-            -sb, cb * sa, cb * ca)
+#: the nine elements of ``Rz(c) Ry(b) Rx(a)`` as (N,) arrays (row-major), from (N,3) radians
+rot_elems = rotation_elements_batch
 
 
 def tip_to_platform(P: np.ndarray, q: np.ndarray, r=None) -> np.ndarray:
@@ -306,35 +268,8 @@ def tip_to_platform(P: np.ndarray, q: np.ndarray, r=None) -> np.ndarray:
     return out
 
 
-def strut_lengths(X: np.ndarray, plat: np.ndarray, base: np.ndarray, r=None) -> np.ndarray:
-    """Strut lengths (N,6) for platform poses X (N,6) mm/rad - a fast batch inverse kinematics.
-
-    ``r``: :func:`rot_elems` of ``X[:, 3:]`` if already at hand.  In-place arithmetic in the
-    order ``x + r0 px + r1 py + r2 pz - b`` (the same rounding as the plain expression).
-    """
-    r = rot_elems(X[:, 3:]) if r is None else r
-    N = X.shape[0]
-    L = np.empty((N, 6))
-    t = np.empty(N)
-    acc = np.empty(N)
-    sq = np.empty(N)
-    for i in range(6):
-        px, py, pz = plat[i]
-        for c in range(3):
-            np.multiply(r[3 * c], px, out=acc)
-            np.add(X[:, c], acc, out=acc)
-            np.multiply(r[3 * c + 1], py, out=t)
-            acc += t
-            np.multiply(r[3 * c + 2], pz, out=t)
-            acc += t
-            acc -= base[i, c]
-            if c == 0:
-                np.multiply(acc, acc, out=sq)
-            else:
-                np.multiply(acc, acc, out=t)
-                sq += t
-        np.sqrt(sq, out=L[:, i])
-    return L
+#: strut lengths (N,6) of platform poses (N,6) mm/rad: the kinematics core's batch inverse
+strut_lengths = strut_lengths_batch
 
 
 def platform_struts(P: np.ndarray, q: np.ndarray, plat: np.ndarray, base: np.ndarray):

@@ -30,6 +30,7 @@ transitions.
 """
 from __future__ import annotations
 
+import logging
 import math
 import time
 from dataclasses import dataclass, field
@@ -39,6 +40,8 @@ import numpy as np
 from ..errors import PlanError
 from ..gcode import blocks as B
 from ..kinematics import Hexapod
+from ..setpoint import (FLAG_DWELL, FLAG_END, FLAG_EVENT, FLAG_MOTION, FLAG_PAUSED,  # noqa: F401 (re-exported)
+                        FLAG_PROGRAM_PAUSE, FLAG_RAPID, FLAG_STOPPING)
 from . import path as P
 from .limits import _check_limits
 from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
@@ -76,16 +79,8 @@ SCREEN = 0.5
 #: (the bounds are upper bounds of the model, so a sample below them cannot violate), 1e-9 lower
 MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
 
-_DEBUG = bool(__import__('os').environ.get('HEXACNC_PLAN_DEBUG'))
+log = logging.getLogger(__name__)
 
-FLAG_MOTION = 1
-FLAG_RAPID = 2
-FLAG_DWELL = 4
-FLAG_PROGRAM_PAUSE = 8
-FLAG_PAUSED = 16
-FLAG_STOPPING = 32
-FLAG_END = 64
-FLAG_EVENT = 128
 
 
 @dataclass
@@ -358,8 +353,8 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
             caps[region] = np.minimum(caps[region], cap[region])
             xc[region] = np.minimum(xc[region], cap[region])
             spans = _runs(region)          # whole hills: the next round only looks at those
-            if _DEBUG:
-                print(f"   caps round {_round}: {len(spans)} runs, {int(region.sum())} points")
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug(f"caps round {_round}: {len(spans)} runs, {int(region.sum())} points")
             x = topp.solve_ranges(xc, spans)
         try:
             s_raw, TH, total = _sample_profile(sg, h, x, holds_s, dt)
@@ -386,16 +381,16 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         viol_a = ua > ETA
         viol_j = uj > ETA
         bad = viol_v | viol_a | viol_j
-        if _DEBUG:
-            print(f"plan iter {iters} exact={exact} uv={uv.max():.3f} ua={ua.max():.3f} uj={uj.max():.3f} "
-                  f"bad v/a/j={viol_v.sum()}/{viol_a.sum()}/{viol_j.sum()} T={s_f.shape[0] * dt:.2f}s")
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug(f"plan iter {iters} exact={exact} uv={uv.max():.3f} ua={ua.max():.3f} uj={uj.max():.3f} "
+                      f"bad v/a/j={viol_v.sum()}/{viol_a.sum()}/{viol_j.sum()} T={s_f.shape[0] * dt:.2f}s")
             for arr in (ua, uj):
                 jw = int(np.argmax(arr))
                 pm = int(path.piece_at(np.array([s_f[jw]]))[0])
                 gw = int(np.searchsorted(sg, s_f[jw]))
-                print("   worst at t", jw * dt, "s", s_f[jw], "piece", pm, "kind", path.kind[pm], "line",
-                      path.line[pm], "x", x[gw - 2:gw + 2], "xlim", xlim[gw - 2:gw + 2], "h", h[gw - 2:gw + 2],
-                      "sd", (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
+                log.debug("worst at t %s s %s piece %s kind %s line %s x %s xlim %s h %s sd %s", jw * dt, s_f[jw],
+                          pm, path.kind[pm], path.line[pm], x[gw - 2:gw + 2], xlim[gw - 2:gw + 2],
+                          h[gw - 2:gw + 2], (s_f[jw + 1] - s_f[jw - 1]) / 2 / dt)
         changed = []
         cap_changed = []
         if not bad.any():

@@ -27,7 +27,7 @@ import math
 import numpy as np
 from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ruckig, RuckigError, Trajectory
 
-from .plan import FLAG_END, FLAG_PAUSED, FLAG_STOPPING
+from ..setpoint import COL_FLAGS, COL_LINE, FLAG_END, FLAG_PAUSED, FLAG_STOPPING
 
 #: samples per governor block and look-ahead of the governor (seconds)
 GOV_BLOCK = 20
@@ -342,8 +342,8 @@ class PlanSampler:
         X = self.plan.platform_at(s)
         idx = np.clip(np.rint(k).astype(np.int64), 0, self.n - 1)
         out[:n, :6] = X
-        out[:n, 6] = self.plan.line_tab[idx]
-        out[:n, 7] = (self.plan.flag_tab[idx] & ~FLAG_END) | extra
+        out[:n, COL_LINE] = self.plan.line_tab[idx]
+        out[:n, COL_FLAGS] = (self.plan.flag_tab[idx] & ~FLAG_END) | extra
 
     def _interp(self, k: np.ndarray) -> np.ndarray:
         """Catmull-Rom interpolation of the s table at fractional indices, clamped between neighbours."""

@@ -34,7 +34,7 @@ import math
 import numpy as np
 from scipy.linalg import solveh_banded
 
-from . import path as P
+from . import quintic as P
 
 #: largest turn (deg) between consecutive short lines that are smoothed into one curve
 MAX_TURN_DEG = 30.0
@@ -49,7 +49,7 @@ MAX_ROUNDS = 6
 #: weight pinning the run-end vertices, relative to the largest diagonal entry
 PIN = 1e8
 
-# quintic Hermite basis (ascending powers of w), order [P0, V0, A0, A1, V1, P1] as in path._quintic
+# quintic Hermite basis (ascending powers of w), order [P0, V0, A0, A1, V1, P1] as in quintic.quintic
 _BASIS = np.array([[1, 0, 0, -10, 15, -6], [0, 1, 0, -6, 8, -3], [0, 0, 0.5, -1.5, 1.5, -0.5],
                    [0, 0, 0, 0.5, -1, 0.5], [0, 0, 0, -4, 7, -3], [0, 0, 0, 10, -15, 6]], dtype=float)
 
@@ -109,9 +109,9 @@ def _pieces(V, T, K, h):
 
 
 def _deviation(qc: np.ndarray, c0: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """Max deviation (:func:`~hexacnc.planner.path.pose_deviation`) of pieces from their lines."""
+    """Max deviation (:func:`~hexacnc.planner.quintic.pose_deviation`) of pieces from their lines."""
     w = np.linspace(0.0, 1.0, DEV_POINTS)
-    Q = P._quintic(w[None, :, None], qc[:, None, :])
+    Q = P.quintic(w[None, :, None], qc[:, None, :])
     return P.pose_deviation(Q - (c0[:, None, :] + w[None, :, None] * d[:, None, :])).max(axis=1)
 
 

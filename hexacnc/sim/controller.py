@@ -141,7 +141,6 @@ class StepExperiment:
         if design is not None:
             xa_hat = np.zeros(n + 6 * d)
         t_out, z_out = [0.0], [0.0]
-        u_now = np.zeros(6)
         fmax = 0.0
         for k in range(steps):
             r_main = dL                      # main control: step setpoint at t = 0
@@ -170,7 +169,6 @@ class StepExperiment:
                 pred[:n] += self.Bd[:, 0:6] @ r_drv
                 y = design["Cm"][:, :n] @ x
                 xa_hat = pred + design["L"] @ (y - design["Cm"] @ pred)
-            u_now = u_drv
         t = np.array(t_out)
         z = np.array(z_out) * 1e3                      # um
         return {"t_s": t, "z_um": z, **step_metrics(t, z, dz_mm * 1e3), "peak_drive_force_N": fmax}

@@ -47,7 +47,7 @@ from scipy.linalg import expm
 
 from ..errors import DataError
 from ..kinematics import Hexapod
-from ..pose import matrix_from_euler, matrices_from_euler, pose_to_rad
+from ..pose import matrices_from_euler, matrix_from_euler, pose_to_rad, rate_matrices
 
 NX = 36
 NU = 24
@@ -358,12 +358,7 @@ def nominal_motion(model: CoupledModel, poses_deg: np.ndarray, dt: float) -> dic
     R = matrices_from_euler(abc)
     cog = R @ model.cog + P[:, :3]
     abcd = np.gradient(abc, dt, axis=0)
-    sa, ca = np.sin(abc[:, 0]), np.cos(abc[:, 0])  # noqa: F841 (a enters through b, c only)
-    sb, cb = np.sin(abc[:, 1]), np.cos(abc[:, 1])
-    sc, cc = np.sin(abc[:, 2]), np.cos(abc[:, 2])
-    w = np.stack([cc * cb * abcd[:, 0] - sc * abcd[:, 1],
-                  sc * cb * abcd[:, 0] + cc * abcd[:, 1],
-                  -sb * abcd[:, 0] + abcd[:, 2]], axis=1)
+    w = np.einsum("nij,nj->ni", rate_matrices(abc), abcd)      # angular velocity, base frame
     acc = np.concatenate([np.gradient(np.gradient(cog, dt, axis=0), dt, axis=0), np.gradient(w, dt, axis=0)], 1)
     return {"L": L, "Ld": Ld, "Ldd": Ldd, "acc_cog": acc, "R": R}
 
@@ -447,15 +442,20 @@ def simulate_path(model: CoupledModel, g: Gains, poses_deg: np.ndarray, dt: floa
         te = tip_err[c0:c1]
         contour[c0:c1] = te - np.einsum("ni,ni->n", te, vdir)[:, None] * vdir
     wall = time.perf_counter() - wall0
+    return _path_summary(P, dt, d, win, wall, lines, tip_err, contour, ferr, lerr)
+
+
+def _path_summary(P, dt, d, win, wall, lines, tip_err, contour, ferr, lerr) -> dict:
+    """The figures of :func:`simulate_path` from its error series."""
+    N = len(P)
     tip_um = np.linalg.norm(tip_err, axis=1) * 1e3
     k_tip = int(np.argmax(tip_um))
     contour_um = np.linalg.norm(contour, axis=1) * 1e3
     k_con = int(np.argmax(contour_um))
-    k_tip = int(np.argmax(tip_um))
     fe_um = np.abs(ferr) * 1e3
     k_fe, s_fe = np.unravel_index(int(np.argmax(fe_um)), fe_um.shape)
     duration = (N - 1) * dt
-    out = {
+    return {
         "samples": N, "dt_s": dt, "duration_s": duration, "wall_time_s": wall,
         "realtime_ratio": duration / wall if wall > 0 else math.inf,
         "dead_time_s": d * dt, "jacobian_update_s": win * dt,
@@ -473,4 +473,3 @@ def simulate_path(model: CoupledModel, g: Gains, poses_deg: np.ndarray, dt: floa
         "strut_length_error_um": {"max_per_strut": (np.abs(lerr).max(axis=0) * 1e3).tolist()},
         "_series": {"t_s": np.arange(N) * dt, "tip_um": tip_err * 1e3, "ferr_um": ferr * 1e3},
     }
-    return out

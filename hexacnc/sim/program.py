@@ -210,15 +210,6 @@ def to_gcode_tooltip(cfg, moves: list[Move], blend: bool = True) -> str:
     return "\n".join(out) + "\n"
 
 
-def planner_available() -> bool:
-    try:
-        import hexacnc.gcode  # noqa: F401
-        import hexacnc.planner  # noqa: F401
-    except ImportError:
-        return False
-    return True
-
-
 def planned_trajectory(cfg, gcode_text: str, name: str = "program", dt_s: float | None = None) -> Trajectory:
     """Interpret ``gcode_text`` (hexacnc.gcode) and plan it (hexacnc.planner, look-ahead, jerk-limited)."""
     from ..gcode import program_from_config
@@ -235,11 +226,10 @@ def planned_trajectory(cfg, gcode_text: str, name: str = "program", dt_s: float 
 
 
 def program_trajectory(cfg, moves: list[Move], dt_s: float, source: str = "auto") -> tuple[Trajectory, str]:
-    """Strut commands of ``moves`` from the look-ahead planner (``source`` "planner", or "auto" when it is
-    available) or the exact-stop profile ("exact-stop"); returns the trajectory and a description."""
+    """Strut commands of ``moves`` from the look-ahead planner (``source`` "planner" or "auto") or the exact-stop profile ("exact-stop"); returns the trajectory and a description."""
     if source not in ("auto", "planner", "exact-stop"):
         raise DataError(f"unknown trajectory source {source!r} (auto, planner, exact-stop)")
-    if source == "planner" or (source == "auto" and planner_available()):
+    if source in ("planner", "auto"):
         tr = planned_trajectory(cfg, to_gcode_tooltip(cfg, moves), "synthetic", dt_s)
         return tr, (f"synthetic {len(moves)}-line program (hexacnc.sim.program) through the G-code interpreter "
                     f"and the look-ahead planner (G64 blending, jerk-limited), {tr.duration_s:.1f} s")

@@ -141,23 +141,17 @@ def _simulate_linear(models, dt, inputs, T0, pidx, T_ref):
     return growth, mean, probe
 
 
-def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
-    """Run the scenario; returns the JSON-ready figures (see :func:`summary_keys`)."""
-    sc = sc or ThermalScenario()
-    wall0 = time.perf_counter()
-    rng = np.random.default_rng(sc.seed)
-    n = int(round(sc.duration_s / sc.dt_s))
-    t = (np.arange(n) + 1) * sc.dt_s
-    speed, override, spindle_on, tr, desc = strut_speed_profile(cfg, sc, n)
+@dataclasses.dataclass
+class _Environment:
+    """Air, frame, spindle housing and shaft temperatures (n,) over the run (deg C)."""
+    ambient: np.ndarray
+    frame: np.ndarray
+    housing: np.ndarray
+    shaft: np.ndarray
 
-    hx = Hexapod(cfg)
-    lengths = hx.lengths(cfg.home_pose)
-    nseg = sc.truth_segments
-    prof = np.linspace(sc.heat_profile_ratio, 1.0, nseg)      # base end (segment 0) -> platform end
-    unit_cfg = dataclasses.replace(cfg.thermal, heat_per_speed_W_s_mm=1.0)
-    truth = [strut_heat_model(unit_cfg, float(L), segments=nseg, source_profile=prof) for L in lengths]
 
-    # environment
+def _environment(sc: ThermalScenario, t: np.ndarray, spindle_on: np.ndarray) -> _Environment:
+    n = t.shape[0]
     Ta = sc.T0_C + sc.ambient_creep_K * t / sc.duration_s + sc.ambient_swing_K * np.sin(
         2 * math.pi * t / sc.ambient_period_s)
     a_f = math.exp(-sc.dt_s / sc.frame_tau_s)
@@ -178,13 +172,45 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
         shf = a_l * shf + (1 - a_l) * hsg
         Tsp[k] = hsg
         Tsh[k] = shf
+    return _Environment(Ta, Tf, Tsp, Tsh)
+
+
+def _heat_to_target(sc: ThermalScenario, zpeak) -> float:
+    """The true heat per strut speed (W s/mm): the scenario's, or the one giving ``target_drift_um``."""
+    if sc.heat_per_speed_W_s_mm is not None:
+        return float(sc.heat_per_speed_W_s_mm)
+    target = sc.target_drift_um * 1e-3
+    if zpeak(0.0) >= target:
+        return 0.0
+    hi = 1.0
+    while zpeak(hi) < target and hi < 1e4:
+        hi *= 2
+    return brentq(lambda h: zpeak(h) - target, 0.0, hi, xtol=1e-6)
+
+
+def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
+    """Run the scenario; returns the JSON-ready figures (see :func:`summary_keys`)."""
+    sc = sc or ThermalScenario()
+    wall0 = time.perf_counter()
+    rng = np.random.default_rng(sc.seed)
+    n = int(round(sc.duration_s / sc.dt_s))
+    t = (np.arange(n) + 1) * sc.dt_s
+    speed, override, spindle_on, tr, desc = strut_speed_profile(cfg, sc, n)
+
+    hx = Hexapod(cfg)
+    lengths = hx.lengths(cfg.home_pose)
+    nseg = sc.truth_segments
+    prof = np.linspace(sc.heat_profile_ratio, 1.0, nseg)      # base end (segment 0) -> platform end
+    unit_cfg = dataclasses.replace(cfg.thermal, heat_per_speed_W_s_mm=1.0)
+    truth = [strut_heat_model(unit_cfg, float(L), segments=nseg, source_profile=prof) for L in lengths]
+    env = _environment(sc, t, spindle_on)
 
     # truth by superposition: unit heat part + environment part
     u_heat = np.zeros((n, 6, 3))
     u_heat[:, :, 0] = np.abs(speed)
     u_env = np.zeros((n, 6, 3))
-    u_env[:, :, 1] = Ta[:, None]
-    u_env[:, :, 2] = Tf[:, None]
+    u_env[:, :, 1] = env.ambient[:, None]
+    u_env[:, :, 2] = env.frame[:, None]
     # probes: the observer's probed segment centres located on the truth grid
     m_obs = strut_heat_model(cfg.thermal, float(lengths[0]))
     centres = m_obs.segment_centres_mm() / m_obs.length_mm
@@ -196,28 +222,17 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
     # tool-tip map at the measuring pose (home), linear, for the calibration
     X = pose_to_rad(cfg.home_pose)
     R = matrix_from_euler(*X[3:])
-    tip = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     axis = np.asarray(cfg.tool.axis_platform, dtype=float)
-    Jtip = hx.jacobian_twist_rad(X, tip)
+    Jtip = hx.jacobian_twist_rad(X, np.asarray(cfg.tool.tip_platform_mm, dtype=float))
     tip_of_dL = np.linalg.inv(Jtip)[:3]                     # (3,6) tool-tip shift per strut growth
-    g_sp_true = np.array([spindle_growth_mm(v, cfg) for v in Tsh])
+    g_sp_true = np.array([spindle_growth_mm(v, cfg) for v in env.shaft])
     sp_shift = np.outer(g_sp_true, R @ axis)                # (n,3) tool tip moves along the tool axis
 
     def zpeak(h):
         dz = (g_heat * h + g_env) @ tip_of_dL[2] + sp_shift[:, 2]
         return float(np.max(np.abs(dz)))
 
-    if sc.heat_per_speed_W_s_mm is None:
-        target = sc.target_drift_um * 1e-3
-        if zpeak(0.0) >= target:
-            h_true = 0.0
-        else:
-            hi = 1.0
-            while zpeak(hi) < target and hi < 1e4:
-                hi *= 2
-            h_true = brentq(lambda h: zpeak(h) - target, 0.0, hi, xtol=1e-6)
-    else:
-        h_true = float(sc.heat_per_speed_W_s_mm)
+    h_true = _heat_to_target(sc, zpeak)
     h_model = h_true / sc.truth_heat_ratio
     growth_true = g_heat * h_true + g_env                   # (n,6) mm
     mean_true = mean_heat * h_true + mean_env               # (n,6) mean strut temperature
@@ -227,16 +242,53 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
     obs = ThermalObserver(mcfg, sc.dt_s)
     noise = cfg.thermal.probe_noise_K
     probes = probe_true + rng.normal(0.0, noise, (n, 6, len(pidx)))
-    Ta_meas = Ta + rng.normal(0.0, noise, n)
-    Tf_meas = Tf + rng.normal(0.0, noise, n)
-    Tsp_meas = Tsp + rng.normal(0.0, sc.spindle_probe_noise_K, n)
+    Ta_meas = env.ambient + rng.normal(0.0, noise, n)
+    Tf_meas = env.frame + rng.normal(0.0, noise, n)
+    Tsp_meas = env.housing + rng.normal(0.0, sc.spindle_probe_noise_K, n)
     obs.reset(np.full(6, sc.T0_C))          # the daemon starts the estimate at the probe mean
     obs.reset(np.full((6, obs.n), float(np.mean(probes[0]))))
 
+    S, est = _observe(cfg, sc, hx, obs, X, (speed, Ta_meas, Tf_meas, probes, Tsp_meas),
+                      growth_true, mean_true, env.frame, g_sp_true, t, override, progress)
+    probes_desc = {
+        "per_strut": len(obs.probes), "segments": list(obs.probes),
+        "positions_fraction_of_length_from_base": [round(float(centres[p]), 4) for p in obs.probes],
+        "noise_K": noise, "ambient_and_frame_sensor_noise_K": noise,
+        "spindle_probe": 1, "spindle_probe_noise_K": sc.spindle_probe_noise_K, "total_sensors": 6 * len(obs.probes) + 3,
+    }
+    out = {
+        "scenario": "from cold, varying feed override, spindle phases",
+        "duration_h": sc.duration_s / 3600.0,
+        "observer_rate_hz": 1.0 / sc.dt_s,
+        "speed_source": desc + " per pass, repeated under feed override phases",
+        "mean_strut_speed_mm_s": float(np.mean(np.abs(speed))),
+        "heat_per_speed_W_s_mm": {"true": h_true, "model": h_model},
+        "model_mismatch": {"truth_segments": nseg, "model_segments": obs.n, "truth_heat_ratio": sc.truth_heat_ratio,
+                           "truth_heat_profile_base_to_platform": sc.heat_profile_ratio},
+        "probes": probes_desc,
+    }
+    out.update(_drift_figures(sc, S, est, growth_true, g_sp_true))
+    out["wall_time_s"] = time.perf_counter() - wall0
+    out["series"] = {
+        "columns": ["t_s", "dx_uncomp_um", "dy_uncomp_um", "dz_uncomp_um", "dx_comp_um", "dy_comp_um",
+                    "dz_comp_um", "strut_frame_dT_K", "mean_growth_true_um", "mean_growth_est_um",
+                    "spindle_growth_um", "override"],
+        "rows": [[round(float(v), 5) for v in r] for r in S],
+    }
+    return out
+
+
+def _observe(cfg, sc, hx, obs, X, meas, growth_true, mean_true, Tf, g_sp_true, t, override, progress):
+    """Run the observer over the readings; every ``sample_every_s`` the tool-tip drift at the
+    measuring pose with and without compensation. Returns the series (m, 12) and the estimate (n, 6)."""
+    speed, Ta_meas, Tf_meas, probes, Tsp_meas = meas
+    n = t.shape[0]
+    tip = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    axis = np.asarray(cfg.tool.axis_platform, dtype=float)
+    home_tip = cfg.home_pose[:3] + matrix_from_euler(*X[3:]) @ tip
     every = max(1, int(round(sc.sample_every_s / sc.dt_s)))
     ct_c = CycleTransform(cfg)
     ct_u = CycleTransform(cfg)
-    home_tip = cfg.home_pose[:3] + R @ tip
     rows = []
     est = np.empty((n, 6))
     for k in range(n):
@@ -261,28 +313,16 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
                          float(np.mean(est[k]) * 1e3), g_sp_true[k] * 1e3, override[k]])
             if progress:
                 progress(k + 1, n)
-    S = np.array(rows)
+    return np.array(rows), est
+
+
+def _drift_figures(sc, S, est, growth_true, g_sp_true) -> dict:
     z_u, z_c = S[:, 3], S[:, 6]
     d3_u = np.linalg.norm(S[:, 1:4], axis=1)
     d3_c = np.linalg.norm(S[:, 4:7], axis=1)
     peak_u, peak_c = float(np.max(np.abs(z_u))), float(np.max(np.abs(z_c)))
     err_g = (est - growth_true) * 1e3
-    probes_desc = {
-        "per_strut": len(obs.probes), "segments": list(obs.probes),
-        "positions_fraction_of_length_from_base": [round(float(centres[p]), 4) for p in obs.probes],
-        "noise_K": noise, "ambient_and_frame_sensor_noise_K": noise,
-        "spindle_probe": 1, "spindle_probe_noise_K": sc.spindle_probe_noise_K, "total_sensors": 6 * len(obs.probes) + 3,
-    }
     return {
-        "scenario": "from cold, varying feed override, spindle phases",
-        "duration_h": sc.duration_s / 3600.0,
-        "observer_rate_hz": 1.0 / sc.dt_s,
-        "speed_source": desc + " per pass, repeated under feed override phases",
-        "mean_strut_speed_mm_s": float(np.mean(np.abs(speed))),
-        "heat_per_speed_W_s_mm": {"true": h_true, "model": h_model},
-        "model_mismatch": {"truth_segments": nseg, "model_segments": obs.n, "truth_heat_ratio": sc.truth_heat_ratio,
-                           "truth_heat_profile_base_to_platform": sc.heat_profile_ratio},
-        "probes": probes_desc,
         "peak_drift_z_um": {"uncompensated": peak_u, "compensated": peak_c},
         "peak_drift_3d_um": {"uncompensated": float(d3_u.max()), "compensated": float(d3_c.max())},
         "reduction_pct": 100.0 * (1.0 - peak_c / peak_u) if peak_u > 0 else 0.0,
@@ -291,13 +331,6 @@ def run(cfg, sc: ThermalScenario | None = None, progress=None) -> dict:
         "strut_growth_estimate_error_um": {"rms": float(np.sqrt(np.mean(err_g ** 2))),
                                            "max_after_10min": float(np.max(np.abs(err_g[int(600 / sc.dt_s):])))},
         "spindle_growth_peak_um": float(np.max(np.abs(g_sp_true)) * 1e3),
-        "wall_time_s": time.perf_counter() - wall0,
-        "series": {
-            "columns": ["t_s", "dx_uncomp_um", "dy_uncomp_um", "dz_uncomp_um", "dx_comp_um", "dy_comp_um",
-                        "dz_comp_um", "strut_frame_dT_K", "mean_growth_true_um", "mean_growth_est_um",
-                        "spindle_growth_um", "override"],
-            "rows": [[round(float(v), 5) for v in r] for r in S],
-        },
     }
 
 
@@ -337,11 +370,11 @@ def plot(result: dict, path: str) -> None:
     ax2.set_xlabel("time (min)")
     ax2.grid(alpha=0.3)
     fig.tight_layout()
-    _save(fig, path)
+    save_figure(fig, path)
     plt.close(fig)
 
 
-def _save(fig, path: str) -> None:
+def save_figure(fig, path: str) -> None:
     import os
     tmp = f"{path}.tmp.png"
     fig.savefig(tmp, dpi=80)

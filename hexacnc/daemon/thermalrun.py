@@ -22,13 +22,13 @@ import time
 
 import numpy as np
 
-from .program import synthetic_program, to_gcode_tooltip
+from ..sim.program import synthetic_program, to_gcode_tooltip
 
 
 def run(cfg, hours: float = 2.5, scale: float = 300.0, rate_hz: float = 2.0, lines: int = 300,
         seed: int = 1, sample_hz: float = 4.0, progress=None) -> dict:
-    from ..daemon import core
-    from ..daemon.thermalsup import max_safe_offset_rate_mm_s
+    from . import core
+    from .thermalsup import max_safe_offset_rate_mm_s
     rate_limit = min(0.999 * max_safe_offset_rate_mm_s(cfg, cfg.cycle.period_s), cfg.thermal.max_offset_rate_mm_s * scale)
     th = dataclasses.replace(cfg.thermal, source="sim", sim_time_scale=float(scale), probe_rate_hz=float(rate_hz),
                              max_offset_rate_mm_s=rate_limit, sim_seed=seed)
@@ -136,6 +136,6 @@ def plot(res: dict, path: str) -> None:
     a2.legend(fontsize=7)
     a2.grid(alpha=0.3)
     fig.tight_layout()
-    from .thermal import _save
-    _save(fig, path)
+    from ..sim.thermal import save_figure
+    save_figure(fig, path)
     plt.close(fig)
