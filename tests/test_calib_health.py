@@ -111,6 +111,7 @@ def test_health_cli_reads_a_recording(cfg, reference, tmp_path):
     assert cli(["health", "--recording", str(tmp_path / "missing.npz")]) == 2
 
 
+@pytest.mark.e2e
 def test_record_from_the_daemon_socket(cfg, tmp_path):
     """``hexacnc record`` against the socket server (fake daemon): a trigger, decimated samples, a file."""
     import sys

@@ -31,7 +31,7 @@ import numpy as np
 from ..errors import DataError
 from ..kinematics import Hexapod
 from ..pose import matrix_from_euler
-from ..sag import gravity_wrench, sag_pose_deviation
+from ..sag import gravity_wrench
 from .model import strut_geometry
 
 
@@ -159,14 +159,25 @@ def carrier_update(cfg, res: PayloadResult, current_payload_kg: float = 0.0) -> 
     cog_t = (m_c * c_c + res.mass_kg * res.cog_platform_mm) / m_t if m_t > 0 else c_c
     hx = Hexapod(cfg)
     home = np.asarray(cfg.home_pose, dtype=float)
-    with_p = sag_pose_deviation(hx, home, payload_kg=res.mass_kg, payload_point_mm=res.cog_platform_mm)
-    without = sag_pose_deviation(hx, home, payload_kg=current_payload_kg)
-    d = np.asarray(with_p) - np.asarray(without)
+    d = (sag_tip_deviation(hx, home, res.mass_kg, res.cog_platform_mm)
+         - sag_tip_deviation(hx, home, current_payload_kg, None))
     return {"carrier": {"mass_kg": round(m_t, 3), "center_of_gravity_mm": [round(float(v), 2) for v in cog_t]},
             "payload": {"mass_kg": res.mass_kg, "center_of_gravity_mm": res.cog_platform_mm.tolist()},
             "toml": (f"[carrier]\nmass_kg = {m_t:.3f}\ncenter_of_gravity_mm = "
                      f"[{', '.join(f'{v:.2f}' for v in cog_t)}]\n"),
             "sag_change_at_home": {"pose_deviation": [float(v) for v in d],
                                    "position_um": float(np.linalg.norm(d[:3]) * 1000.0),
-                                   "note": "platform pose deviation under the identified payload minus the one the "
-                                           "current model assumes, at the home pose (first order, mm then deg)"}}
+                                   "note": "tool-tip deviation (x, y, z mm, then the platform rotation a, b, c "
+                                           "deg) under the identified payload minus under the one the current "
+                                           "model assumes, uncompensated, at the home pose (first order)"}}
+
+
+def sag_tip_deviation(hx: Hexapod, pose_deg, payload_kg: float, payload_cog_mm) -> np.ndarray:
+    """First-order tool-tip deviation (x, y, z mm; rotation deg) of the uncompensated machine under its
+    weight and a payload: strut elongations ``f / k`` through the inverse twist Jacobian."""
+    P = np.asarray(pose_deg, dtype=float)
+    e = rest_forces(hx, P[None], payload_kg, payload_cog_mm)[0] / np.asarray(hx.cfg.stiffness_N_per_mm, dtype=float)
+    X = np.r_[P[:3], np.radians(P[3:])]
+    tw = np.linalg.solve(hx.jacobian_twist_rad(X), e)          # (v mm, omega rad) at the platform origin
+    tip = matrix_from_euler(X[3], X[4], X[5]) @ np.asarray(hx.cfg.tool.tip_platform_mm, dtype=float)
+    return np.r_[tw[:3] + np.cross(tw[3:], tip), np.degrees(tw[3:])]
