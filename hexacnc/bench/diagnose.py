@@ -30,6 +30,14 @@ Z_TARGET = 1.5
 JUGGLEBOT_TARGET_MM = 0.41
 
 
+def _shared_default() -> Path:
+    """../shared/data/jugglebot next to the checkout (a git worktree: next to its main checkout)."""
+    for top in (_REPO.parent, _REPO.parent.parent):
+        if (top / "shared" / "data" / "jugglebot").is_dir():
+            return top / "shared" / "data" / "jugglebot"
+    return _REPO.parent / "shared" / "data" / "jugglebot"
+
+
 def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", default=None, help="machine (default: the embedded default)")
     p.add_argument("--seed", type=int, default=1, help="base seed (scenario k uses seed + k)")
@@ -37,7 +45,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=120, help="fit poses per scenario")
     p.add_argument("--holdout-poses", type=int, default=60)
     p.add_argument("--singles-only", action="store_true", help="skip the pairs")
-    p.add_argument("--jugglebot", default=str(_REPO.parent / "shared" / "data" / "jugglebot"),
+    p.add_argument("--jugglebot", default=str(_shared_default()),
                    help="directory of the Jugglebot data (skipped when absent)")
     p.add_argument("--skip-jugglebot", action="store_true")
     p.add_argument("--rows", help="also write the rows as JSON lines to this file, one as each scenario ends")
@@ -102,7 +110,7 @@ def run_one(cfg, effects: tuple[str, ...], measured: str, seed: int, n_fit: int,
     explained = (not insep and exact) or (bool(insep) and set(named) <= set(truth)
                                           and all(e in named or e in true_in_insep for e in truth))
     zs = z_scores(s, r)
-    return {"scenario": "+".join(effects) or "none", "data": "full_pose" if measured == "xyzabc" else "positions_only",
+    return {"scenario": "+".join(effects) or "none", "data": {"xyzabc": "full_pose", "xyz": "positions_only"}.get(measured, f"measured_{measured}"),
             "measured": measured, "seed": seed, "true_causes": truth, "named_causes": named,
             "inseparable": insep, "verdict": r["verdict"],
             "named_exactly": exact, "named_or_reported_inseparable": bool(explained),
