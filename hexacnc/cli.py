@@ -17,6 +17,8 @@ COMMANDS: dict[str, str] = {
     "plan": "hexacnc.commands.plan",
     "calib": "hexacnc.commands.calib",
     "diagnose": "hexacnc.commands.diagnose",
+    "record": "hexacnc.commands.record",
+    "health": "hexacnc.commands.health",
     "simulate": "hexacnc.commands.simulate",
     "bench": "hexacnc.commands.bench",
     # operator control (module:object with HELP, configure, main)

@@ -170,7 +170,7 @@ def bench_jugglebot_cycle(cfg, m, h, d, k: int) -> dict:
                          f"k{k}: strut offsets re-referenced on the first {k} held-out rows (re-homing), written "
                          "into the config, RMS over the rest"}
     models = (("refit_42", d.baseline.fit, []),
-              ("diagnose_extended", d.extended.fit, [c["name"] for c in d.result["causes"]]))
+              ("diagnose_extended", d.extended.fit, list(d.result["fitted_causes"])))
     with tempfile.TemporaryDirectory(prefix="hexacnc-bench-") as tmp:
         for name, fit, causes in models:
             t0 = time.perf_counter()

@@ -221,6 +221,29 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
     p = Path(path)
     if mapping is not None and not isinstance(mapping, ColumnMap):
         mapping = load_mapping(mapping)
+    header, reader = _read_header(p)
+    src, consts = _sources(p, header, mapping)
+    has_quat = _check_columns(p, src, consts)
+    rows, lines = _data_rows(p, reader, header)
+    if len(rows) < min_rows:
+        raise DataError(f"{p}: {len(rows)} data row(s); at least {min_rows} needed")
+    tab = _Table(p, header, mapping, src, consts, rows, lines)
+    q = np.column_stack([tab.column(c, True) for c in Q_COLS])
+    y = np.full((tab.n, 6), np.nan)
+    for i, c in enumerate(POSE_COLS):
+        col = tab.column(c, False)
+        if col is not None:
+            y[:, i] = col
+    if has_quat:
+        _orientation_from_quaternions(p, tab, y)
+    if not np.isfinite(y).any(axis=1).any():
+        raise DataError(f"{p}: no row has a measured coordinate (all cells of x,y,z,a,b,c/qx..qw empty)")
+    out = Measurements(str(p), q, y, lines=np.array(lines))
+    _optional_columns(p, tab, out)
+    return out
+
+
+def _read_header(p: Path):
     try:
         text = p.read_text(encoding="utf-8-sig")
     except OSError as exc:
@@ -237,7 +260,11 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
     if len(set(header)) != len(header):
         dup = sorted({h for h in header if header.count(h) > 1})
         raise DataError(f"{p}: duplicate column(s) in header: {', '.join(dup)}")
-    # contract column -> (header index, scale, offset)
+    return header, reader
+
+
+def _sources(p: Path, header: list[str], mapping: ColumnMap | None) -> tuple[dict, dict]:
+    """contract column -> (header index, scale, offset); the mapping's constants."""
     src: dict[str, tuple[int, float, float]] = {}
     if mapping is None:
         unknown = [h for h in header if h not in KNOWN_COLS]
@@ -246,20 +273,23 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
                             f"(a foreign layout needs a column mapping, --map)")
         for h in header:
             src[h] = (header.index(h), 1.0, 0.0)
-        consts: dict[str, object] = {}
-    else:
-        used = set()
-        for key, (col, sc, off) in mapping.source.items():
-            if col not in header:
-                raise DataError(f"{p}: column {col!r} (mapped to {key} by {mapping.path}) is not in the header "
-                                f"({', '.join(header)})")
-            src[key] = (header.index(col), sc, off)
-            used.add(col)
-        unknown = [h for h in header if h not in used and h not in mapping.ignore]
-        if unknown:
-            raise DataError(f"{p}: column(s) {', '.join(unknown)} not mapped by {mapping.path}; "
-                            f"map them or list them under ignore")
-        consts = mapping.constants
+        return src, {}
+    used = set()
+    for key, (col, sc, off) in mapping.source.items():
+        if col not in header:
+            raise DataError(f"{p}: column {col!r} (mapped to {key} by {mapping.path}) is not in the header "
+                            f"({', '.join(header)})")
+        src[key] = (header.index(col), sc, off)
+        used.add(col)
+    unknown = [h for h in header if h not in used and h not in mapping.ignore]
+    if unknown:
+        raise DataError(f"{p}: column(s) {', '.join(unknown)} not mapped by {mapping.path}; "
+                        f"map them or list them under ignore")
+    return src, mapping.constants
+
+
+def _check_columns(p: Path, src: dict, consts: dict) -> bool:
+    """Required and consistent columns; True when the orientation comes as a quaternion."""
     missing = [c for c in Q_COLS if c not in src]
     if missing:
         raise DataError(f"{p}: missing required drive reading column(s) {', '.join(missing)}")
@@ -273,7 +303,10 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
     if not has_pose and not has_quat:
         raise DataError(f"{p}: no measured coordinate column (x, y, z, a, b, c or qx..qw); "
                         f"nothing to calibrate against")
+    return bool(has_quat)
 
+
+def _data_rows(p: Path, reader, header: list[str]) -> tuple[list[list[str]], list[int]]:
     rows: list[list[str]] = []
     lines: list[int] = []
     try:
@@ -286,22 +319,29 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
             lines.append(lineno)
     except csv.Error as exc:
         raise DataError(f"{p}: malformed CSV: {exc}") from exc
-    n = len(rows)
-    if n < min_rows:
-        raise DataError(f"{p}: {n} data row(s); at least {min_rows} needed")
+    return rows, lines
 
-    def column(key: str, required: bool, label: bool = False):
-        if key in consts:
-            v = consts[key]
+
+class _Table:
+    """The data rows of one file, read column by column (scale and offset of the mapping applied)."""
+
+    def __init__(self, p, header, mapping, src, consts, rows, lines):
+        self.p, self.header, self.mapping, self.src, self.consts = p, header, mapping, src, consts
+        self.rows, self.lines, self.n = rows, lines, len(rows)
+
+    def column(self, key: str, required: bool, label: bool = False):
+        p, n, rows, lines = self.p, self.n, self.rows, self.lines
+        if key in self.consts:
+            v = self.consts[key]
             if label:
                 return np.array([str(v)] * n, dtype=object)
             if isinstance(v, bool) or not isinstance(v, (int, float)):
-                raise DataError(f"{mapping.path}: [constants] {key} = {v!r} is not a number")
+                raise DataError(f"{self.mapping.path}: [constants] {key} = {v!r} is not a number")
             return np.full(n, float(v))
-        if key not in src:
+        if key not in self.src:
             return None
-        j, sc, off = src[key]
-        name = header[j] if mapping is None else f"{header[j]} (-> {key})"
+        j, sc, off = self.src[key]
+        name = self.header[j] if self.mapping is None else f"{self.header[j]} (-> {key})"
         if label:
             out = np.array([r[j].strip() for r in rows], dtype=object)
             for k, s in enumerate(out):
@@ -322,40 +362,35 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
             out[k] = v * sc + off
         return out
 
-    q = np.column_stack([column(c, True) for c in Q_COLS])
-    y = np.full((n, 6), np.nan)
-    for i, c in enumerate(POSE_COLS):
-        col = column(c, False)
-        if col is not None:
-            y[:, i] = col
-    if has_quat:
-        Q = np.column_stack([column(c, False) for c in QUAT_COLS])
-        for k in range(n):
-            fin = np.isfinite(Q[k])
-            if not fin.any():
-                continue
-            if not fin.all():
-                raise DataError(f"{p}: line {lines[k]}: quaternion partly empty (qx..qw must be all or none)")
-            nq = float(np.linalg.norm(Q[k]))
-            if abs(nq - 1.0) > 0.05:
-                raise DataError(f"{p}: line {lines[k]}: quaternion norm {nq:.4f} is not 1 (qx,qy,qz,qw)")
-            a, b, c = euler_from_matrix(matrix_from_quaternion(Q[k]))
-            y[k, 3:] = np.degrees([a, b, c])
-    measured = np.isfinite(y)
-    empty_rows = np.where(~measured.any(axis=1))[0]
-    if len(empty_rows) == n:
-        raise DataError(f"{p}: no row has a measured coordinate (all cells of x,y,z,a,b,c/qx..qw empty)")
-    out = Measurements(str(p), q, y, lines=np.array(lines))
-    out.t_s = column("t_s", False)
-    out.session = column("session", False, label=True)
-    out.T_frame = column("T_frame", False)
-    Ts = [column(c, False) for c in TSTRUT_COLS]
+
+def _orientation_from_quaternions(p: Path, tab: _Table, y: np.ndarray) -> None:
+    Q = np.column_stack([tab.column(c, False) for c in QUAT_COLS])
+    for k in range(tab.n):
+        fin = np.isfinite(Q[k])
+        if not fin.any():
+            continue
+        if not fin.all():
+            raise DataError(f"{p}: line {tab.lines[k]}: quaternion partly empty (qx..qw must be all or none)")
+        nq = float(np.linalg.norm(Q[k]))
+        if abs(nq - 1.0) > 0.05:
+            raise DataError(f"{p}: line {tab.lines[k]}: quaternion norm {nq:.4f} is not 1 (qx,qy,qz,qw)")
+        a, b, c = euler_from_matrix(matrix_from_quaternion(Q[k]))
+        y[k, 3:] = np.degrees([a, b, c])
+
+
+def _optional_columns(p: Path, tab: _Table, out: Measurements) -> None:
+    """Time, session, temperatures, payload: read and checked."""
+    lines = tab.lines
+    out.t_s = tab.column("t_s", False)
+    out.session = tab.column("session", False, label=True)
+    out.T_frame = tab.column("T_frame", False)
+    Ts = [tab.column(c, False) for c in TSTRUT_COLS]
     if any(t is not None for t in Ts):
         if any(t is None for t in Ts):
             raise DataError(f"{p}: strut temperatures need all of T_strut1..T_strut6")
         out.T_strut = np.column_stack(Ts)
-    out.T_spindle = column("T_spindle", False)
-    out.payload_kg = column("payload_kg", False)
+    out.T_spindle = tab.column("T_spindle", False)
+    out.payload_kg = tab.column("payload_kg", False)
     for nm in ("t_s", "T_frame", "T_spindle", "payload_kg"):
         a = getattr(out, nm)
         if a is not None and not np.all(np.isfinite(a)):
@@ -367,7 +402,6 @@ def load_measurements(path: str | os.PathLike, mapping: ColumnMap | str | os.Pat
     if out.payload_kg is not None and np.any(out.payload_kg < 0):
         k = int(np.where(out.payload_kg < 0)[0][0])
         raise DataError(f"{p}: line {lines[k]}, column payload_kg: negative mass {out.payload_kg[k]}")
-    return out
 
 
 def write_measurements(path: str | os.PathLike, m: Measurements, quaternion: bool = False) -> None:

@@ -30,6 +30,19 @@ from .measurements import Measurements
 CAUSES: tuple[str, ...] = ("elastic_sag", "thermal_expansion", "strut_scale", "strut_nonlinearity",
                            "backlash", "session_offset", "joint_offset")
 
+#: per-strut variants of causes that can differ by strut (a softer strut, a strut that heats more);
+#: each is chosen against its common form by cross-validation and the information criterion
+VARIANTS: dict[str, str] = {"elastic_sag": "elastic_sag_per_strut",
+                            "thermal_expansion": "thermal_expansion_per_strut"}
+#: variant model name -> the catalog cause it is a form of
+VARIANT_OF: dict[str, str] = {v: k for k, v in VARIANTS.items()}
+
+
+def base_cause(name: str) -> str:
+    """Catalog name of a cause model (``elastic_sag_per_strut`` -> ``elastic_sag``)."""
+    return VARIANT_OF.get(name, name)
+
+
 FRAME_NAMES: tuple[str, ...] = tuple(
     [f"frame_{k}" for k in ("tx_mm", "ty_mm", "tz_mm", "a_rad", "b_rad", "c_rad")]
     + [f"target_{k}" for k in ("tx_mm", "ty_mm", "tz_mm", "a_rad", "b_rad", "c_rad")])
@@ -180,6 +193,7 @@ class Context:
     # -- applicability ------------------------------------------------------
     def applicable(self, cause: str) -> str | None:
         """None if the cause can be fitted to this data, else the reason it cannot."""
+        cause = base_cause(cause)
         if cause == "thermal_expansion":
             if self.T is None:
                 return "no temperature columns (T_strut1..6 or T_frame)"
@@ -214,6 +228,23 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           "strut compliance under the carrier's weight and payload: "
                           "L += compliance * f (f: static strut force, tension positive)",
                           lambda c, X, b, p: _sag_basis(c, X, b, p))
+    if name == "elastic_sag_per_strut":
+        return CauseModel(name, [f"compliance{i + 1}_mm_per_kN" for i in range(6)], "mm/kN", 1.0, True,
+                          "compliance of each strut under the carrier's weight and payload: "
+                          "L_i += compliance_i * f_i (a softer strut, a worn joint)",
+                          lambda c, X, b, p: _diag(_sag_basis(c, X, b, p)[..., 0]))
+    if name == "thermal_expansion_per_strut":
+        def thp(c, X, b, p):
+            cols = [_diag((c.q + np.asarray(c.cfg.strut_offset_mm)) * (c.T - T_REF_C) * 1e-6)]
+            if c.frame_thermal:
+                _, _, s_, L = strut_geometry(b, p, X)
+                ub = np.einsum("nki,ki->nk", s_ / L[..., None], b)
+                cols.append((ub * (c.meas.T_frame[:, None] - T_REF_C) * 1e-6)[..., None])
+            return np.concatenate(cols, axis=2)
+        names = [f"expansion{i + 1}_ppm_per_K" for i in range(6)] + (
+            ["frame_expansion_ppm_per_K"] if ctx.frame_thermal else [])
+        return CauseModel(name, names, "ppm/K", 1.0, ctx.frame_thermal,
+                          f"growth of each strut L_i += alpha_i * L_i * (T_strut_i - {T_REF_C:g} degC)", thp)
     if name == "thermal_expansion":
         def th(c, X, b, p):
             cols = [((c.q + np.asarray(c.cfg.strut_offset_mm)) * (c.T - T_REF_C) * 1e-6)[..., None]]
@@ -277,7 +308,7 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           "universal joints whose two axes do not meet: the strut pivot sits d_i off the "
                           "joint's first axis a_i (base and platform side), L -= d_i * sqrt(1 - (u_i . a_i)^2)",
                           jo)
-    raise DataError(f"unknown cause {name!r}; known: {', '.join(CAUSES)}")
+    raise DataError(f"unknown cause {name!r}; known: {', '.join(CAUSES + tuple(VARIANTS.values()))}")
 
 
 def _diag(v: np.ndarray) -> np.ndarray:

@@ -72,6 +72,7 @@ APPLIED_IN_CYCLE = {
     "strut_nonlinearity": "[calibration] strut_nonlinearity_mm (+ _center_mm, _half_range_mm)",
     "elastic_sag": "[struts] stiffness_N_per_mm = 1000 / compliance_mm_per_kN",
     "thermal_expansion": "[thermal] expansion_per_K (strut part; a frame expansion is not applied)",
+    "elastic_sag_per_strut": "[struts] stiffness_N_per_mm = 1000 / compliance_i_mm_per_kN, one per strut",
 }
 #: causes the config cannot carry, and why
 NOT_APPLIED = {
@@ -79,6 +80,7 @@ NOT_APPLIED = {
                 "backlash compensation)",
     "session_offset": "strut offsets of later sessions: re-home; the written strut_offset_mm is the first session's",
     "joint_offset": "non-intersecting joint axes: not in the cycle's kinematic model",
+    "thermal_expansion_per_strut": "[thermal] expansion_per_K is one coefficient for all struts",
 }
 
 
@@ -125,6 +127,13 @@ def cause_config(res, causes) -> tuple[dict, dict, list[dict]]:
                 applied[c] = APPLIED_IN_CYCLE[c]
             else:
                 not_applied.append({"name": c, "reason": f"fitted compliance {comp:.4g} mm/kN is not positive"})
+        elif c == "elastic_sag_per_strut":
+            if np.all(th > 0):
+                sections.setdefault("struts", {})["stiffness_N_per_mm"] = [float(1000.0 / v) for v in th]
+                applied[c] = APPLIED_IN_CYCLE[c]
+            else:
+                not_applied.append({"name": c, "reason": f"a fitted compliance is not positive: "
+                                                         f"{', '.join(f'{v:.4g}' for v in th)} mm/kN"})
         elif c == "thermal_expansion":
             alpha = float(th[0]) * 1e-6
             if 0.0 <= alpha <= 1e-3:
@@ -273,7 +282,7 @@ def fit_config_texts(cfg, res, causes, source: str, header_lines: list[str]) -> 
 def extended_config_texts(cfg, diag, command: str) -> dict:
     """:func:`fit_config_texts` of a diagnosis' extended model (selected causes)."""
     r = diag.result
-    causes = [c["name"] for c in r["causes"]]
+    causes = list(r.get("fitted_causes", [c["name"] for c in r["causes"]]))   # the validated model's
     fit = diag.extended.fit
     rms = r["extended"]["rms_fit"]
     data = r["data"]

@@ -36,7 +36,7 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
     L.append("")
     L.append("## Verdict")
     L.append("")
-    if not res["causes"]:
+    if not res["causes"] and not res.get("inseparable_causes"):
         L.append("**none**: no candidate cause explains the residual better than noise and geometry; "
                  "the rigid 42-parameter model is adequate for this data.")
     else:
@@ -55,8 +55,8 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
             L.append("  Parameters: " + ", ".join(
                 f"{k} = {v:.4g} ± {c['parameter_std'].get(k, float('nan')):.2g}" for k, v in top)
                 + (" ..." if len(c["parameters"]) > 6 else ""))
-            if ev.get("cannot_be_told_apart_from"):
-                L.append(f"  Caution: this data cannot tell it apart from {', '.join(ev['cannot_be_told_apart_from'])}.")
+            L.extend(_cause_extra(c))
+        L.extend(_inseparable_lines(res))
     L.append("")
     L.append("## Residuals (RMS)")
     L.append("")
@@ -111,6 +111,44 @@ def diagnosis_markdown(res: dict, pngs: list[str]) -> str:
     return "\n".join(L) + "\n"
 
 
+def _cause_extra(c: dict) -> list[str]:
+    """Own gains in the presence of the others, the per-strut / common choice."""
+    ev = c["evidence"]
+    out = [f"  In the presence of the other causes: CV residual {_fmt(ev.get('cv_gain_in_presence_of_others'))}x "
+           f"smaller with it, BIC {_fmt(ev.get('delta_bic_in_presence_of_others'))}; held-out "
+           f"{ev.get('holdout_gain_metric') or ''} RMS {_fmt(ev.get('holdout_gain'))}x smaller with it."]
+    v = c.get("variant")
+    if v:
+        out.append(f"  Form: **{v['chosen'].replace('_', ' ')}** (per strut vs common: CV gain "
+                   f"{_fmt(v['cv_gain_per_strut_over_common'])}, BIC change "
+                   f"{_fmt(v['delta_bic_per_strut_minus_common'])}"
+                   + (f"; held-out RMS chosen {_fmt(v.get('holdout_rms_chosen_form'))}, other "
+                      f"{_fmt(v.get('holdout_rms_other_form'))}" if v.get("holdout_rms_other_form") is not None
+                      else "") + ").")
+    return out
+
+
+def _inseparable_lines(res: dict) -> list[str]:
+    out = []
+    for g in res.get("inseparable_causes", []):
+        out.append(f"- **not named: {' or '.join(g['causes'])}**: {g['note']}. To separate them:")
+        for k, v in g["what_to_measure"].items():
+            out.append(f"  - {k}: {v}")
+    dr = res.get("dropped_on_retest") or []
+    if dr:
+        out.append("")
+        out.append("Dropped on re-test (no longer earning their place next to the others): "
+                   + ", ".join(f"{d['name']} (CV gain {d['cv_gain_in_presence_of_others']:.3g})" for d in dr) + ".")
+    tm = res.get("uncertainty", {}).get("tool_tip_map")
+    if tm:
+        s = tm["sigma_position_mm"]
+        out.append("")
+        out.append(f"Predicted tool-tip uncertainty after calibration (1 sigma, {tm['points']} grid poses): "
+                   f"median {s['median'] * 1000:.3g} um, 95 % {s['p95'] * 1000:.3g} um, max {s['max'] * 1000:.3g} um "
+                   "(uncertainty_map.csv / .png).")
+    return out
+
+
 def write_diagnosis_report(rd: ReportDir, diag, cfg) -> None:
     res = diag.result
     pngs = []
@@ -133,12 +171,18 @@ def write_diagnosis_report(rd: ReportDir, diag, cfg) -> None:
     ev = fitres.evaluator
     base, plat, _, _ = ev.split(fitres.theta)
     for c in res["causes"]:
-        name = c["name"]
+        name = c.get("model_name", c["name"])
         B = fitres.layout.cause_models[name].build(ev.ctx, ev.X, base, plat)
         dl = np.einsum("nik,k->ni", B, fitres.theta[fitres.layout.causes[name]])
         fn = f"cause_{name}.png"
         plots.cause_plot(rd.path(fn), name, diag.ctx.q, ev.X, dl, c["model"])
         pngs.append(fn)
+    tm = res.get("uncertainty", {}).get("tool_tip_map")
+    if tm and tm.get("rows"):
+        from .uncertainty import plot_map, write_map_csv
+        write_map_csv(rd.path("uncertainty_map.csv"), tm)
+        plot_map(rd.path("uncertainty_map.png"), tm)
+        pngs.append("uncertainty_map.png")
     (rd.path("summary.md")).write_text(diagnosis_markdown(res, pngs), encoding="utf-8")
     write_json(rd.path("diagnosis.json"), res)
 

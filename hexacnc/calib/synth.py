@@ -16,7 +16,10 @@ import numpy as np
 
 from ..kinematics import Hexapod
 from .measurements import Measurements, write_measurements
-from .model import CAUSES, Context, cause_model, measure, strut_geometry
+from .model import CAUSES, VARIANTS, Context, base_cause, cause_model, measure, strut_geometry
+
+#: effects the generator can hide: the catalog plus the per-strut variants
+EFFECTS: tuple[str, ...] = CAUSES + tuple(VARIANTS.values())
 
 MEASURE_SETS = {"xyzabc": "xyzabc", "xyz": "xyz", "z": "z", "ab": "ab", "xyzab": "xyzab"}
 
@@ -25,13 +28,16 @@ MEASURE_SETS = {"xyzabc": "xyzabc", "xyz": "xyz", "z": "z", "ab": "ab", "xyzab":
 class SynthSet:
     fit: Measurements
     holdout: Measurements
-    effect: str                      #: "none" or a cause name
+    effect: str                      #: "none", a cause name, or several joined by "+"
     effect_params: dict = field(default_factory=dict)
     magnitude_mm: float = 0.0        #: RMS of the effect on the struts (per-strut mean removed)
     theta_true: np.ndarray | None = None
     frame_true: np.ndarray | None = None
     noise_mm: float = 0.0
     noise_deg: float = 0.0
+    effects: list = field(default_factory=list)          #: the hidden effects (empty: none)
+    effects_params: dict = field(default_factory=dict)   #: per effect: its parameters
+    magnitudes_mm: dict = field(default_factory=dict)    #: per effect: its RMS on the struts
 
 
 def sample_poses(cfg, rng: np.random.Generator, n: int, shrink: float = 0.9) -> np.ndarray:
@@ -74,6 +80,10 @@ def _effect_lengths(effect: str, params: np.ndarray, ctx: Context, X: np.ndarray
 def _random_params(effect: str, rng, ctx: Context) -> np.ndarray:
     if effect in ("elastic_sag", "thermal_expansion"):
         return np.array([1.0])
+    if effect in VARIANTS.values():   # per strut: a spread around the common value, one strut far off
+        p = rng.uniform(0.7, 1.3, 6)
+        p[rng.integers(6)] *= rng.choice([0.2, 2.5])
+        return p
     if effect == "session_offset":
         return rng.normal(size=6 * (len(ctx.sessions) - 1))
     if effect in ("strut_nonlinearity", "joint_offset"):
@@ -81,13 +91,13 @@ def _random_params(effect: str, rng, ctx: Context) -> np.ndarray:
     return rng.normal(size=6)
 
 
-def _readings(effect, params, ctx_fn, X, base, plat, off, n_iter: int = 6):
-    """Readings q such that o + q + effect(q, X) = |s| (fixed point; effects are small)."""
+def _readings(effects, params, ctx_fn, X, base, plat, off, n_iter: int = 6):
+    """Readings q such that o + q + sum(effects(q, X)) = |s| (fixed point; effects are small)."""
     _, _, _, L = strut_geometry(base, plat, X)
     q = L - off
     for _ in range(n_iter):
         ctx = ctx_fn(q)
-        dl = _effect_lengths(effect, params, ctx, X, base, plat) if effect != "none" else 0.0
+        dl = sum((_effect_lengths(e, p, ctx, X, base, plat) for e, p in zip(effects, params)), np.zeros_like(q))
         q = L - off - dl
     return q
 
@@ -96,14 +106,22 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
              measure_set: str = "xyzabc", noise_mm: float = 0.005, noise_deg: float = 0.0005,
              magnitude_range: tuple[float, float] = (10.0, 40.0), joint_sigma_mm: float = 0.5,
              offset_sigma_mm: float = 1.0, registration: bool = False, sessions: int = 3,
-             holdout_new_session_mm: float = 0.0) -> SynthSet:
+             holdout_new_session_mm: float = 0.0, effects: tuple[str, ...] | None = None) -> SynthSet:
     """One seeded fit + holdout pair.  ``magnitude_range`` is in units of ``noise_mm``.
 
+    ``effect``: one hidden effect (or ``none``); ``effects``: several at once (overrides
+    ``effect``; each gets its own random magnitude in ``magnitude_range``); names from
+    :data:`EFFECTS` (the catalog plus the per-strut variants).
     ``holdout_new_session_mm`` > 0: the held-out rows come from a new session (label
     ``new``) whose strut offsets moved by that RMS amount (re-homing).
     """
-    if effect != "none" and effect not in CAUSES:
-        raise ValueError(f"unknown effect {effect!r}")
+    effs = [e for e in (effects if effects is not None else (effect,)) if e != "none"]
+    for e in effs:
+        if e not in EFFECTS:
+            raise ValueError(f"unknown effect {e!r}")
+    if len({base_cause(e) for e in effs}) != len(effs):
+        raise ValueError(f"effects {effs}: one form per cause (common or per strut)")
+    kinds = {base_cause(e) for e in effs}
     rng = np.random.default_rng(seed)
     hx = Hexapod(cfg)
     theta = hx.parameters().copy()
@@ -118,16 +136,16 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
     X = P.copy()
     X[:, 3:] = np.radians(X[:, 3:])
     sess = None
-    if effect == "session_offset" or sessions > 1:
-        labels = [f"s{k + 1}" for k in range(max(1, sessions))]
+    if "session_offset" in kinds or sessions > 1:
+        labels = [f"s{k + 1}" for k in range(max(2 if "session_offset" in kinds else 1, sessions))]
         sess = np.array([labels[min(len(labels) - 1, k * len(labels) // n_fit)] for k in range(n_fit)]
                         + [labels[k % len(labels)] for k in range(n_holdout)], dtype=object)
     T = None
-    if effect == "thermal_expansion":
+    if "thermal_expansion" in kinds:
         drift = np.cumsum(rng.normal(0, 0.4, n)) + rng.uniform(19, 24)
         T = drift[:, None] + rng.normal(0, 0.5, (n, 6)) + rng.normal(0, 1.0, 6)[None]
     payload = None
-    if effect == "elastic_sag":
+    if "elastic_sag" in kinds:
         payload = np.where(rng.random(n) < 0.5, 0.0, rng.uniform(0.0, 2.0 * max(cfg.mass_kg, 10.0), n))
     # fit and holdout rows are one stream (backlash direction follows the row order of each file)
     parts = []
@@ -138,27 +156,25 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
         m.payload_kg = None if payload is None else payload[rows]
         parts.append(m)
     ctx_fit0 = Context(cfg, parts[0], noise_mm, noise_deg)
-    params = np.zeros(1)
-    mag = 0.0
-    if effect != "none":
-        params = _random_params(effect, rng, ctx_fit0)
+    _, _, _, L = strut_geometry(base, plat, X[:n_fit])
+    parts[0].q = L - off
+    c0 = Context(cfg, parts[0], noise_mm, noise_deg)
+    params, mags = [], {}
+    for e in effs:
+        p_ = _random_params(e, rng, ctx_fit0)
         # scale to a random magnitude: RMS of the effect on the struts, per-strut mean removed
         target = rng.uniform(*magnitude_range) * noise_mm
-        _, _, _, L = strut_geometry(base, plat, X[:n_fit])
-        parts[0].q = L - off
-        c0 = Context(cfg, parts[0], noise_mm, noise_deg)
-        dl = _effect_lengths(effect, params, c0, X[:n_fit], base, plat)
+        dl = _effect_lengths(e, p_, c0, X[:n_fit], base, plat)
         dl = dl - dl.mean(axis=0)
-        scale = target / max(float(np.sqrt(np.mean(dl ** 2))), 1e-12)
-        params = params * scale
-        mag = target
+        params.append(p_ * target / max(float(np.sqrt(np.mean(dl ** 2))), 1e-12))
+        mags[e] = float(target)
     for m, rows in zip(parts, (slice(0, n_fit), slice(n_fit, n))):
         Xr = X[rows]
 
         def ctx_fn(q, m=m):
             m.q = q
             return Context(cfg, m, noise_mm, noise_deg, fit_sessions=ctx_fit0.sessions)
-        m.q = _readings(effect, params, ctx_fn, Xr, base, plat, off)
+        m.q = _readings(effs, params, ctx_fn, Xr, base, plat, off)
         if rows.start == n_fit and holdout_new_session_mm > 0:
             m.q = m.q - rng.normal(0.0, holdout_new_session_mm, 6)[None]
             m.session = np.array(["new"] * len(Xr), dtype=object)
@@ -171,14 +187,19 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
         y[:, ~keep] = np.nan
         m.y = y
         m.lines = np.arange(2, len(Xr) + 2)
-    names = cause_model(effect, ctx_fit0).names if effect not in ("none",) else []
-    ep = {}
+    eps = {e: _effect_param_names(e, p_, ctx_fit0) for e, p_ in zip(effs, params)}
+    label = "+".join(effs) if effs else "none"
+    first = eps[effs[0]] if len(effs) == 1 else {}
+    return SynthSet(parts[0], parts[1], label, first, float(sum(mags.values())), theta, frame, noise_mm, noise_deg,
+                    effects=effs, effects_params=eps, magnitudes_mm=mags)
+
+
+def _effect_param_names(effect: str, params: np.ndarray, ctx: Context) -> dict:
     if effect == "strut_nonlinearity":
         ep = {f"quad{i + 1}_mm": float(params[i]) for i in range(6)}
         ep.update({f"cubic{i + 1}_mm": float(params[6 + i]) for i in range(6)})
-    elif effect != "none":
-        ep = {nm: float(v) for nm, v in zip(names, params)}
-    return SynthSet(parts[0], parts[1], effect, ep, mag, theta, frame, noise_mm, noise_deg)
+        return ep
+    return {nm: float(v) for nm, v in zip(cause_model(effect, ctx).names, params)}
 
 
 def write_set(s: SynthSet, fit_path, holdout_path) -> None:

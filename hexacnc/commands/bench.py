@@ -13,6 +13,7 @@ BENCHES: dict[str, str] = {
     "interp": "hexacnc.bench.interp",
     "plan": "hexacnc.bench.plan",
     "calib": "hexacnc.bench.calib",
+    "diagnose": "hexacnc.bench.diagnose",
     "simulate": "hexacnc.bench.simulate",
     "hold": "hexacnc.bench.hold",
     "arch": "hexacnc.bench.arch",

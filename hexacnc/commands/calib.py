@@ -29,6 +29,12 @@ def configure(p: argparse.ArgumentParser) -> None:
     pl.add_argument("--frame", action="store_true", help="the instrument frame will be registered (12 more parameters)")
     pl.add_argument("--out", help="write the poses as CSV (x,y,z,a,b,c,q1..q6)")
     pl.add_argument("--json", help="write the plan report as JSON (also printed)")
+    pl.add_argument("--separate", metavar="CAUSE[,CAUSE]",
+                    help="plan the extra poses (and payloads, temperatures, approach directions) that separate "
+                         "these causes from the geometry and from each other (Ds-optimal); the CSV gains "
+                         "payload_kg, T_strut_C and approach columns")
+    pl.add_argument("--payload-kg", type=float, default=None,
+                    help="with --separate elastic_sag: the payload to alternate with none (default: carrier mass)")
     pl.set_defaults(_calib=_plan)
 
     ft = sub.add_parser("fit", help="identify the 42 parameters from measurements, write a calibrated config",
@@ -90,6 +96,9 @@ def _plan(args) -> int:
     from ..calib.plan import plan
     from ..config import load_config
     cfg = load_config(args.config)
+    if args.separate:
+        from ..calib.plan_separate import main_separate
+        return main_separate(cfg, args)
     res = plan(cfg, args.poses, args.measure, args.candidates, args.seed, args.noise_mm, args.noise_deg, args.frame)
     if args.out:
         lines = ["x,y,z,a,b,c,q1,q2,q3,q4,q5,q6"]

@@ -21,7 +21,8 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--report", help="directory for PNG plots and summary.md")
     p.add_argument("--causes", default="all",
                    help="comma-separated candidates (default all: elastic_sag, thermal_expansion, strut_scale, "
-                        "strut_nonlinearity, backlash, session_offset, joint_offset)")
+                        "strut_nonlinearity, backlash, session_offset, joint_offset); elastic_sag and thermal_expansion "
+                        "are also tried per strut")
     p.add_argument("--frame", choices=("auto", "base", "register"), default="auto",
                    help="measurement frame: register it (12 parameters: instrument frame and tracked target) "
                         "or take the base frame; auto: register when full poses are measured")
@@ -31,7 +32,7 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--rereference", choices=("offsets", "offsets+frame"), default="offsets",
                    help="what the first K held-out rows re-reference")
     p.add_argument("--folds", type=int, default=5, help="blocked cross-validation folds (default 5)")
-    p.add_argument("--max-causes", type=int, default=3, help="at most this many causes (default 3)")
+    p.add_argument("--max-causes", type=int, default=4, help="at most this many causes (default 4)")
     p.add_argument("--prior-mm", type=float, default=5.0, help="prior sigma of joint positions (mm)")
     p.add_argument("--out-config", help="write the extended model as a machine description (TOML, atomic): "
                                         "fitted geometry plus the selected causes the cycle applies "
@@ -100,6 +101,9 @@ def main(args: argparse.Namespace) -> int:
     files = rd.commit() if rd is not None else []
     b, e = res["baseline"], res["extended"]
     print(f"verdict: {res['verdict']}")
+    for g in res.get("inseparable_causes", []):
+        print(f"  not named: {' or '.join(g['causes'])} (this data cannot tell them apart); to separate them: "
+              f"{g['what_to_measure']['poses']}")
     for key, r in (("baseline (rigid 42)", b), ("extended", e)):
         print(f"  {key:20s} fit {_r(r['rms_fit'])}   holdout {_r(r['rms_holdout'])}")
     if res.get("holdout"):

@@ -1,0 +1,145 @@
+"""Model health: payload from torques, drift patterns by cause, recordings, ``hexacnc record/health`` (issue 17)."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+import threading
+
+import numpy as np
+import pytest
+
+from hexacnc.calib import recording
+from hexacnc.calib.health import analyse
+from hexacnc.calib.healthsim import Drift, simulate
+from hexacnc.calib.payload import DriveTorqueModel, identify_payload, simulate_torques
+from hexacnc.calib.synth import sample_poses
+from hexacnc.cli import main as cli
+from hexacnc.config import load_config
+from hexacnc.kinematics import Hexapod
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def fresh_seed() -> int:
+    return int.from_bytes(os.urandom(4), "little")
+
+
+def test_payload_mass_and_cog_from_rest_torques(cfg):
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    hx = Hexapod(cfg)
+    model = DriveTorqueModel()
+    m_true = rng.uniform(30.0, 60.0)
+    c_true = np.array([rng.uniform(-60, 60), rng.uniform(-60, 60), rng.uniform(-220, -120)])
+    P = sample_poses(cfg, rng, 60)
+    off = rng.normal(0.0, model.offset_permille, 6)
+    T = simulate_torques(hx, P, m_true, c_true, model, rng, off)
+    P0 = sample_poses(cfg, rng, 60)
+    T0 = simulate_torques(hx, P0, 0.0, None, model, rng, off)
+    r = identify_payload(hx, P, T, model, tare=(P0, T0))
+    msg = f"seed {seed}: true {m_true:.2f} kg at {c_true.round(1)}, got {r.mass_kg:.2f} +- {r.mass_std_kg:.2f}"
+    assert abs(r.mass_kg - m_true) <= 0.05 * m_true, msg
+    assert abs(r.mass_kg - m_true) <= 4.5 * r.mass_std_kg, msg
+    assert np.all(np.abs(r.cog_platform_mm - c_true) <= 5 * r.cog_std_mm + 1.0), (msg, r.cog_platform_mm)
+
+
+@pytest.fixture(scope="module")
+def reference(cfg):
+    return simulate(cfg, 11, Drift(), n_moves=24, rate_hz=50.0)
+
+
+@pytest.mark.parametrize("case", ["healthy", "payload", "thermal", "friction", "stiffness"])
+def test_health_separates_drift_by_cause(cfg, reference, case):
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    k = int(rng.integers(6))
+    drift = {"healthy": Drift(),
+             "payload": Drift(payload_kg=float(rng.uniform(30, 60)), payload_cog_mm=(10.0, -20.0, -160.0)),
+             "thermal": Drift(temperature_rise_K=float(rng.uniform(3, 8)), thermal_compensated=False),
+             "friction": Drift(friction_N=tuple(150.0 if i == k else 60.0 for i in range(6))),
+             "stiffness": Drift(extra_compliance_mm_per_kN=tuple(1.0 if i == k else 0.0 for i in range(6)))}[case]
+    rep = analyse(cfg, simulate(cfg, seed % 100000, drift, n_moves=24, rate_hz=50.0), reference=reference)
+    msg = f"{case} seed {seed}: {rep['status']} {rep['warnings']}"
+    want = {"healthy": [], "payload": ["payload_changed"], "thermal": ["thermal_not_compensated"],
+            "friction": ["friction_changed"], "stiffness": ["stiffness_changed"]}[case]
+    assert rep["causes"] == want, msg
+    assert rep["status"] == ("ok" if case == "healthy" else "warning"), msg
+    if case in ("friction", "stiffness"):
+        assert [f["strut"] for f in rep["findings"]] == [k + 1], msg
+    if case == "payload":
+        p = rep["payload"]
+        assert abs(p["mass_kg"] - drift.payload_kg) <= 0.05 * drift.payload_kg, msg
+        upd = p["proposed_update"]
+        assert upd["carrier"]["mass_kg"] == pytest.approx(cfg.mass_kg + p["mass_kg"], abs=1e-3)
+        assert "[carrier]" in upd["toml"] and upd["sag_change_at_home"]["position_um"] > 0
+
+
+def test_recording_files_open_in_numpy_and_roundtrip(cfg, tmp_path):
+    rec = simulate(cfg, 3, Drift(), n_moves=3)
+    for ext in ("npz", "csv"):
+        p = tmp_path / f"r.{ext}"
+        recording.save(p, rec)
+        back = recording.load(p)
+        assert back.n == rec.n
+        for nm in ("struts_cmd_mm", "torque_permille", "t_s"):
+            np.testing.assert_allclose(back[nm], rec[nm], rtol=1e-8, atol=1e-9)
+    z = np.load(tmp_path / "r.npz")
+    assert z["following_error_mm"].shape == (rec.n, 6)
+    arr = np.genfromtxt(tmp_path / "r.csv", delimiter=",", names=True)
+    assert "torque_permille_3" in arr.dtype.names and len(arr) == rec.n
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t_s,x\n0,1\n1,zz\n")
+    from hexacnc.errors import DataError
+    with pytest.raises(DataError, match="line 3, column 2"):
+        recording.load(bad)
+
+
+def test_health_cli_reads_a_recording(cfg, reference, tmp_path):
+    rec = simulate(cfg, 5, Drift(payload_kg=40.0), n_moves=24, rate_hz=50.0)
+    recording.save(tmp_path / "run.npz", rec)
+    recording.save(tmp_path / "ref.npz", reference)
+    out = tmp_path / "h.json"
+    assert cli(["health", "--recording", str(tmp_path / "run.npz"), "--reference", str(tmp_path / "ref.npz"),
+                "--json", str(out)]) == 0
+    j = json.loads(out.read_text())
+    assert j["status"] == "warning" and j["causes"] == ["payload_changed"]
+    assert cli(["health", "--recording", str(tmp_path / "missing.npz")]) == 2
+
+
+@pytest.mark.e2e
+def test_record_from_the_daemon_socket(cfg, tmp_path):
+    """``hexacnc record`` against the socket server (fake daemon): a trigger, decimated samples, a file."""
+    import sys
+    sys.path.insert(0, os.path.dirname(__file__))
+    from test_protocol_fake import FakeDaemon
+
+    from hexacnc.daemon.server import SocketServer
+    d = tempfile.mkdtemp(prefix="hxrec", dir="/tmp")
+    daemon = FakeDaemon(block_s=0.01)
+    srv = SocketServer(daemon, cfg, os.path.join(d, "s.sock")).start()
+    try:
+        out = tmp_path / "rec.csv"
+        t = threading.Timer(0.3, lambda: daemon.load_program("\n".join(f"G1 X{i}" for i in range(200)), "p"))
+        t.start()
+        rc = cli(["record", "--socket", os.path.join(d, "s.sock"), "--out", str(out), "--rate", "50",
+                  "--count", "10", "--trigger", "state=running", "--timeout", "20"])
+        t.join()
+        assert rc == 0
+        r = recording.load(out)
+        assert r.n == 10 and r.meta["trigger"]["kind"] == "state"
+        assert np.all(np.diff(r["t_s"]) > 0)
+        assert np.all(r["struts_cmd_mm"] >= 1000.0)
+        assert np.all(np.isnan(r["torque_permille"]))   # the daemon's status carries no torques (yet)
+        js = tmp_path / "h.json"
+        assert cli(["health", "--live", "--socket", os.path.join(d, "s.sock"), "--duration", "0.5", "--rate", "20",
+                    "--json", str(js)]) == 0
+        assert json.loads(js.read_text())["status"] == "insufficient_data"   # no torques, temperatures, motion
+    finally:
+        srv.close()
+        daemon.close()
+        shutil.rmtree(d, ignore_errors=True)
