@@ -28,7 +28,7 @@ def test_next_controlword_walks_the_cia402_states():
     assert next_cw(0x0223, CW_SWITCH_ON) == CW_ENABLE_OPERATION   # switched on -> 4
     assert next_cw(0x0208, 0) == CW_FAULT_RESET             # fault: rising edge of bit 7 (15)
     assert next_cw(0x0208, CW_FAULT_RESET) == CW_DISABLE_VOLTAGE  # re-arm the edge
-    assert next_cw(0x0207, CW_ENABLE_OPERATION) == CW_DISABLE_VOLTAGE  # quick stop active -> 12
+    assert next_cw(0x0207, CW_ENABLE_OPERATION) == CW_ENABLE_OPERATION  # quick stop active -> 16 (drivers.cia402)
     assert next_cw(-1, 5) == 5                              # unknown: wait
 
 

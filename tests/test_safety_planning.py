@@ -53,7 +53,7 @@ def test_gcode_errors_come_back_with_line_and_column():
     from hexacnc.errors import GcodeError
     cfg = _cfg()
     with pytest.raises(GcodeError) as e:
-        PlanJob(cfg, "G1 X1 F100\nG99\n", "bad.ngc", _home(cfg), cfg.cycle.period_s).result()
+        PlanJob(cfg, "G1 X1 F100\nG12\n", "bad.ngc", _home(cfg), cfg.cycle.period_s).result()
     assert e.value.line == 2 and e.value.column == 1
 
 
