@@ -23,11 +23,24 @@ import time
 
 import numpy as np
 
+from .jerkfloor import _sections
+
 #: the message when casadi is missing
 INSTALL = "the jerk-limited optimum needs casadi (IPOPT): pip install casadi, or pip install 'hexacnc[bench]'"
+#: the bench's note on the ``jerk_optimum`` block
+NOTE = ("minimum time along the executed path, rest to rest between the plan's rest points, under every strut's "
+        "|v|, |a|, |jerk| limit (100 %) and the cycle-sampled curvature step |dL''| s_dot^2 <= j_max dt at piece "
+        "junctions; multiple shooting over the path parameter (nodes every 0.25 mm, >= 6 per piece, >= 300 per "
+        "section; constant path jerk per interval), IPOPT via casadi; jerk_optimum_ratio = hexacnc / optimum; "
+        "utilisation: the optimum's trajectory sampled at the cycle period through exact inverse kinematics, "
+        "finite differences (limits hold at the nodes: between them it may exceed slightly)")
 #: grid step (mm) on long stretches and nodes per path piece (every piece's ends are nodes)
 GRID_STEP_MM = 0.25
 PIECE_NODES = 6
+#: the shortest interval (mm) of the geometric grading towards a section's rest points
+END_GRADE_MM = 1e-4
+#: nodes at least per rest-to-rest section (the jerk switches at nodes: a coarse grid costs time)
+MIN_SECTION_NODES = 300
 #: cap on the nodes of one NLP (a longer section is solved with a coarser uniform step)
 MAX_NODES = 6000
 
@@ -89,8 +102,15 @@ def section_derivs(path, hx, a: float, b: float, step_mm: float = GRID_STEP_MM,
         if hi - lo <= 1e-12:
             continue
         n = max(piece_nodes, int(np.ceil((hi - lo) / step_mm)))
-        ss.append(np.linspace(lo, hi, n + 1))
-        pieces.append(np.full(n + 1, i))
+        si = np.linspace(lo, hi, n + 1)
+        # geometric nodes towards the rest points (the motion starts and ends with short intervals)
+        end_g = np.geomspace(END_GRADE_MM, step_mm, 10)[:-1]
+        extra = [a + end_g[a + end_g < hi]] if lo == a else []
+        extra += [b - end_g[b - end_g > lo]] if hi == b else []
+        if extra:
+            si = np.unique(np.concatenate([si] + extra))
+        ss.append(si)
+        pieces.append(np.full(si.shape[0], i))
     s_all = np.concatenate(ss)
     p_all = np.concatenate(pieces)
     # derivatives inside each piece: central differences with a step well inside the piece
@@ -140,8 +160,11 @@ def _guess(pd: PathDerivs, V, A, J) -> tuple:
 
 
 def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, guess=None,
-          max_iter: int = 3000, tol: float = 1e-9) -> Optimum:
-    """Minimum-time rest-to-rest traversal of the section ``pd`` under strut limits (each (m,))."""
+          max_iter: int = 3000, tol: float = 1e-9, accel_jumps: bool = False) -> Optimum:
+    """Minimum-time rest-to-rest traversal of the section ``pd`` under strut limits (each (m,)).
+
+    ``accel_jumps``: the path acceleration may jump where two pieces meet (TOPP-RA's model, for checks with
+    the jerk limit lifted); otherwise it is continuous (a finite jerk)."""
     import casadi as ca
     t0 = time.perf_counter()
     V, A, J = (np.asarray(x, dtype=float).reshape(-1) for x in (vmax, amax, jmax))
@@ -162,33 +185,40 @@ def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, gues
     j = ca.SX.sym("j", N)
     T = ca.SX.sym("T", N)
     V_, A_, J_, T_ = v * vs, a * as_, j * js, T * ts
+    # arriving path acceleration: A_ (departing) unless it may jump at a junction
+    junc = np.nonzero(np.any(np.abs(pd.L2b - pd.L2a) > 1e-9, axis=1) | np.any(pd.L1b != pd.L1a, axis=1))[0]
+    junc = junc[(junc > 0) & (junc < n - 1)] if accel_jumps else junc[:0]
+    da = ca.SX.sym("da", int(junc.size))
+    Aa = ca.SX(A_)
+    for q, k in enumerate(junc.tolist()):
+        Aa[k] = A_[k] + da[q] * as_
     v0, v1, a0, j0, T0 = V_[:-1], V_[1:], A_[:-1], J_, T_
     g = [(v0 * T0 + a0 * T0 ** 2 / 2 + j0 * T0 ** 3 / 6 - ca.DM(h)) / ca.DM(h),
          (v1 - (v0 + a0 * T0 + j0 * T0 ** 2 / 2)) / vs,
-         (A_[1:] - (a0 + j0 * T0)) / as_]
+         (Aa[1:] - (a0 + j0 * T0)) / as_]
     lbg = [np.zeros(N)] * 3
     ubg = [np.zeros(N)] * 3
     m = pd.L1a.shape[1]
     for i in range(m):
-        for L1, L2 in ((pd.L1a[:, i], pd.L2a[:, i]), (pd.L1b[:, i], pd.L2b[:, i])):
+        for L1, L2, AA in ((pd.L1a[:, i], pd.L2a[:, i], Aa), (pd.L1b[:, i], pd.L2b[:, i], A_)):
             g.append(ca.DM(L1) * V_ / V[i])
-            g.append((ca.DM(L2) * V_ ** 2 + ca.DM(L1) * A_) / A[i])
+            g.append((ca.DM(L2) * V_ ** 2 + ca.DM(L1) * AA) / A[i])
             lbg += [-np.ones(n)] * 2
             ubg += [np.ones(n)] * 2
         # jerk of the interval before a node (arriving derivatives) and after it (departing)
-        for L1, L2, L3, sl, jv in ((pd.L1a[1:, i], pd.L2a[1:, i], pd.L3a[1:, i], slice(1, n), J_),
-                                   (pd.L1b[:-1, i], pd.L2b[:-1, i], pd.L3b[:-1, i], slice(0, N), J_)):
-            vv, aa = V_[sl], A_[sl]
+        for L1, L2, L3, sl, AA in ((pd.L1a[1:, i], pd.L2a[1:, i], pd.L3a[1:, i], slice(1, n), Aa),
+                                   (pd.L1b[:-1, i], pd.L2b[:-1, i], pd.L3b[:-1, i], slice(0, N), A_)):
+            vv, aa, jv = V_[sl], AA[sl], J_
             g.append((ca.DM(L3) * vv ** 3 + 3 * ca.DM(L2) * vv * aa + ca.DM(L1) * jv) / J[i])
             lbg.append(-np.ones(N))
             ubg.append(np.ones(N))
         step = np.abs(pd.L2b[:, i] - pd.L2a[:, i])
         kk = np.nonzero(step > 1e-9)[0]
-        if kk.size and cycle_s:
+        if kk.size and cycle_s and not accel_jumps:
             g.append(ca.DM(step[kk]) * V_[kk.tolist()] ** 2 / (J[i] * cycle_s))
             lbg.append(np.zeros(kk.size))
             ubg.append(np.ones(kk.size))
-    x = ca.vertcat(v, a, j, T)
+    x = ca.vertcat(v, a, j, T, da)
     lbv = np.zeros(n)
     ubv = np.full(n, np.inf)
     if pd.sd_max is not None:
@@ -197,9 +227,10 @@ def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, gues
     lba = np.full(n, -np.inf)
     uba = np.full(n, np.inf)
     lba[[0, -1]] = uba[[0, -1]] = 0.0
-    lbx = np.concatenate([lbv, lba, np.full(N, -np.inf), np.full(N, 1e-9 / ts)])
-    ubx = np.concatenate([ubv, uba, np.full(N, np.inf), np.full(N, np.inf)])
-    x0 = np.concatenate([vg / vs, ag / as_, jg / js, Tg / ts])
+    nj = int(junc.size)
+    lbx = np.concatenate([lbv, lba, np.full(N, -np.inf), np.full(N, 1e-9 / ts), np.full(nj, -np.inf)])
+    ubx = np.concatenate([ubv, uba, np.full(N, np.inf), np.full(N, np.inf), np.full(nj, np.inf)])
+    x0 = np.concatenate([vg / vs, ag / as_, jg / js, Tg / ts, np.zeros(nj)])
     nlp = {"x": x, "f": ca.sum1(T) / max(N, 1), "g": ca.vertcat(*g)}
     opts = {"ipopt.print_level": 0, "print_time": False, "ipopt.max_iter": max_iter, "ipopt.tol": tol,
             "ipopt.acceptable_tol": 1e-7, "ipopt.mu_strategy": "adaptive", "ipopt.sb": "yes"}
@@ -208,7 +239,7 @@ def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, gues
     st = S.stats()
     xo = np.asarray(r["x"]).reshape(-1)
     vo, ao = xo[:n] * vs, xo[n:2 * n] * as_
-    jo, To = xo[2 * n:2 * n + N] * js, xo[2 * n + N:] * ts
+    jo, To = xo[2 * n:2 * n + N] * js, xo[2 * n + N:2 * n + 2 * N] * ts
     return Optimum(float(np.sum(To)), pd.s.copy(), vo, ao, jo, To, str(st.get("return_status")),
                    int(st.get("iter_count", 0)), time.perf_counter() - t0)
 
@@ -244,7 +275,7 @@ def utilisation(path, hx, cfg, opts: list) -> dict:
 
 
 def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes: int = PIECE_NODES,
-                 jerk_scale: float = 1.0) -> dict:
+                 jerk_scale: float = 1.0, accel_jumps: bool = False) -> dict:
     """The jerk-limited optimum on the rest-to-rest ``sections`` [(a, b)] of the plan's executed path under
     the strut limits of ``cfg`` (jerk times ``jerk_scale``): total time, per-section times and solver
     status, the trajectory's measured utilisation."""
@@ -255,10 +286,24 @@ def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes
     t0 = time.perf_counter()
     opts = []
     for a, b in sections:
-        step = max(step_mm, (b - a) / MAX_NODES)
+        step = max(min(step_mm, (b - a) / MIN_SECTION_NODES), (b - a) / MAX_NODES)
         pd = section_derivs(path, hx, a, b, step, piece_nodes)
-        opts.append(solve(pd, vmax, amax, jmax, cycle_s=float(cfg.cycle.period_s)))
+        opts.append(solve(pd, vmax, amax, jmax, cycle_s=float(cfg.cycle.period_s), accel_jumps=accel_jumps))
     total = float(sum(o.duration_s for o in opts))
     return {"duration_s": total, "sections": opts, "solve_s": time.perf_counter() - t0,
             "ok": all(o.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") for o in opts),
             "nodes": int(sum(o.s.shape[0] for o in opts))}
+
+
+def jerk_optimum_report(plan, cfg, stops) -> dict:
+    """The jerk-limited optimum (:mod:`hexacnc.bench.jerkopt`) on the plan's rest-to-rest sections."""
+    if not have_casadi():
+        return {"skipped": INSTALL}
+    r = jerk_optimum(plan, cfg, _sections(stops))
+    opt = r["duration_s"]
+    return {"jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
+            "within_8_percent": bool(plan.duration_s <= 1.08 * opt),
+            "utilisation": {k: round(v, 6) for k, v in utilisation(plan.path, plan.hexapod, cfg,
+                                                                     r["sections"]).items()},
+            "solver_ok": r["ok"], "statuses": sorted({o.status for o in r["sections"]}),
+            "nodes": r["nodes"], "solve_s": round(r["solve_s"], 2), "note": NOTE}

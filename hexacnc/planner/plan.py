@@ -41,7 +41,7 @@ from ..gcode import blocks as B
 from ..kinematics import Hexapod
 from . import path as P
 from .limits import _check_limits
-from .softlimits import check_tip_box
+from .softlimits import check_box
 from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
                       _sample_profile, _with_accel_cap)
 from .toppvec import WavefrontTopp, accel_coefficients
@@ -243,7 +243,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
 
     jmarg, lmmarg = _check_limits(path, hx, cfg, sg, pidx, Xg, lmarg, amarg)
     # Cartesian soft limits (after the machine's own limits, which name the physical cause first)
-    check_tip_box(cfg, tip_g, path.line[pidx])
+    check_box(cfg, Xg, tip_g, path.line[pidx])
     del tip_g
 
     # ---- speed limits -------------------------------------------------------------------
@@ -561,7 +561,7 @@ def _standstill(cfg, hx, dt: float, events, start_pose, t_start: float) -> Plan:
     X0 = path.platform(np.zeros(1, dtype=np.int64), np.zeros(1))
     jmarg, lmmarg = _check_limits(path, hx, cfg, np.zeros(1), np.zeros(1, dtype=np.int64), X0, np.zeros(1),
                                   np.zeros(1))
-    check_tip_box(cfg, path.tip(np.zeros(1, dtype=np.int64), np.zeros(1)), np.array([line0]))
+    check_box(cfg, X0, path.tip(np.zeros(1, dtype=np.int64), np.zeros(1)), np.array([line0]))
     return Plan(
         cfg=cfg, hexapod=hx, path=path, dt=dt, s_tab=np.zeros(n), line_tab=line_tab, flag_tab=flag_tab,
         duration_s=(n - 1) * dt, utilisation={"velocity": 0.0, "acceleration": 0.0, "jerk": 0.0},
