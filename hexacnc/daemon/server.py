@@ -45,6 +45,7 @@ import msgpack
 from .. import __version__
 from ..errors import HexacncError, ProtocolError
 from . import protocol as P
+from .upload import UploadOps, Uploads
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -98,7 +99,7 @@ class _Conn:
         return f"client {self.num} ({self.kind} {self.peer}{', ' + self.client_name if self.client_name else ''})"
 
 
-class SocketServer:
+class SocketServer(UploadOps):
     """Serve the protocol of ``docs/protocol.md`` for ``daemon``.
 
     ``daemon`` offers ``hello() status() load_program(text, name) pause()
@@ -138,6 +139,7 @@ class SocketServer:
         self._pass_status: dict | None = None
         self._conns: dict[int, _Conn] = {}
         self._controller: _Conn | None = None
+        self._uploads = Uploads()              # chunked programs (program_begin/_chunk/_end), per connection
         self._next_num = 1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -715,6 +717,7 @@ class SocketServer:
             return
         conn.alive = False
         conn.subs.clear()
+        self._uploads.drop(conn.num)
         self._conns.pop(conn.num, None)
         try:
             if self._sel is not None:
