@@ -53,6 +53,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip-corpus", action="store_true", help="only the TOPP-RA comparison")
     parser.add_argument("--skip-topp", action="store_true", help="only the corpus timing")
     parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section (at least)")
+    parser.add_argument("--skip-memory", action="store_true",
+                        help="no peak-RSS measurement of planning a repeated 3D_Chips program")
     parser.add_argument("--skip-excerpts", action="store_true",
                         help="no CAM excerpts (arcspiral 1-200, tort 25-45, 3D_Chips 1-120) against the optimum")
     parser.add_argument("--topp-files", default="tort.ngc,arcspiral.ngc,3D_Chips.ngc",
@@ -142,6 +144,9 @@ def main(args: argparse.Namespace) -> int:
         if corpus.is_dir() and not args.skip_excerpts:
             res["topp"]["cam_excerpts"] = bench_excerpts(cfg, args.gridpoints, corpus)
         res["topp"]["jerk_optimum_summary"] = _optimum_summary(res["topp"])
+    if not args.skip_memory and corpus.is_dir():
+        from .memory import bench_memory
+        res["memory"] = bench_memory(corpus, args.config)
     if not args.skip_corpus:
         if corpus.is_dir():
             res["corpus"] = bench_corpus(cfg, corpus)

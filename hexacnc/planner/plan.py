@@ -72,9 +72,9 @@ ACC_SHARE = 0.97
 #: extra grid offsets from both ends of every piece (s-units)
 GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
 #: the derivatives' step on a piece shorter than FD_PIECE_STEPS * FD_STEP is its length / FD_PIECE_STEPS,
-#: at least FD_MIN_STEP (mm; rounding of the third difference stays far below the derivative there)
+#: at least FD_MIN_STEP (mm; the third difference's rounding, ~1e-16 L / step^3, stays below 1 mm^-2)
 FD_PIECE_STEPS = 8
-FD_MIN_STEP = 1e-7
+FD_MIN_STEP = 1e-4
 #: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
 REST_PIECE_INTERVALS = 32
 #: samples whose interval bound stays below this are not measured by exact inverse kinematics
@@ -220,7 +220,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     # ---- derivatives by central differences (same piece formula on both sides) --------
     # the step is FD_STEP, or an eighth of a shorter piece (the stencil of a piece far shorter than FD_STEP
     # reads its polynomial far outside the piece: a 1 um blend's third derivative came out orders too large)
-    d = np.minimum(FD_STEP, np.maximum(path.slen[pidx] / FD_PIECE_STEPS, FD_MIN_STEP))
+    # (a zero-length piece keeps FD_STEP: its polynomial is only read at its point; the rounding of a third
+    # difference grows as 1 / step^3, FD_MIN_STEP keeps it far below any jerk bound that matters)
+    sl = path.slen[pidx]
+    d = np.where(sl > 0, np.minimum(FD_STEP, np.maximum(sl / FD_PIECE_STEPS, FD_MIN_STEP)), FD_STEP)
     offs = (-2, -1, 0, 1, 2)
     Ls = []
     tips = []
