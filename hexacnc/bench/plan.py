@@ -53,6 +53,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip-corpus", action="store_true", help="only the TOPP-RA comparison")
     parser.add_argument("--skip-topp", action="store_true", help="only the corpus timing")
     parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section (at least)")
+    parser.add_argument("--optimum-only", action="store_true",
+                        help="only hexacnc against the jerk-limited optimum (bench paths and CAM excerpts; no "
+                             "TOPP-RA); combine with --skip-corpus --skip-memory for that figure alone")
     parser.add_argument("--skip-memory", action="store_true",
                         help="no peak-RSS measurement of planning a repeated 3D_Chips program")
     parser.add_argument("--skip-excerpts", action="store_true",
@@ -128,6 +131,13 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     res: dict = {"bench": "plan", "machine": cfg.name, "cpu_count": os.cpu_count()}
     corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
+    if args.optimum_only:
+        from .excerpts import bench_optimum_only
+        res["optimum"] = bench_optimum_only(cfg, corpus if corpus.is_dir() else None)
+        res["optimum"]["jerk_optimum_summary"] = _optimum_summary(
+            {**{k: res["optimum"].get(k) for k in ("corners", "smooth", "stops")},
+             "cam_excerpts": {k: v for k, v in res["optimum"].items() if " lines " in k}})
+        args.skip_topp = True
     if not args.skip_topp and not have_toppra():
         print(f"hexacnc bench plan: {TOPPRA_INSTALL} (skipping the peer comparisons; --skip-topp hides this)",
               file=sys.stderr)
