@@ -48,6 +48,7 @@ from . import protocol as P
 from . import sockpath, tcpauth, tlsio
 from .admission import Admission
 from .ops_operator import OPERATOR_OPS, attach_operator
+from .upload import UploadOps, Uploads
 
 log = logging.getLogger("hexacnc.daemon.server")
 
@@ -107,7 +108,7 @@ class _Conn:
         return f"client {self.num} ({self.kind} {self.peer}{', ' + self.client_name if self.client_name else ''})"
 
 
-class SocketServer(Admission):
+class SocketServer(UploadOps, Admission):
     """Serve the protocol of ``docs/protocol.md`` for ``daemon``.
 
     ``daemon`` offers ``hello() status() load_program(text, name) pause()
@@ -146,6 +147,7 @@ class SocketServer(Admission):
         self._pass_status: dict | None = None
         self._conns: dict[int, _Conn] = {}
         self._controller: _Conn | None = None
+        self._uploads = Uploads()              # chunked programs (program_begin/_chunk/_end), per connection
         self._next_num = 1
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -743,6 +745,7 @@ class SocketServer(Admission):
             return
         conn.alive = False
         conn.subs.clear()
+        self._uploads.drop(conn.num)
         self._conns.pop(conn.num, None)
         self._preauth.pop(conn.num, None)
         try:
