@@ -20,7 +20,7 @@ CAP_BISECT = 14
 CAP_HALVINGS = 60
 
 
-def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
@@ -65,6 +65,7 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
         tab[L] = None
     return out
 
+_dilate_min = dilate_min   #: the planner modules' own name for it
 
 def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
     """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
