@@ -43,6 +43,7 @@ from ..kinematics import Hexapod
 from ..setpoint import (FLAG_DWELL, FLAG_END, FLAG_EVENT, FLAG_MOTION, FLAG_PAUSED,  # noqa: F401 (re-exported)
                         FLAG_PROGRAM_PAUSE, FLAG_RAPID, FLAG_STOPPING)
 from . import path as P
+from . import rawmoves as R
 from .limits import _check_limits
 from .softlimits import check_box
 from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
@@ -535,9 +536,9 @@ def _standstill(cfg, hx, dt: float, events, start_pose, t_start: float) -> Plan:
     if start_pose is None:
         from ..gcode.factory import machine_defaults
         start_pose = machine_defaults(cfg)["start_pose"]
-    p0 = P._pose_rad(start_pose, "start", 0)
+    p0 = R.pose_rad(start_pose, "start", 0)
     line0 = int(events[0][1].line) if events else 0
-    pieces = {"kind": [P.LINE], "coef": [P._line_coef(p0, p0)], "slen": [0.0], "u0": [0.0], "uscale": [0.0],
+    pieces = {"kind": [P.LINE], "coef": [R.line_coef(p0, p0)], "slen": [0.0], "u0": [0.0], "uscale": [0.0],
               "tool_mm": [0.0], "feed": [1.0], "rapid": [False], "line": [line0]}
     path = P.Path(cfg, pieces, {})
     n = 2 + int(math.ceil(sum(max(0.0, float(b.seconds or 0.0)) for _, b in events if b.kind == B.DWELL) / dt))

@@ -116,7 +116,7 @@ def _deviation(qc: np.ndarray, c0: np.ndarray, d: np.ndarray) -> np.ndarray:
 
 
 def smooth_runs(ra, stop_after_raw: set, max_segment_mm: float):
-    """Return ``ra`` (:class:`~hexacnc.planner.path.RawArrays`) with short-line runs as SPLINE pieces.
+    """Return ``ra`` (:class:`~hexacnc.planner.rawmoves.RawArrays`) with short-line runs as SPLINE pieces.
 
     ``stop_after_raw``: raw move indices followed by a stopping event.  ``ra`` is not modified.
     """
