@@ -19,6 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def config(tmp_path, profile):
     text = (resources.files("hexacnc") / "data" / "default.toml").read_text()
     # shared 2-core test machine without SCHED_FIFO: tolerate hot-loop stalls (as tests/e2e_fixtures.py)
+    text = re.sub(r"(?m)^comm_loss_timeout_s = .*\n", "", text)         # the file's own value, replaced below
     text = text.replace("[bus]\n", f'[bus]\nsimulate_profile = "{profile}"\ncomm_loss_timeout_s = 0.5\n', 1)
     text = re.sub(r"(?m)^max_overruns_in_row = .*$", "max_overruns_in_row = 1000", text)
     assert "max_overruns_in_row = 1000" in text
