@@ -3,7 +3,7 @@
 Each test starts the daemon as the README says (own process group, simulated drives on the
 shared-memory frame rings), taps the rings (:class:`hexacnc.bench.ringtap.RingTap`), puts the
 machine in motion, ends it one way and then checks what the drives saw: the targets decelerate
-within the strut limits, every drive gets the disable controlword and reports Switch on disabled,
+within the strut limits, every drive gets the CiA 402 disable walk (0x0007 at rest, then 0x0000) and reports Switch on disabled,
 and the exit status (0 after a clean stop, non-zero after a fault).
 """
 from __future__ import annotations
@@ -21,8 +21,10 @@ import pytest
 
 from drivers.cia402 import CW_DISABLE_VOLTAGE
 from hexacnc.bench.faults import children, machine_text
-from hexacnc.bench.ringtap import RingTap, motion_peaks
+from hexacnc.bench.ringtap import motion_peaks
 from hexacnc.config import load_config
+
+from disable_frames import OrderTap, assert_disable_walk, quick_stopped
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -79,7 +81,7 @@ class Run:
     def start(self) -> "Run":
         line = self.wait_for("frame rings:")
         names = line.split("frame rings:")[1].split()
-        self.tap = RingTap(self.cfg, names).start()
+        self.tap = OrderTap(self.cfg, names).start()
         self.wait_for("running (cycle")
         self.kids = children(self.proc.pid)
         assert set(self.kids) == {"hot", "sim"}, self.kids
@@ -139,6 +141,8 @@ def assert_controlled_stop(run: Run, t_signal: float) -> None:
     v_start = np.max(np.abs(L[1] - L[0])) / cfg.cycle.period_s
     assert v_start > 5.0, f"the signal came at rest ({v_start} mm/s): the test proves nothing"
     assert run.tap.last_controlwords() == [CW_DISABLE_VOLTAGE] * 6, run.tap.last_controlwords()
+    assert_disable_walk(run.tap, t_signal - 0.02)       # 0x0007 then 0x0000, at rest, SYNC running
+    assert quick_stopped(run.tap, t_signal - 0.02) == []
     sw = run.tap.last_statuswords()
     assert all(s is not None and s & 0x4F == 0x40 for s in sw), [hex(s or 0) for s in sw]
 

@@ -15,7 +15,10 @@ from drivers.cia402 import CW_DISABLE_VOLTAGE
 from hexacnc.bench.ringtap import RingTap, motion_peaks
 from hexacnc.config import load_config
 from hexacnc.daemon.core import Daemon
+from hexacnc.daemon.operator import Operator
 from hexacnc.errors import HexacncError
+
+from disable_frames import OrderTap, assert_disable_walk, quick_stopped
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
 
@@ -31,7 +34,7 @@ def cfg():
 @pytest.fixture
 def machine(cfg):
     d = Daemon(cfg, realtime=False)
-    tap = RingTap(cfg, [seg.name for seg in d.sim.segments]).start()
+    tap = OrderTap(cfg, [seg.name for seg in d.sim.segments]).start()
     try:
         yield d, tap
     finally:
@@ -70,6 +73,8 @@ def _assert_stopped_and_disabled(tap, cfg, t_from):
     assert pk["v"] <= 1.0 and pk["a"] <= 1.05 and pk["j"] <= 1.1, pk
     assert np.all(np.abs(L[-1] - L[-2]) < 1e-9)
     assert tap.last_controlwords() == [CW_DISABLE_VOLTAGE] * 6
+    # the drives that still followed: the loop's stop, then the CiA 402 walk (0x0007, 0x0000)
+    assert_disable_walk(tap, t_from, [i for i in range(6) if i not in quick_stopped(tap, t_from)])
 
 
 @pytest.mark.parametrize("kind,node,value,code,text", [
@@ -90,6 +95,22 @@ def test_injected_drive_fault_is_named_and_stops(machine, cfg, kind, node, value
     limit = cfg.cycle.feedback_timeout_s + 0.2 if kind == "silent" else 0.2
     assert latency < limit, latency
     _assert_stopped_and_disabled(tap, cfg, t0)
+    # a drive that lost its state (EMCY, reset) got quick stop at once; a following one never does
+    assert quick_stopped(tap, t0) == ([node - 1] if kind in ("emcy", "nmt") else [])
+
+
+def test_disable_op_walks_the_drives_after_the_stop_and_enable_brings_them_back(machine, cfg, tmp_path):
+    d, tap = machine
+    _move(d, cfg)
+    t0 = time.monotonic()
+    out = Operator(d, cfg, state_dir=str(tmp_path)).disable()
+    assert out["loop_state"] == "disabled", out
+    _assert_stopped_and_disabled(tap, cfg, t0)
+    assert quick_stopped(tap, t0) == []
+    sw = tap.last_statuswords()
+    assert all(s is not None and s & 0x4F == 0x40 for s in sw), [hex(s or 0) for s in sw]
+    d.enable(10.0)
+    assert d.status()["state"] in ("idle", "ready"), d.status()["state"]
 
 
 def test_following_error_found_at_half_the_feedback_frames_lost(machine, cfg):

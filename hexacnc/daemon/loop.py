@@ -10,9 +10,10 @@ thermal, limit guard - or the controlled stop, or the enable walk of :mod:`.enab
 measured lengths); ``account`` (:mod:`.cyclestats`) and the status block.
 
 A fault switches to the controlled stop (:class:`~hexacnc.daemon.stopgen.StrutStop`: jerk-limited
-per strut), then - once the struts stand at their final command - the drives are disabled by
-controlword and the fault latched until ``CMD_RESET``. The bus object ``io`` is duck-typed
-(:class:`IOProtocol`); :mod:`hexacnc.daemon.busio` builds it.
+per strut), then - once the struts stand at their final command - the drives are disabled by the
+CiA 402 walk of :mod:`.disablewalk` (0x0007, then 0x0000, targets held) and the fault latched until
+``CMD_RESET``; a drive that no longer follows (:data:`.supervise.QUICK_STOP_FAULTS`) gets quick stop.
+The bus object ``io`` is duck-typed (:class:`IOProtocol`); :mod:`hexacnc.daemon.busio` builds it.
 """
 from __future__ import annotations
 
@@ -23,17 +24,16 @@ import os
 import time
 from typing import Protocol
 
-from drivers.cia402 import CW_DISABLE_VOLTAGE
-
 from ..transform import CycleTransform, OK as CT_OK
 from . import shm as S
+from .disablewalk import DisableWalk
 from .faults import F_BUS, F_DEADLINE, F_ENABLE, F_LIMIT, F_NONE, F_SETPOINT, F_SUPERVISOR, F_TEST
 from .faults import fault_message  # noqa: F401 (re-export)
 from .cyclestats import CycleStats, publish_status
 from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
 from .enablewalk import ENABLE_TIMEOUT_NS, EnableWalk, op_enabled  # noqa: F401 (re-export)
 from .stopgen import StrutStop
-from .supervise import DriveSupervisor, following_limits_mm
+from .supervise import QUICK_STOP_FAULTS, DriveSupervisor, following_limits_mm
 
 log = logging.getLogger("hexacnc.loop")
 
@@ -132,6 +132,7 @@ class HotLoop:
         self.act = [0.0] * 6          # measured lengths, mm
         self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
         self.walk = EnableWalk(io, self.lmin, self.lmax)
+        self.dwalk = DisableWalk(io, self.walk.cw)     # both walks continue from the last controlword
         #: the enable walk may run ([daemon] enable_at_start, else from the first reset/enable)
         self.enable_ok = bool(getattr(cfg.daemon, "enable_at_start", True))
         self.follow_max = self.sup.follow_max
@@ -234,7 +235,8 @@ class HotLoop:
         return True
 
     def _disable(self) -> None:
-        self.walk.set_all(CW_DISABLE_VOLTAGE)
+        """Begin the disable walk (transitions 5, 10; :mod:`.disablewalk`), stepped every cycle."""
+        self.dwalk.begin(time.monotonic_ns())
 
     def _command(self, code: int, arg: int, now: int) -> None:
         st = self.state
@@ -250,10 +252,12 @@ class HotLoop:
                 self.fault_strut = self.fault_arg = 0
                 self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
                 self.state = S.ST_BOOT
+                self.dwalk.cancel()
                 self.walk.begin(now)
                 self.sup.arm(now)
             elif st == S.ST_BOOT and not self.enable_ok:     # waiting for enable since the start
                 self.enable_ok = True
+                self.dwalk.cancel()
                 self.walk.begin(now)
                 self.sup.arm(now)
         elif code in (S.CMD_SHUTDOWN, S.CMD_DISABLE):
@@ -336,7 +340,7 @@ class HotLoop:
                     last_state = self.state
                     stats.publish_phases()
                     self.publish(t0)
-                if self.exit_after > 0 and self.state in (S.ST_DISABLED, S.ST_FAULT):
+                if self.exit_after > 0 and self.state in (S.ST_DISABLED, S.ST_FAULT) and not self.dwalk.active:
                     self.exit_after += 1
                     if self.exit_after > 20:
                         break
@@ -405,6 +409,8 @@ class HotLoop:
             sup = self.sup
             code = sup.check(t0, self.act, self.sends)
             if code:
+                if code in QUICK_STOP_FAULTS:       # this drive no longer follows the loop's stop
+                    self.dwalk.quick_stop(sup.strut - 1)
                 self._fault(code, sup.strut, sup.arg)
 
     def offsets(self) -> None:
@@ -469,7 +475,8 @@ class HotLoop:
 
     def transform(self, t0: int) -> None:
         """Strut commands ``out`` of this cycle: IK + sag + thermal + limit guard of the held pose,
-        or the next step of the controlled stop, or of the enable walk."""
+        or the next step of the controlled stop, or of the enable walk; the disable walk runs on
+        (targets held) until every drive is disabled."""
         st = self.state
         if st == S.ST_RUNNING or st == S.ST_IDLE:
             self.guard()
@@ -478,6 +485,8 @@ class HotLoop:
             self.stopping(t0)
         elif st == S.ST_BOOT:
             self.enabling(t0)
+        elif self.dwalk.active:
+            self.dwalk.step(t0)
 
     def guard(self) -> None:
         ct = self.ct
@@ -498,9 +507,10 @@ class HotLoop:
         if self.after_stop == S.ST_IDLE:
             self._rehold_from(self.out)
             self.state = S.ST_IDLE
-        elif self._settled(t0):                 # disable once the struts stand where commanded
-            self._disable()
-            self.state = self.after_stop
+        elif self.dwalk.active or self._settled(t0):    # disable once the struts stand where commanded
+            self.dwalk.begin(t0)
+            if self.dwalk.step(t0):             # stopping until every drive is disabled
+                self.state = self.after_stop
 
     def enabling(self, t0: int) -> None:
         if not self.enable_ok:              # [daemon] enable_at_start false: hold, disabled, until enable

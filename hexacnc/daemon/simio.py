@@ -60,6 +60,7 @@ class SimIO:
             if num in (4, 16):
                 self._latched[i] = None
             state, prev = new, cw
+        state = cia402.SWITCH_ON_DISABLED if state == cia402.QUICK_STOP_ACTIVE else state  # 0x605A 2: stops at once, 12
         sw = cia402.drive_statusword(state)
         self.statusword[i] = sw | SW_DRIVE_FOLLOWS if cia402.is_operation_enabled(sw) else sw
 

@@ -35,6 +35,11 @@ SW_STATE_MASK = 0x6F
 SW_OPERATION_ENABLED = 0x27
 NMT_OPERATIONAL = 5
 NMT_UNKNOWN = -1
+#: findings after which the named drive no longer follows the loop's own controlled stop (lost
+#: heartbeat, EMCY, NMT or CiA 402 state lost, command value not followed): it gets quick stop
+#: (controlword bit 2 cleared, transition 11) at once and decelerates per 0x605A / 0x6085, while
+#: the drives that still follow take the loop's jerk-limited stop
+QUICK_STOP_FAULTS = frozenset((F_HEARTBEAT, F_EMCY, F_NMT, F_DRIVE, F_NOT_FOLLOWING))
 
 
 def history_slots(period_s: float, span_s: float) -> int:
