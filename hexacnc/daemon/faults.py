@@ -65,7 +65,7 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
     if code == F_NOT_FOLLOWING:
         return f"drive {strut} does not follow its target (statusword bit 12 clear: 0x{arg & 0xFFFF:04X})"
     if code == F_HOMING:
-        from .homeloop import ERROR_TEXT
+        from .homecodes import ERROR_TEXT
         return f"homing failed{f' on strut {strut}' if strut else ''}: {ERROR_TEXT.get(arg, arg)}"
     if code == F_SIGNAL:
         import signal

@@ -29,6 +29,8 @@ from drivers.cia402 import CW_ENABLE_OPERATION, SW_FAULT
 
 from . import shm as S
 from .faults import F_HOMING, F_NONE
+from .homecodes import (DONE, E_ABORTED, E_FAULT, E_HOMING_ERROR, E_LIMIT, E_SDO_ABORT, E_SDO_TIMEOUT,  # noqa: F401
+                        E_TIMEOUT, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING, SDO_TIMEOUT_S)
 
 MODE_HOMING = 6
 MODE_CSP = 8
@@ -36,22 +38,6 @@ CW_HOMING_START = CW_ENABLE_OPERATION | (1 << 4)
 SW_TARGET_REACHED = 1 << 10
 SW_HOMING_ATTAINED = 1 << 12
 SW_HOMING_ERROR = 1 << 13
-#: the whole homing run (all struts) must end within this (s)
-HOME_TIMEOUT_S = 45.0
-#: an SDO answer must come within this (s)
-SDO_TIMEOUT_S = 0.5
-
-RUNNING, DONE = 1, 2
-E_UNSUPPORTED, E_SDO_ABORT, E_SDO_TIMEOUT, E_HOMING_ERROR, E_FAULT, E_LIMIT, E_TIMEOUT, E_ABORTED = range(-1, -9, -1)
-ERROR_TEXT = {E_UNSUPPORTED: "this bus mode has no SDO channel (inproc simulation)",
-              E_SDO_ABORT: "the drive refused an SDO write (abort)",
-              E_SDO_TIMEOUT: "no SDO answer",
-              E_HOMING_ERROR: "the drive reports a homing error (statusword bit 13)",
-              E_FAULT: "the drive faulted while homing",
-              E_LIMIT: "a measured strut length left the strut limits while homing",
-              E_TIMEOUT: f"homing did not finish within {HOME_TIMEOUT_S:g} s",
-              E_ABORTED: "homing was stopped (stop, disable or shutdown)"}
-
 _P_SDO, _P_WAIT_MODE, _P_WAIT_ATTAINED, _P_BACK, _P_DONE = range(5)
 _SIZE_CS = {1: 0x2F, 2: 0x2B, 4: 0x23}
 _REQ = struct.Struct("<BHBi")
@@ -217,7 +203,8 @@ class HomingCycle:
 
 
 def home_command(loop, code: int, now: int) -> bool:
-    """In :meth:`HotLoop._command`: CMD_HOME (idle only), and stop/disable/shutdown while homing. True: handled."""
+    """In :meth:`HotLoop._command`: CMD_HOME (idle only), and stop/disable/shutdown while homing.
+    True: handled."""
     if code == S.CMD_HOME:
         if loop.state == S.ST_IDLE and not loop.streaming:
             if loop.homer is None:
@@ -239,9 +226,11 @@ def home_command(loop, code: int, now: int) -> bool:
         return True
     return False
 
+
 def home_step(loop, t0: int) -> None:
-    """In :meth:`HotLoop.transform` while ``ST_HOMING``: one homing cycle; at its end: re-seeded from the measured positions (idle), or stopped
-    (idle / disabled), or a homing fault (drives disabled)."""
+    """In :meth:`HotLoop.transform` while ``ST_HOMING``: one homing cycle; at its end: re-seeded
+    from the measured positions (idle), or stopped (idle / disabled), or a homing fault (drives
+    disabled)."""
     hm = loop.homer
     if loop.fault != F_NONE and not hm.aborting:
         hm.abort(E_ABORTED, 0, t0)

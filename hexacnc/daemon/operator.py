@@ -251,7 +251,7 @@ class Operator:
 
     def _home_cia402(self, hm) -> dict:
         """Every strut's drive homes in mode 6, run by the hot loop (:mod:`.homeloop`); waits for it."""
-        from .homeloop import DONE, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING
+        from .homecodes import DONE, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING
         d = self.daemon
         sh = d.sh
         with d.lock:
@@ -272,7 +272,7 @@ class Operator:
         if r != DONE:
             where = f" (strut {strut})" if strut else ""
             why = ERROR_TEXT.get(r, "no answer from the hot loop" if r == RUNNING else f"code {r}")
-            raise OperatorError(f"home failed{where}: {why}", "fault")
+            raise OperatorError(f"home failed{where}: {why}", "unsupported" if r == E_UNSUPPORTED else "fault")
         self.referenced = True
         st = d.status()
         return {"referenced": True, "method": "cia402", "homing_method": int(hm.homing_method),
