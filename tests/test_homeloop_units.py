@@ -72,7 +72,8 @@ def make_loop(io, cfg=None):
     mid = [(lo + hi) / 2 for lo, hi in zip(cfg.min_length_mm, cfg.max_length_mm)]
     return types.SimpleNamespace(cfg=cfg, io=io, ipm=float(cfg.bus.increments_per_mm),
                                  sh=types.SimpleNamespace(h=[0] * S.N_HEADER), act=list(mid), out=[0.0] * 6,
-                                 lmin=list(cfg.min_length_mm), lmax=list(cfg.max_length_mm))
+                                 lmin=list(cfg.min_length_mm), lmax=list(cfg.max_length_mm),
+                                 hb_timeout_ns=int(cfg.bus.heartbeat_timeout_ms * 1_000_000))
 
 
 def run(hc, io, n=200, t_ns=1_000_000, start=1):
@@ -152,6 +153,26 @@ def test_length_outside_the_strut_limits_fails():
     loop.act[3] = loop.lmax[3] + 1.0
     r, _ = run(hc, io, n=50)
     assert r == C.E_LIMIT and loop.sh.h[S.H_HOME_STRUT] == 4
+
+
+def test_drive_leaving_operation_enabled_or_silent_fails():
+    io = FakeDrives(delay=10_000)
+    loop = make_loop(io)
+    hc = H.HomingCycle(loop)
+    hc.begin(1)
+    run(hc, io, n=20)
+    io.statusword[2] = 0x0233                   # Switched on (bit 2 clear), no fault bit
+    assert hc.step(10**9) == C.RUNNING           # the abort: bit 4 cleared, mode 8 written back
+    r, _ = run(hc, io, n=50, start=10**9)
+    assert r == C.E_FAULT and loop.sh.h[S.H_HOME_STRUT] == 3
+    io = FakeDrives(delay=10_000)
+    io.hb_ns = [1] * 6
+    loop = make_loop(io)
+    hc = H.HomingCycle(loop)
+    hc.begin(1)
+    io.hb_ns[5] = 0                              # none yet: not judged
+    r, _ = run(hc, io, n=50, t_ns=loop.hb_timeout_ns // 10)
+    assert r == C.E_HEARTBEAT and loop.sh.h[S.H_HOME_STRUT] == 1
 
 
 def test_whole_run_times_out():

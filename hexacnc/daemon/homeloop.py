@@ -12,7 +12,7 @@ drive takes over from where it stands when it is back in cyclic synchronous posi
 2. the statusword in mode 6 (bit 12 clear), then controlword bit 4 (0x001F) starts the method;
 3. bit 12 homing attained (bit 13 homing error is a failure); controlword 0x000F; 0x6060 = 8.
 
-Any SDO abort or silence, homing error, drive fault, a measured length outside the strut limits,
+Any SDO abort or silence, homing error, drive fault or state change, lost heartbeat, a measured length outside the strut limits,
 or ``HOME_TIMEOUT_S`` fails the run: bit 4 is cleared (the drive stops its homing motion), mode 8 is
 written back (best effort) and the loop latches a fault (drives disabled). Following-error
 supervision is off while homing (the drives move on their own).
@@ -29,7 +29,7 @@ from drivers.cia402 import CW_ENABLE_OPERATION, SW_FAULT
 
 from . import shm as S
 from .faults import F_HOMING, F_NONE
-from .homecodes import (DONE, E_ABORTED, E_FAULT, E_HOMING_ERROR, E_LIMIT, E_SDO_ABORT, E_SDO_TIMEOUT,  # noqa: F401
+from .homecodes import (DONE, E_ABORTED, E_FAULT, E_HEARTBEAT, E_HOMING_ERROR, E_LIMIT, E_SDO_ABORT, E_SDO_TIMEOUT,  # noqa: F401
                         E_TIMEOUT, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING, SDO_TIMEOUT_S)
 
 MODE_HOMING = 6
@@ -38,6 +38,7 @@ CW_HOMING_START = CW_ENABLE_OPERATION | (1 << 4)
 SW_TARGET_REACHED = 1 << 10
 SW_HOMING_ATTAINED = 1 << 12
 SW_HOMING_ERROR = 1 << 13
+SW_STATE_MASK, SW_OPERATION_ENABLED = 0x6F, 0x27
 _P_SDO, _P_WAIT_MODE, _P_WAIT_ATTAINED, _P_BACK, _P_DONE = range(5)
 _SIZE_CS = {1: 0x2F, 2: 0x2B, 4: 0x23}
 _REQ = struct.Struct("<BHBi")
@@ -146,9 +147,13 @@ class HomingCycle:
         loop = self.loop
         sw = self.io.statusword
         act = loop.act
+        hb = getattr(self.io, "hb_ns", None)
+        hb_to = loop.hb_timeout_ns
         for i in range(6):
-            if sw[i] >= 0 and sw[i] & SW_FAULT:
+            if sw[i] >= 0 and (sw[i] & SW_FAULT or sw[i] & SW_STATE_MASK != SW_OPERATION_ENABLED):
                 return self.abort(E_FAULT, i + 1, now)
+            if hb is not None and hb[i] and now - hb[i] > hb_to:
+                return self.abort(E_HEARTBEAT, i + 1, now)
             if not loop.lmin[i] - 1e-6 <= act[i] <= loop.lmax[i] + 1e-6:
                 return self.abort(E_LIMIT, i + 1, now)
         if now - self.t0 > HOME_TIMEOUT_S * 1e9:
