@@ -25,8 +25,8 @@ def start_positions_mm(c) -> np.ndarray:
     return Hexapod(c).lengths(c.home_pose) - np.asarray(c.strut_offset_mm, dtype=float)
 
 
-def homing_machine(c, method: int, offset_mm):
-    hm = HomingConfig(method="cia402", required=True, homing_method=method, speed_search_mm_s=10.0,
+def homing_machine(c, method: int, offset_mm, speed_search_mm_s: float = 10.0):
+    hm = HomingConfig(method="cia402", required=True, homing_method=method, speed_search_mm_s=speed_search_mm_s,
                       speed_zero_mm_s=2.0, acceleration_mm_s2=100.0, offset_mm=np.asarray(offset_mm, dtype=float))
     return c.replace(operator=dataclasses.replace(c.operator, homing=hm))
 
@@ -130,5 +130,46 @@ def test_home_on_the_limit_switches_moves_each_strut_there(cfg, capsys):  # noqa
         assert np.all(np.abs(act - want) < 0.1), act - want
         assert np.all(np.abs(np.array(st["struts_cmd_mm"]) - act) < 0.01)
         assert st["referenced"] is True
+    finally:
+        next(gen, None)
+
+
+def test_stop_and_disable_during_homing_leave_it_unreferenced(cfg, capsys):  # noqa: F811
+    start = start_positions_mm(cfg)
+    mc = homing_machine(cfg, 17, start - simhoming.SWITCH_FROM_START_MM, speed_search_mm_s=0.5)   # ~4 s
+    gen = running_machine(mc, name="hmst")
+    daemon, srv = next(gen)
+    try:
+        sock = srv.socket_path
+        for how in ("stop", "disable"):
+            result = {}
+
+            def home():
+                with P.Client.unix(sock) as c:
+                    try:
+                        result["reply"] = c.call("home", reply_timeout_s=60.0)
+                    except Exception as exc:      # the refusal the client gets
+                        result["error"] = str(exc)
+            th = threading.Thread(target=home)
+            th.start()
+            t_end = time.monotonic() + 10.0
+            while status(sock).get("loop_state") != "homing" and time.monotonic() < t_end:
+                time.sleep(0.01)
+            time.sleep(0.1)                       # the struts are on their way to the switches
+            assert status(sock).get("loop_state") == "homing"
+            with P.Client.unix(sock) as c2:
+                c2.call("take")
+                c2.call(how, reply_timeout_s=30.0)
+            th.join(30.0)
+            assert "reply" not in result and "stopped" in result["error"], result
+            st = status(sock)
+            assert st["referenced"] is False
+            if how == "stop":
+                assert st["loop_state"] == "idle" and st["drives_enabled"] and st["fault"] is None
+                assert np.all(np.abs(np.array(st["struts_cmd_mm"]) - np.array(st["struts_act_mm"])) < 0.05)
+            else:
+                assert st["loop_state"] == "disabled" and not st["drives_enabled"]
+            rc, out, err = run(capsys, "mdi", "G91 G1 Z-0.5 F300", "--socket", sock)
+            assert rc != 0 and ("not referenced" in err or "disabled" in err), err
     finally:
         next(gen, None)

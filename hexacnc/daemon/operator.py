@@ -229,7 +229,7 @@ class Operator:
         if d.current is not None or d.queue:
             d.stop()
             d.wait(timeout_s)
-        if d.sh.h[S.H_STATE] in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING):
+        if d.sh.h[S.H_STATE] in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING, S.ST_HOMING):
             d.sh.command(S.CMD_DISABLE)
             t_end = time.monotonic() + timeout_s
             while d.sh.h[S.H_STATE] != S.ST_DISABLED and time.monotonic() < t_end:

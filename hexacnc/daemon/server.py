@@ -179,7 +179,7 @@ class SocketServer(Admission):
             self._close_listeners()
             raise
         self._motion_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-motion")
-        # stop/pause/resume/reset never wait behind a program being interpreted and planned
+        # stop/pause/resume/reset/disable never wait behind a program being planned (or a home)
         self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control")
         self._wait_pool = ThreadPoolExecutor(self.max_clients * _MAX_WAITS_PER_CLIENT,
                                              thread_name_prefix="hexacnc-wait")
@@ -540,7 +540,8 @@ class SocketServer(Admission):
             self._wake()
         with self._motion_cv:
             self._motion_submitted += 1
-        control = req.op in ("stop", "pause", "resume", "reset") and getattr(self, "_control_pool", None)
+        # disable too: machine off never waits behind a motion op (e.g. a running CiA 402 home)
+        control = req.op in ("stop", "pause", "resume", "reset", "disable") and getattr(self, "_control_pool", None)
         (self._control_pool if control else self._motion_pool).submit(job)
 
     def _op_program(self, conn: _Conn, req: P.Request) -> None:
