@@ -118,7 +118,9 @@ def test_sdo_abort_fails_with_the_strut_and_restores_csp():
     loop = make_loop(io)
     hc = H.HomingCycle(loop)
     hc.begin(1)
-    r, _ = run(hc, io)
+    r, now = run(hc, io, t_ns=10_000_000)
+    # still in mode 8 (no bit 10 "halted" to wait for): mode 8 is written after SDO_TIMEOUT_S
+    assert now - 1 > C.SDO_TIMEOUT_S * 1e9
     assert r == C.E_SDO_ABORT and loop.sh.h[S.H_HOME_STRUT] == 1
     assert all(f[-1] == struct.pack("<BHBI", 0x2F, 0x6060, 0, 8) for f in io.sent)
     assert all(cw == 0x0F for cw in io.cw)

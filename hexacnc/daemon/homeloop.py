@@ -14,7 +14,8 @@ drive takes over from where it stands when it is back in cyclic synchronous posi
 
 Any SDO abort or silence, homing error, drive fault or state change, lost heartbeat, a measured length outside the strut limits,
 or ``HOME_TIMEOUT_S`` fails the run: bit 4 is cleared (the drive stops its homing motion), mode 8 is
-written back (best effort) and the loop latches a fault (drives disabled). Following-error
+written back once the drive reports its homing motion halted (bit 10, at most ``SDO_TIMEOUT_S``)
+(best effort) and the loop latches a fault (drives disabled). Following-error
 supervision is off while homing (the drives move on their own).
 
 Results in the shared header: ``H_HOME_RESULT`` (:data:`RUNNING`, :data:`DONE` or an error code
@@ -39,7 +40,7 @@ SW_TARGET_REACHED = 1 << 10
 SW_HOMING_ATTAINED = 1 << 12
 SW_HOMING_ERROR = 1 << 13
 SW_STATE_MASK, SW_OPERATION_ENABLED = 0x6F, 0x27
-_P_SDO, _P_WAIT_MODE, _P_WAIT_ATTAINED, _P_BACK, _P_DONE = range(5)
+_P_SDO, _P_WAIT_MODE, _P_WAIT_ATTAINED, _P_BACK, _P_DONE, _P_HALT = range(6)
 _SIZE_CS = {1: 0x2F, 2: 0x2B, 4: 0x23}
 _REQ = struct.Struct("<BHBi")
 _REQ_U = struct.Struct("<BHBI")
@@ -110,9 +111,8 @@ class HomingCycle:
         io = self.io
         for i in range(6):
             io.set_controlword(i, CW_ENABLE_OPERATION)
-            self.queue[i] = [sdo_download(0x6060, 0, 1, MODE_CSP)]
-            self.sent_at[i] = 0
-            self.phase[i] = _P_BACK
+            self.queue[i] = self.queue[i][:1] if self.sent_at[i] else []    # the answer still awaited
+            self.phase[i] = _P_HALT
 
     def _result(self, code: int, strut: int) -> None:
         h = self.loop.sh.h
@@ -134,7 +134,7 @@ class HomingCycle:
             if self._drive(i, now):
                 busy = True
         if self.aborting:
-            if busy and now - self.abort_t0 < 2 * SDO_TIMEOUT_S * 1e9:
+            if busy and now - self.abort_t0 < 3 * SDO_TIMEOUT_S * 1e9:
                 return RUNNING
             self._result(self.error, self.strut)
             return self.error
@@ -186,6 +186,11 @@ class HomingCycle:
             return True
         ph = self.phase[i]
         sw = io.statusword[i]
+        if ph == _P_HALT:                             # aborted: the homing motion halted, then mode 8
+            if sw >= 0 and sw & SW_TARGET_REACHED or now - self.abort_t0 > SDO_TIMEOUT_S * 1e9:
+                self.queue[i] = [sdo_download(0x6060, 0, 1, MODE_CSP)]
+                self.phase[i] = _P_BACK
+            return True
         if ph == _P_SDO:                              # mode 6 written: its statusword, then bit 4
             self.phase[i] = _P_WAIT_MODE
             return True
