@@ -8,6 +8,8 @@ import struct
 
 import pytest
 
+from hexacnc.errors import ConfigError
+
 from drivers import cyclic, framerec
 from drivers.layout import plan_layout
 from hexacnc.config import load_config
@@ -124,8 +126,8 @@ def test_following_limits_default_to_the_cycle_key(tmp_path):
     p.write_text(text.replace("[struts]\n", "[struts]\nmax_following_error_mm = -1\n", 1))
     with pytest.raises(Exception, match="max_following_error_mm"):
         load_config(str(p))
-    p.write_text(text.replace("[bus]\n", "[bus]\ncomm_loss_timeout_s = 0\n", 1))
-    with pytest.raises(Exception, match="comm_loss_timeout_s"):
+    p.write_text(text.replace("comm_loss_timeout_s = 0.2\n", "comm_loss_timeout_s = 0\n", 1))
+    with pytest.raises(ConfigError, match=r"\[bus\] comm_loss_timeout_s: value 0"):
         load_config(str(p))
 
 

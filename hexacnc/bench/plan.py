@@ -24,13 +24,24 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import sys
 import time
 from pathlib import Path
 
 from ..config import load_config
 from ..errors import HexacncError
 from .placement import PLACEMENT_NOTE, _place
-from .toppra_peer import bench_topp
+
+#: what to install for the peers (the ``bench`` extra; never runtime dependencies)
+TOPPRA_INSTALL = "the TOPP-RA comparison needs toppra: pip install toppra, or pip install 'hexacnc[bench]'"
+
+
+def have_toppra() -> bool:
+    try:
+        import toppra  # noqa: F401
+    except ImportError:
+        return False
+    return True
 
 HELP = "planner benchmark: duration vs TOPP-RA (same path, same strut limits) and planning speed on the corpus"
 
@@ -42,12 +53,21 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--skip-corpus", action="store_true", help="only the TOPP-RA comparison")
     parser.add_argument("--skip-topp", action="store_true", help="only the corpus timing")
     parser.add_argument("--gridpoints", type=int, default=2000, help="TOPP-RA grid points per section (at least)")
+    parser.add_argument("--optimum-only", action="store_true",
+                        help="only hexacnc against the jerk-limited optimum (bench paths and CAM excerpts; no "
+                             "TOPP-RA); combine with --skip-corpus --skip-memory for that figure alone")
+    parser.add_argument("--skip-memory", action="store_true",
+                        help="no peak-RSS measurement of planning a repeated 3D_Chips program")
+    parser.add_argument("--skip-excerpts", action="store_true",
+                        help="no CAM excerpts (arcspiral 1-200, tort 25-45, 3D_Chips 1-120) against the optimum")
     parser.add_argument("--topp-files", default="tort.ngc,arcspiral.ngc,3D_Chips.ngc",
                         help="corpus programs also compared with TOPP-RA (comma-separated; empty: none)")
 
 
 def bench_corpus(cfg, corpus: Path) -> dict:
     from ..planner import plan_program
+    from .toppra_peer import lift_workspace
+    cfg = lift_workspace(cfg)
     files = sorted(corpus.glob("*.ngc"))
     out = []
     sum_exec = 0.0
@@ -93,14 +113,50 @@ def bench_corpus(cfg, corpus: Path) -> dict:
             "placement": PLACEMENT_NOTE}
 
 
+def _optimum_summary(topp: dict) -> dict:
+    """Per bench path the ratio hexacnc / jerk-limited optimum, the worst, and the 8 % target."""
+    rows = {k: topp[k] for k in ("corners", "smooth", "stops") if isinstance(topp.get(k), dict)}
+    rows.update({k: v for k, v in topp.get("cam_excerpts", {}).items() if isinstance(v, dict)})
+    ratios = {k: v.get("jerk_optimum_ratio") for k, v in rows.items() if v.get("jerk_optimum_ratio")}
+    util = {k: v["jerk_optimum"].get("utilisation") for k, v in rows.items()
+            if isinstance(v.get("jerk_optimum"), dict) and v["jerk_optimum"].get("utilisation")}
+    worst = max(ratios.values()) if ratios else None
+    return {"ratios": ratios, "worst_ratio": worst, "target_ratio": 1.08,
+            "within_target": bool(worst is not None and worst <= 1.08),
+            "hexacnc_utilisation_ok": all(bool(v.get("utilisation_ok")) for v in rows.values() if "utilisation_ok" in v),
+            "optimum_utilisation": util}
+
+
 def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     res: dict = {"bench": "plan", "machine": cfg.name, "cpu_count": os.cpu_count()}
     corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
-    if not args.skip_topp:
+    if args.optimum_only:
+        from .excerpts import bench_optimum_only
+        res["optimum"] = bench_optimum_only(cfg, corpus if corpus.is_dir() else None)
+        res["optimum"]["jerk_optimum_summary"] = _optimum_summary(
+            {**{k: res["optimum"].get(k) for k in ("corners", "smooth", "stops")},
+             "cam_excerpts": {k: v for k, v in res["optimum"].items() if " lines " in k}})
+        args.skip_topp = True
+    if not args.skip_topp and not have_toppra():
+        print(f"hexacnc bench plan: {TOPPRA_INSTALL} (skipping the peer comparisons; --skip-topp hides this)",
+              file=sys.stderr)
+        res["topp"] = {"skipped": TOPPRA_INSTALL}
+    elif not args.skip_topp:
+        from .excerpts import bench_excerpts
+        from .jerkopt import INSTALL, have_casadi
+        from .toppra_peer import bench_topp
+        if not have_casadi():
+            print(f"hexacnc bench plan: {INSTALL} (jerk_optimum skipped)", file=sys.stderr)
         files = [f for f in (args.topp_files or "").split(",") if f.strip()]
         res["topp"] = bench_topp(cfg, args.gridpoints, corpus if (files and corpus.is_dir()) else None,
                                  tuple(f.strip() for f in files))
+        if corpus.is_dir() and not args.skip_excerpts:
+            res["topp"]["cam_excerpts"] = bench_excerpts(cfg, args.gridpoints, corpus)
+        res["topp"]["jerk_optimum_summary"] = _optimum_summary(res["topp"])
+    if not args.skip_memory and corpus.is_dir():
+        from .memory import bench_memory
+        res["memory"] = bench_memory(corpus, args.config)
     if not args.skip_corpus:
         if corpus.is_dir():
             res["corpus"] = bench_corpus(cfg, corpus)

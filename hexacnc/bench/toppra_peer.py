@@ -191,7 +191,8 @@ def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files, programmed_feed
         try:
             prog, wo = _place(f.read_text(encoding="utf-8", errors="replace"), name, cfg)
             blocks = _zero_dwells(prog.blocks) if programmed_feeds else _lift_feeds(prog.blocks)
-            r = _bench_topp(cfg, gridpoints, blocks, f"{name} (corpus)", programmed_feeds=programmed_feeds)
+            r = _bench_topp(cfg, gridpoints, blocks, f"{name} (corpus)", programmed_feeds=programmed_feeds,
+                            jerk_opt=False)
         except HexacncError as exc:
             res[name] = {"planned": False, "reason": str(exc)}
             continue
@@ -202,12 +203,21 @@ def bench_topp_corpus(cfg, gridpoints: int, corpus: Path, files, programmed_feed
 
 
 def _lifted_config(cfg, programmed_feeds: bool):
-    """The angular-velocity limit lifted; also the rapid feed unless the program's feeds are kept."""
+    """The angular-velocity limit lifted; also the rapid feed unless the program's feeds are kept; the
+    workspace box lifted (:func:`lift_workspace`)."""
     if programmed_feeds:
         pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6)
     else:
         pc = dataclasses.replace(cfg.planner, max_angular_velocity_deg_s=1e6, rapid_feed_mm_min=1e9)
-    return cfg.replace(planner=pc)
+    return lift_workspace(cfg.replace(planner=pc))
+
+
+def lift_workspace(cfg):
+    """The [workspace] box (Cartesian soft limits) lifted: the bench's paths and placed corpus programs are
+    compared under the strut limits alone (the smooth path's arc leaves the default box by 0.07 mm)."""
+    big = np.array([1e6, 1e6, 1e6, 1e6, 1e6, 1e6])
+    return cfg.replace(workspace_min=np.asarray(cfg.workspace_min) - big,
+                       workspace_max=np.asarray(cfg.workspace_max) + big)
 
 
 def feed_speed_limit(path, s: np.ndarray, half_cell) -> np.ndarray:
@@ -358,7 +368,8 @@ def toppra_utilisation(plan, cfg, sections) -> dict:
     return {"velocity": float(peak[0]), "acceleration": float(peak[1]), "jerk": float(peak[2])}
 
 
-def _bench_topp(cfg, gridpoints: int, blocks, label: str, programmed_feeds: bool = False) -> dict:
+def _bench_topp(cfg, gridpoints: int, blocks, label: str, programmed_feeds: bool = False,
+                jerk_opt: bool = True) -> dict:
     from ..planner import plan_program
 
     cfg = _lifted_config(cfg, programmed_feeds)
@@ -394,6 +405,9 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str, programmed_feeds: bool
     }
     fl = jerk_floor(plan, cfg, stops)
     floor = _floor_report(fl, total, plan.duration_s)
+    from .jerkopt import jerk_optimum_report
+    jopt = (jerk_optimum_report(plan, cfg, stops) if jerk_opt and not programmed_feeds else
+            {"skipped": "programmed feeds: not computed" if programmed_feeds else "whole corpus file: see cam_excerpts"})
     tu_note = ("TOPP-RA's trajectory (constant path acceleration between its grid points) sampled at the cycle "
                f"period ({float(cfg.cycle.period_s) * 1e3:g} ms), strut lengths by exact inverse kinematics of "
                "the executed path, finite differences at the cycle period, peak |v|, |a|, |jerk| over the "
@@ -407,6 +421,10 @@ def _bench_topp(cfg, gridpoints: int, blocks, label: str, programmed_feeds: bool
         "within_5_percent": bool(plan.duration_s <= 1.05 * total),
         "hexacnc_utilisation": {k: round(v, 6) for k, v in plan.utilisation.items()},
         "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
+        "jerk_optimum_s": jopt.get("jerk_optimum_s"),
+        "jerk_optimum_ratio": jopt.get("jerk_optimum_ratio"),
+        "jerk_optimum_utilisation": jopt.get("utilisation"),
+        "jerk_optimum": jopt,
     }
     if programmed_feeds:
         return {
@@ -496,7 +514,7 @@ def topp_decomposition(plan, cfg) -> dict:
     Only strut limits (the bench lifts feeds); the plan's stops are kept.  See the JSON note.
     """
     from ..planner.plan import ACC_SHARE, RHO_J, RHO_STEP
-    from ..planner.profile import ETA, _dilate_min
+    from ..planner.profile import ETA, dilate_min as _dilate_min
     from ..planner.topp import accel_coefficients, forward_backward, interval_times
     h = np.asarray(plan.grid_h)
     Lp, Lpp, Lppp = (np.asarray(a) for a in (plan.grid_L1, plan.grid_L2, plan.grid_L3))

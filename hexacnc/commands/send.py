@@ -87,6 +87,9 @@ def _load_cfg(args: argparse.Namespace):
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("program", help="G-code file (RS274NGC as LinuxCNC reads it)")
     add_connection_args(parser)
+    parser.add_argument("--chunk-bytes", type=int, default=1024 * 1024,
+                        help="programs larger than this are streamed in chunks of this size with an upload "
+                             "progress bar (program_begin/program_chunk/program_end; default 1 MiB)")
     parser.add_argument("--name", default=None, help="program name shown in status (default: file name)")
     parser.add_argument("--no-wait", action="store_true",
                         help="return as soon as the program is accepted and queued")
@@ -211,6 +214,9 @@ def main(args: argparse.Namespace) -> int:
         print(f"hexacnc send: {path}:{line}: not valid UTF-8 text", file=err)
         return EXIT_LOCAL
     name = args.name or os.path.basename(path)
+    if not 1024 <= args.chunk_bytes <= 8 * 1024 * 1024:
+        print(f"hexacnc send: --chunk-bytes must be in [1024, 8388608], got {args.chunk_bytes}", file=err)
+        return EXIT_LOCAL
 
     try:
         client = connect(args, "hexacnc send")
@@ -233,9 +239,10 @@ def main(args: argparse.Namespace) -> int:
 
 def _run(client, args, path: str, name: str, text: str, out: TextIO, err: TextIO) -> int:
     from ..daemon import protocol as P
+    from .upload_client import send_program
 
     try:
-        r = client.call("program", text=text, name=name, reply_timeout_s=None)
+        r = send_program(client, text, name, args.chunk_bytes, err, args.quiet)
     except P.DaemonError as exc:
         e = exc.error
         if exc.code in P.PROGRAM_CODES:

@@ -105,7 +105,7 @@ def plan_program(cfg, hx, text: str, name: str, start_rad, period_s: float) -> P
     from ..planner import plan_program as planner_plan
     start = tool_tip_pose_deg(cfg, start_rad)
     prog = program_from_config(text, name, cfg, start_pose=start)
-    plan = planner_plan(prog.blocks, cfg, hexapod=hx, period_s=period_s)
+    plan = planner_plan(prog.blocks, cfg, hexapod=hx, period_s=period_s, start_pose=start)
     p0 = np.asarray(plan.start_pose_platform, dtype=float)
     if float(np.max(np.abs(p0 - np.asarray(start_rad, dtype=float)))) > 1e-6:
         raise PlanError(f"program {name!r} does not start where the machine is "

@@ -60,8 +60,8 @@ ERROR_CODES: tuple[str, ...] = (
 PROGRAM_CODES = (GCODE, UNSUPPORTED, LIMIT)
 
 #: ops that move the machine or change its motion state: controller only
-MOTION_OPS = frozenset({"program", "pause", "resume", "stop", "reset", "override", "enable", "disable", "home",
-                        "jog", "mdi", "take"})
+MOTION_OPS = frozenset({"program", "program_begin", "program_chunk", "program_end", "pause", "resume", "stop",
+                        "reset", "override", "enable", "disable", "home", "jog", "mdi", "take"})
 
 _NUM = (int, float)
 #: op -> {field: (accepted python types, required)}.  "id" and "op" are checked for all.
@@ -69,6 +69,9 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "hello": {"token": ((str,), False), "client": ((str,), False)},
     "status": {},
     "program": {"text": ((str,), True), "name": ((str,), True)},
+    "program_begin": {"name": ((str,), True), "bytes": ((int,), True)},
+    "program_chunk": {"seq": ((int,), True), "text": ((str,), True)},
+    "program_end": {},
     "pause": {},
     "resume": {},
     "stop": {},

@@ -347,6 +347,10 @@ class RawArrays:
 
     @classmethod
     def from_raws(cls, raws: list) -> "RawArrays":
+        if not raws:
+            return cls(*(np.zeros((0, NCOEF) if f == "coef" else 0, dtype=dt) for f, dt in (
+                ("kind", np.int8), ("line", np.int64), ("slen", float), ("coef", float), ("tool_mm", float),
+                ("feed", float), ("rapid", bool), ("exact_stop", bool), ("tolerance", float))))
         return cls(*(np.array([getattr(r, f) for r in raws], dtype=dt).reshape(len(raws), -1).squeeze(1)
                      if f != "coef" else np.array([r.coef for r in raws], dtype=float).reshape(len(raws), NCOEF)
                      for f, dt in (("kind", np.int8), ("line", np.int64), ("slen", float), ("coef", float),
@@ -382,6 +386,8 @@ def raw_arrays(blocks, cfg) -> tuple[RawArrays, list]:
             raws, events = raw_moves(blocks, cfg)          # raises the first error
             return RawArrays.from_raws(raws), events
     n = len(mot)
+    if n == 0:
+        return RawArrays.from_raws([]), [(-1, blk) for _, blk in ev_at]
     try:
         S = np.array([b.start for b in mot], dtype=float).reshape(n, -1)
         E = np.array([b.end for b in mot], dtype=float).reshape(n, -1)

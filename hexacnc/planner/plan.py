@@ -44,6 +44,7 @@ from ..setpoint import (FLAG_DWELL, FLAG_END, FLAG_EVENT, FLAG_MOTION, FLAG_PAUS
                         FLAG_PROGRAM_PAUSE, FLAG_RAPID, FLAG_STOPPING)
 from . import path as P
 from .limits import _check_limits
+from .softlimits import check_box
 from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
                       _sample_profile, _with_accel_cap)
 from .toppvec import WavefrontTopp, accel_coefficients
@@ -73,6 +74,12 @@ RHO_STEP = 0.5
 ACC_SHARE = 0.97
 #: extra grid offsets from both ends of every piece (s-units)
 GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
+#: the derivatives' step on a piece shorter than FD_PIECE_STEPS * FD_STEP is its length / FD_PIECE_STEPS,
+#: at least FD_MIN_STEP (mm; the third difference's rounding, ~1e-16 L / step^3, stays below 1 mm^-2)
+FD_PIECE_STEPS = 8
+FD_MIN_STEP = 1e-4
+#: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
+REST_PIECE_INTERVALS = 32
 #: samples whose interval bound stays below this are not measured by exact inverse kinematics
 SCREEN = 0.5
 #: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds
@@ -152,8 +159,13 @@ class Plan:
 
 
 # ---------------------------------------------------------------------------
-def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | None = None) -> Plan:
+def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | None = None,
+                 start_pose=None) -> Plan:
     """Plan a whole program (list of :class:`~hexacnc.gcode.blocks.Block`) for the machine ``cfg``.
+
+    ``start_pose``: tool-tip pose (mm, deg; tool length 0) where a program without motion stands
+    (default: the tool tip at ``[workspace] home_pose``); a program with motion starts where its first
+    move starts.
 
     Raises :class:`PlanError` (line, limit) at the first strut-length, joint-angle
     or singularity violation along the path, or for bad input.
@@ -172,11 +184,22 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     w_plateau = nf * dt + 2 * dt     # raw plateau at every speed peak (two cycles of rounding margin)
 
     if path.n == 0:
-        # no motion: a standstill at the start pose (if any) for dwells
-        raise PlanError("program has no motion", line=None, limit="input", code="empty")
+        # no motion (empty, comments only, M2 only, dwells and events): a standstill at the start pose
+        return _standstill(cfg, hx, dt, events, start_pose, t_start)
 
     # ---- grid -----------------------------------------------------------------
     h_p, nint, lmarg, amarg = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)), pc.sample_bound_mm)
+    # a piece that rests at both ends (a short move from rest to rest) needs moving grid points inside, and
+    # enough of them that its speed peak gets a plateau near the best level (the caps place plateaus
+    # between grid points): REST_PIECE_INTERVALS at least (a finer spacing only tightens the bounds above)
+    rest_end = np.zeros(path.n, dtype=bool)
+    rest_end[[m for m in path.stops_after]] = True
+    rest_end[[m for m, blk in events if m >= 0 and blk.kind in P.STOP_EVENTS]] = True
+    rest_start = np.concatenate([[True], rest_end[:-1]])
+    two = rest_start & rest_end & (nint < REST_PIECE_INTERVALS)
+    if two.any():
+        nint = np.where(two, REST_PIECE_INTERVALS, nint)
+        h_p = np.where(two, path.slen / REST_PIECE_INTERVALS, h_p)
     # uniform samples at the bounded spacing plus a geometric refinement near both ends of each
     # piece (speed changes concentrate there; extra samples only tighten the bound)
     pidx, u_loc, counts = P.grid_offsets(path, h_p, nint, GRADE_MM)
@@ -190,26 +213,36 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     h = np.maximum(h, 0.0)
 
     # ---- derivatives by central differences (same piece formula on both sides) --------
-    d = FD_STEP
-    offs = (-2 * d, -d, 0.0, d, 2 * d)
+    # the step is FD_STEP, or an eighth of a shorter piece (the stencil of a piece far shorter than FD_STEP
+    # reads its polynomial far outside the piece: a 1 um blend's third derivative came out orders too large)
+    # (a zero-length piece keeps FD_STEP: its polynomial is only read at its point; the rounding of a third
+    # difference grows as 1 / step^3, FD_MIN_STEP keeps it far below any jerk bound that matters)
+    sl = path.slen[pidx]
+    d = np.where(sl > 0, np.minimum(FD_STEP, np.maximum(sl / FD_PIECE_STEPS, FD_MIN_STEP)), FD_STEP)
+    offs = (-2, -1, 0, 1, 2)
     Ls = []
     tips = []
     tool_pt = path.tool_point[pidx]
-    for o, tip in zip(offs, path.tips(pidx, [sg + o for o in offs])):
+    for o, tip in zip(offs, path.tips(pidx, [sg + o * d for o in offs])):
         X, L = P.platform_struts(tip, tool_pt, hx.plat, hx.base)
         Ls.append(L)
-        if o == 0.0:
+        if o == 0:
             Xg = X
-        if o in (-d, d):
+        if o in (-1, 1):
             tips.append(tip)
     Lm2, Lm1, L0, Lp1, Lp2 = Ls
-    Lp = (Lp1 - Lm1) / (2 * d)
-    Lpp = (Lp1 - 2 * L0 + Lm1) / (d * d)
-    Lppp = (Lp2 - 2 * Lp1 + 2 * Lm1 - Lm2) / (2 * d ** 3)
-    dtip = (tips[1] - tips[0]) / (2 * d)
+    dc = d[:, None]
+    Lp = (Lp1 - Lm1) / (2 * dc)
+    Lpp = (Lp1 - 2 * L0 + Lm1) / (dc * dc)
+    Lppp = (Lp2 - 2 * Lp1 + 2 * Lm1 - Lm2) / (2 * dc ** 3)
+    dtip = (tips[1] - tips[0]) / (2 * dc)
+    tip_g = 0.5 * (tips[0] + tips[1])         # tool tip at the grid (the mean of the +-d samples: O(d^2) off)
     del Ls, tips, Lm2, Lm1, L0, Lp1, Lp2, X, L, tip       # ~25 MB on 3D_Chips: less to fault in
 
     jmarg, lmmarg = _check_limits(path, hx, cfg, sg, pidx, Xg, lmarg, amarg)
+    # Cartesian soft limits (after the machine's own limits, which name the physical cause first)
+    check_box(cfg, Xg, tip_g, path.line[pidx])
+    del tip_g
 
     # ---- speed limits -------------------------------------------------------------------
     xyz_speed = np.linalg.norm(dtip[:, :3], axis=1)
@@ -449,10 +482,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
         for blk in hd.kinds:
-            val = {B.SPINDLE: float(getattr(blk, "spindle_rpm", 0.0)), B.COOLANT: getattr(blk, "coolant", "off"),
-                   B.TOOL_CHANGE: int(getattr(blk, "tool", 0)), B.DWELL: float(getattr(blk, "seconds", 0.0))
-                   }.get(blk.kind)
-            ev_out.append((c0 * dt, int(blk.line), blk.kind, val))
+            ev_out.append((c0 * dt, int(blk.line), blk.kind, _event_value(blk)))
             flag_tab[c0] |= FLAG_EVENT
         if hd.pause or hd.optional:
             p = (c0 + c1) // 2
@@ -489,3 +519,54 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         planning_s=time.perf_counter() - t_start,
     )
     return plan
+
+
+def _event_value(blk):
+    """The value an event row reports: spindle rpm, coolant state, tool number, dwell seconds."""
+    return {B.SPINDLE: float(getattr(blk, "spindle_rpm", 0.0)), B.COOLANT: getattr(blk, "coolant", "off"),
+            B.TOOL_CHANGE: int(getattr(blk, "tool", 0)), B.DWELL: float(getattr(blk, "seconds", 0.0))
+            }.get(blk.kind)
+
+
+def _standstill(cfg, hx, dt: float, events, start_pose, t_start: float) -> Plan:
+    """The plan of a program without motion: the start pose held for its dwells (M0/M1 pause there),
+    its events at the start, an end row.  Utilisation zero."""
+    from .sampler import governor_tables
+    if start_pose is None:
+        from ..gcode.factory import machine_defaults
+        start_pose = machine_defaults(cfg)["start_pose"]
+    p0 = P._pose_rad(start_pose, "start", 0)
+    line0 = int(events[0][1].line) if events else 0
+    pieces = {"kind": [P.LINE], "coef": [P._line_coef(p0, p0)], "slen": [0.0], "u0": [0.0], "uscale": [0.0],
+              "tool_mm": [0.0], "feed": [1.0], "rapid": [False], "line": [line0]}
+    path = P.Path(cfg, pieces, {})
+    n = 2 + int(math.ceil(sum(max(0.0, float(b.seconds or 0.0)) for _, b in events if b.kind == B.DWELL) / dt))
+    pauses = [b for _, b in events if b.kind in (B.PAUSE, B.OPTIONAL_PAUSE)]
+    n += 2 * len(pauses)
+    line_tab = np.full(n, line0, dtype=np.int32)
+    flag_tab = np.full(n, FLAG_DWELL, dtype=np.int32)
+    ev_out, pause_idx = [], []
+    for _, blk in events:
+        ev_out.append((0.0, int(blk.line), blk.kind, _event_value(blk)))
+    if events:
+        flag_tab[0] |= FLAG_EVENT
+    for k, blk in enumerate(pauses):
+        p = 1 + 2 * k
+        pause_idx.append((p, blk.kind == B.OPTIONAL_PAUSE, int(blk.line)))
+        flag_tab[p] |= FLAG_PROGRAM_PAUSE
+    flag_tab[-1] |= FLAG_END
+    z = np.zeros(n)
+    X0 = path.platform(np.zeros(1, dtype=np.int64), np.zeros(1))
+    jmarg, lmmarg = _check_limits(path, hx, cfg, np.zeros(1), np.zeros(1, dtype=np.int64), X0, np.zeros(1),
+                                  np.zeros(1))
+    check_box(cfg, X0, path.tip(np.zeros(1, dtype=np.int64), np.zeros(1)), np.array([line0]))
+    return Plan(
+        cfg=cfg, hexapod=hx, path=path, dt=dt, s_tab=np.zeros(n), line_tab=line_tab, flag_tab=flag_tab,
+        duration_s=(n - 1) * dt, utilisation={"velocity": 0.0, "acceleration": 0.0, "jerk": 0.0},
+        min_joint_margin_deg=jmarg, min_length_margin_mm=lmmarg,
+        line_times=({line0: (0.0, n * dt)} if events else {}), events=ev_out, pause_idx=pause_idx,
+        gov=governor_tables(z, z, z, z, z, z, dt), filter_s=0.0, n_segments=0, n_blends=0, n_smoothed=0,
+        n_stops=1, grid_points=1, sample_bound_mm=cfg.planner.sample_bound_mm, iterations=0,
+        grid_s=np.zeros(1), grid_x=np.zeros(1), grid_h=np.zeros(0), grid_stops=np.zeros(1, dtype=np.int64),
+        grid_L1=np.zeros((1, 6)), grid_L2=np.zeros((1, 6)), grid_L3=np.zeros((1, 6)),
+        planning_s=time.perf_counter() - t_start)

@@ -16,9 +16,11 @@ ETA = 0.95
 RHO_CAP = 1.0
 #: bisection steps of the peak caps (level resolution 2^-n of the peak's height above its valleys)
 CAP_BISECT = 14
+#: halvings of the peak level before the bisection on a hill between two stops (a level 2^-60 of the peak)
+CAP_HALVINGS = 60
 
 
-def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
@@ -63,6 +65,7 @@ def _dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -
         tab[L] = None
     return out
 
+_dilate_min = dilate_min   #: the planner modules' own name for it
 
 def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
     """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
@@ -165,13 +168,45 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
         # its neighbour); between two stops it gets the highest plateau it can hold
         lo = np.where(short & (v_lo > 0), v_lo, np.where(short, 0.0, v_lo))
         hi = np.where(short & (v_lo > 0), v_lo, vpk[hid])
+        # a hill between two stops: halve down to a level that fits first, so that the bisection's
+        # resolution is relative to the plateau's level, not to the peak's (a tiny move from rest to
+        # rest otherwise gets a plateau level with a coarse error: its duration jitters with its length)
+        zero = v_lo <= 0
+        if zero.any():
+            z = np.nonzero(zero)[0]
+            lev = hi[z].copy()
+            fit = np.zeros(z.size, dtype=bool)
+            for _ in range(CAP_HALVINGS):
+                fit |= long_enough(hid[z], lev)
+                if fit.all():
+                    break
+                lev = np.where(fit, lev, 0.5 * lev)
+            lo[z] = np.where(fit, lev, 0.0)
+            hi[z] = np.where(fit, np.minimum(2.0 * lev, hi[z]), lev)
         for _ in range(CAP_BISECT):
             mid = 0.5 * (lo + hi)
             ok = long_enough(hid, mid)
             lo = np.where(ok, mid, lo)
             hi = np.where(ok, hi, mid)
         cap[hid] = np.where(lo > 0, lo, np.inf)        # no plateau possible on the grid: left to the checks
+        # a hill whose plateau takes longer than running it flat at its higher valley is flattened
+        # instead (tiny moves between slow corners: a plateau of w each would cost w per move)
+        flat = np.full(H, np.inf)
+        flat[hid] = np.where((v_lo > 0) & (lo > 0), v_lo, np.inf)
+        slower = np.isfinite(flat) & (_hill_times(h, v, hill, H, cap) > _hill_times(h, v, hill, H, flat))
+        cap[slower] = flat[slower]
     return cap[hill] ** 2, hill
+
+
+def _hill_times(h: np.ndarray, v: np.ndarray, hill: np.ndarray, H: int, level: np.ndarray) -> np.ndarray:
+    """Time (H,) over each hill of the grid profile ``v`` (speeds) with speeds capped at the hill's
+    ``level`` (inf: not capped); constant path acceleration between grid points."""
+    lev = level[hill[:-1]]
+    a = np.minimum(v[:-1], lev)
+    b = np.minimum(v[1:], lev)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(h > 0, 2.0 * h / (a + b), 0.0)
+    return np.bincount(hill[:-1], weights=t, minlength=H)
 
 
 def _cap_round(h, x, w, spans=None, max_spans: int = 64):

@@ -1,0 +1,74 @@
+"""The jerk-limited optimum peer of ``hexacnc bench plan`` (:mod:`hexacnc.bench.jerkopt`): validated against
+Ruckig on one-axis problems (within 1 %), against TOPP-RA with the jerk limit lifted (within 2 %), and for the
+same optimum from different starts.  Needs the bench extra (casadi; toppra for the TOPP-RA check): the tests
+skip with that reason where it is absent."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hexacnc.bench import jerkopt as JO
+from hexacnc.bench.jerkfloor import _rest_points, _sections, rest_to_rest_time
+from hexacnc.config import load_config
+from hexacnc.gcode.factory import program_from_config
+from hexacnc.planner import plan_program
+
+casadi = pytest.importorskip("casadi", reason="the jerk-limited optimum needs casadi (pip install 'hexacnc[bench]')")
+
+
+@pytest.mark.parametrize("d,v,a,j", [(0.01, 500, 5000, 2e5), (1.0, 500, 5000, 2e5), (40.0, 500, 5000, 2e5),
+                                     (120.0, 300, 8000, 5e4), (5.0, 100, 20000, 1e5)])
+def test_one_axis_optimum_matches_ruckig_within_1_percent(d, v, a, j):
+    opt = JO.solve(JO.one_axis(d, 800), [v], [a], [j])
+    assert opt.status == "Solve_Succeeded"
+    ref = rest_to_rest_time(d, v, a, j)
+    assert opt.duration_s == pytest.approx(ref, rel=0.01)
+    assert opt.duration_s >= ref * (1 - 1e-6)           # Ruckig is optimal: the NLP cannot beat it
+    # the solution respects its limits at the nodes
+    assert np.max(np.abs(opt.v)) <= v * (1 + 1e-6) and np.max(np.abs(opt.a)) <= a * (1 + 1e-6)
+    assert np.max(np.abs(opt.j)) <= j * (1 + 1e-6)
+
+
+def test_same_optimum_from_different_starts():
+    pd = JO.one_axis(25.0, 400)
+    V, A, J = np.array([400.0]), np.array([6000.0]), np.array([1.5e5])
+    o1 = JO.solve(pd, V, A, J)
+    v, a, jj, T = JO._guess(pd, V, A, J)
+    o2 = JO.solve(pd, V, A, J, guess=(0.2 * v, 0.04 * a, 0.008 * jj, 5.0 * T))
+    assert o1.status == o2.status == "Solve_Succeeded"
+    assert o1.duration_s == pytest.approx(o2.duration_s, rel=1e-5)
+
+
+@pytest.fixture(scope="module")
+def arc_plan():
+    """A helical arc and a line from rest to rest, feeds and angular velocity lifted."""
+    import dataclasses
+    from hexacnc.bench.toppra_peer import _lifted_config
+    cfg = _lifted_config(load_config(None), False)
+    cfg = cfg.replace(planner=dataclasses.replace(cfg.planner, default_feed_mm_min=6e7))
+    text = "G21 G90 G64 P0.5\nG1 X20 F6000000\nG2 X-20 Y0 Z-10 I-20 J0\nG1 X-20 Y-30\nM2\n"
+    plan = plan_program(program_from_config(text, "arc.ngc", cfg).blocks, cfg)
+    return cfg, plan, _sections(_rest_points(plan))
+
+
+@pytest.mark.slow
+def test_optimum_with_jerk_lifted_matches_toppra_within_2_percent(arc_plan):
+    pytest.importorskip("toppra", reason="the TOPP-RA check needs toppra (pip install 'hexacnc[bench]')")
+    from hexacnc.bench.toppra_peer import TOPPRA_PIECE_POINTS, _toppra_section
+    cfg, plan, secs = arc_plan
+    r = JO.jerk_optimum(plan, cfg, secs, jerk_scale=1e4)
+    assert r["ok"]
+    tt = sum(_toppra_section(plan, cfg, a, b, 2000, False, TOPPRA_PIECE_POINTS).duration_s for a, b in secs)
+    assert r["duration_s"] == pytest.approx(tt, rel=0.02)
+
+
+@pytest.mark.slow
+def test_optimum_is_a_lower_bound_for_hexacnc_and_above_the_rest_to_rest_floor(arc_plan):
+    from hexacnc.bench.jerkfloor import jerk_floor
+    cfg, plan, secs = arc_plan
+    r = JO.jerk_optimum(plan, cfg, secs)
+    assert r["ok"]
+    floor = jerk_floor(plan, cfg)["jerk_floor_s"]
+    assert floor * (1 - 1e-3) <= r["duration_s"] < plan.duration_s
+    u = JO.utilisation(plan.path, plan.hexapod, cfg, r["sections"])
+    assert 0.9 < max(u.values()) < 1.1          # at the limits (between nodes it may exceed slightly)
