@@ -12,11 +12,12 @@ drive takes over from where it stands when it is back in cyclic synchronous posi
 2. the statusword in mode 6 (bit 12 clear), then controlword bit 4 (0x001F) starts the method;
 3. bit 12 homing attained (bit 13 homing error is a failure); controlword 0x000F; 0x6060 = 8.
 
-Any SDO abort or silence, homing error, drive fault or state change, lost heartbeat, a measured length outside the strut limits,
-or ``HOME_TIMEOUT_S`` fails the run: bit 4 is cleared (the drive stops its homing motion), mode 8 is
-written back once the drive reports its homing motion halted (bit 10, at most ``SDO_TIMEOUT_S``)
-(best effort) and the loop latches a fault (drives disabled). Following-error
-supervision is off while homing (the drives move on their own).
+Any SDO abort or silence, homing error, drive fault or state change, lost heartbeat, a measured
+length outside the strut limits, or ``HOME_TIMEOUT_S`` fails the run: bit 4 is cleared (the drive
+stops its homing motion), mode 8 is written back (best effort) once the drive reports the motion
+halted (bit 10, at most ``SDO_TIMEOUT_S``) and the loop latches a fault (drives disabled).
+``CMD_STOP`` stops it the same way but ends idle (re-seeded), ``CMD_DISABLE`` ends disabled.
+Following-error supervision is off while homing (the drives move on their own).
 
 Results in the shared header: ``H_HOME_RESULT`` (:data:`RUNNING`, :data:`DONE` or an error code
 < 0, see :data:`ERROR_TEXT`) and ``H_HOME_STRUT`` (1-based strut of the error).
@@ -30,8 +31,8 @@ from drivers.cia402 import CW_ENABLE_OPERATION, SW_FAULT
 
 from . import shm as S
 from .faults import F_HOMING, F_NONE
-from .homecodes import (DONE, E_ABORTED, E_FAULT, E_HEARTBEAT, E_HOMING_ERROR, E_LIMIT, E_SDO_ABORT, E_SDO_TIMEOUT,  # noqa: F401
-                        E_TIMEOUT, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING, SDO_TIMEOUT_S)
+from .homecodes import (DONE, E_ABORTED, E_FAULT, E_HEARTBEAT, E_HOMING_ERROR, E_LIMIT,  # noqa: F401
+                        E_SDO_ABORT, E_SDO_TIMEOUT, E_TIMEOUT, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING, SDO_TIMEOUT_S)
 
 MODE_HOMING = 6
 MODE_CSP = 8
