@@ -48,7 +48,7 @@ _U16 = struct.Struct("<H")
 _U8 = struct.Struct("<B")
 _EMCY = struct.Struct("<HB5s")
 
-_K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY = 0, 1, 2, 3
+_K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY, _K_SDO = 0, 1, 2, 3, 4
 #: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
 #: re-anchored to the SYNCs just sent (see CyclicIO._init_sync_tags)
 CALM_POLLS = 8
@@ -188,6 +188,11 @@ class CyclicIO:
             self._rx[nd.tpdo2_cob_id] = (_K_STATUS, nd.index)
             self._rx[0x700 + nd.node_id] = (_K_HEARTBEAT, nd.index)
             self._rx[0x080 + nd.node_id] = (_K_EMCY, nd.index)
+            self._rx[0x580 + nd.node_id] = (_K_SDO, nd.index)
+        #: last SDO server response (8 bytes) per drive and how many arrived (:meth:`send_sdo`)
+        self.sdo_resp: list[bytearray] = [bytearray(8) for _ in range(n)]
+        self.sdo_count: list[int] = [0] * n
+        self._sdo_rec = bytearray(REC)
         self._hb_timeout_s = bus_cfg.heartbeat_timeout_ms * 1e-3
         can_batch = all(framerec.supports_batch(b) for b in self.buses)
         if batch and not can_batch:
@@ -315,6 +320,23 @@ class CyclicIO:
                         cw_sent[i] = cw[i]
         return rc, sent
 
+    def send_sdo(self, strut: int, data: bytes) -> bool:
+        """One SDO client request (8 bytes, hand-packed by the caller) to drive ``strut`` at once,
+        without waiting: the answer lands in ``sdo_resp[strut]`` (``sdo_count`` counts answers) at a
+        later :meth:`poll`. False when the bus refused the frame."""
+        nd = self.plan.nodes[strut]
+        bus = self.buses[nd.bus]
+        try:
+            if self.batch:
+                framerec.encode(self._sdo_rec, 0, 0x600 + nd.node_id, data)
+                bus.send_records(memoryview(self._sdo_rec))
+            else:
+                bus.send(can.Message(arbitration_id=0x600 + nd.node_id, data=data, is_extended_id=False))
+        except can.CanError:
+            return False
+        self.frames_sent += 1
+        return True
+
     # -- receive ------------------------------------------------------------------------------
     def poll(self, max_frames: int = 256) -> int:
         """Drain received frames without blocking; returns ``EV_*`` bits (0: nothing new)."""
@@ -379,6 +401,11 @@ class CyclicIO:
                 self.bootups += 1
                 return EV_HEARTBEAT | EV_BOOTUP
             return (EV_HEARTBEAT | EV_NMT) if st != NMT_OPERATIONAL else EV_HEARTBEAT
+        if kind == _K_SDO:
+            if length == 8:
+                self.sdo_resp[i][:] = bytes(buf[d:d + 8])
+                self.sdo_count[i] += 1
+            return 0
         if length < 8:      # EMCY
             return EV_BAD_FRAME
         code, reg, extra = _EMCY.unpack_from(buf, d)

@@ -53,6 +53,7 @@ from .description import STRICT_EDS, load_description
 from .layout import plan_layout
 from .simreact import TICK_S
 from .simnode import FaultSpec, SimDrive
+from . import simhoming  # noqa: F401  (registers homing mode 6 in simhooks.EXTENSIONS)
 from .strutmodel import (ModelFactory, SecondOrderStrut, StrutModel, config_model_factory, default_model_factory,
                          load_model_factory)
 

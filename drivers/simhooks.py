@@ -30,7 +30,8 @@ class OdHooks:
     * ``on_write(index, fn)``: ``fn(subindex, value)`` after an SDO or RPDO write of ``index`` (raise
       ``canopen.sdo.SdoAbortedError(code)`` to refuse an SDO write);
     * ``on_sync(fn)``: ``fn(drive, now_s)`` after each SYNC step; ``on_controlword(fn)``:
-      ``fn(drive, controlword)`` before the state machine sees a controlword (mode-specific bits).
+      ``fn(drive, controlword)`` before the state machine sees a controlword (mode-specific bits);
+      ``on_status(fn)``: ``fn(drive) -> int`` statusword bits ORed in (mode-specific bits).
     """
 
     def __init__(self):
@@ -38,6 +39,7 @@ class OdHooks:
         self.write: dict[int, list[Callable]] = {}
         self.sync: list[Callable] = []
         self.controlword: list[Callable] = []
+        self.status: list[Callable] = []
 
     def on_read(self, index: int, fn: Callable) -> None:
         self.read[index] = fn
@@ -50,6 +52,10 @@ class OdHooks:
 
     def on_controlword(self, fn: Callable) -> None:
         self.controlword.append(fn)
+
+    def on_status(self, fn: Callable) -> None:
+        """``fn(drive) -> int``: statusword bits ORed into the drive's statusword (mode-specific)."""
+        self.status.append(fn)
 
 
 #: ``fn(drive)`` called for every new :class:`SimDrive` (after its own set-up): register hooks here,

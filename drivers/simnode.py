@@ -96,6 +96,10 @@ class SimDrive:
         self._consumer = (0, 0.0)
         self.model.reset(start_inc / self.k)
         self.hooks = OdHooks()
+        #: modes of operation accepted by 0x6060 -> True when the mode follows 0x607A (extensions add theirs)
+        self.modes: dict[int, bool] = {0: True, cia402.MODE_CSP: True}
+        #: modes the drive switches between while Operation enabled (extensions, e.g. homing: {6, 8})
+        self.switch_modes: set[int] = set()
         self.react = Reactions(self)
         self.dummies = frozenset(getattr(sim, "dummies", frozenset(range(1, 8))))
         self.disabling = False              #: transition 5 asked, ramping down first (0x605C = 1)
@@ -137,6 +141,8 @@ class SimDrive:
             sw |= cia402.SW_INTERNAL_LIMIT
         # bit 10 (target reached) is reserved in cyclic synchronous position mode: left clear, so
         # the statusword (and its TPDO2 event) changes only with the state and the CSP flags
+        for fn in self.hooks.status:        # mode-specific bits (e.g. homing: 10, 12, 13)
+            sw |= fn(self)
         return sw
 
     # -- SDO callbacks ----------------------------------------------------------------------
@@ -181,9 +187,10 @@ class SimDrive:
             if index == 0x6040:
                 self.apply_controlword(value)
             elif index == 0x6060:
-                if value not in (0, cia402.MODE_CSP):
+                if value not in self.modes:
                     raise SdoAbortedError(_VALUE_RANGE)
-                if self.state == cia402.OPERATION_ENABLED and value != self.mode:
+                if self.state == cia402.OPERATION_ENABLED and value != self.mode and not (
+                        value in self.switch_modes and self.mode in self.switch_modes):
                     raise SdoAbortedError(_DATA_NOT_TRANSFERRED)
                 self.mode = value
             elif index == 0x607A:
@@ -451,7 +458,8 @@ class SimDrive:
             if v != self.cw:
                 self.apply_controlword(v)
         elif obj == 0x607A:
-            self.target_inc = v
+            if self.modes.get(self.mode, True):     # e.g. homing mode ignores the cyclic target
+                self.target_inc = v
         elif obj == 0x6060:
             if v in (0, cia402.MODE_CSP) and self.state != cia402.OPERATION_ENABLED:
                 self.mode = v

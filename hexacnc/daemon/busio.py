@@ -241,6 +241,9 @@ class CyclicAdapter:
         self._EV_HEARTBEAT = cyclic.EV_HEARTBEAT
         self._hb_first = True           # hb_ns from the construction time until the first heartbeat
         self._hb = cio.last_heartbeat_s
+        self.sdo_resp = cio.sdo_resp          # SDO answers (homing: hexacnc.daemon.homeloop)
+        self.sdo_count = cio.sdo_count
+        self.send_sdo = cio.send_sdo
 
     def poll(self, now_ns: int) -> int:
         cio = self.cio

@@ -18,6 +18,7 @@ F_NMT = 13              #: strut = node index, arg = NMT state from its heartbea
 F_REMOTE = 14           #: strut = node index, arg = statusword (bit 9 "remote" lost: not under bus control)
 F_NOT_FOLLOWING = 15    #: strut = node index, arg = statusword (CSP bit 12 "follows command value" cleared)
 F_SIGNAL = 16           #: arg = signal number (a signal ended the hot loop: controlled stop, not a fault)
+F_HOMING = 18           #: strut (0: all), arg = hexacnc.daemon.homeloop error code (< 0)
 
 CODES = {
     F_NONE: "none", F_HEARTBEAT: "heartbeat_lost", F_EMCY: "emcy", F_FOLLOWING: "following_error",
@@ -25,6 +26,7 @@ CODES = {
     F_DRIVE: "drive_fault", F_SUPERVISOR: "supervisor_lost", F_BUS: "bus_error",
     F_ENABLE: "enable_failed", F_TEST: "test", F_FEEDBACK: "feedback_stale", F_NMT: "nmt_state",
     F_REMOTE: "remote_lost", F_NOT_FOLLOWING: "target_not_followed", F_SIGNAL: "signal",
+    F_HOMING: "homing_failed",
 }
 
 
@@ -62,6 +64,9 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
         return f"drive {strut} lost remote (statusword bit 9 clear: 0x{arg & 0xFFFF:04X})"
     if code == F_NOT_FOLLOWING:
         return f"drive {strut} does not follow its target (statusword bit 12 clear: 0x{arg & 0xFFFF:04X})"
+    if code == F_HOMING:
+        from .homecodes import ERROR_TEXT
+        return f"homing failed{f' on strut {strut}' if strut else ''}: {ERROR_TEXT.get(arg, arg)}"
     if code == F_SIGNAL:
         import signal
         try:

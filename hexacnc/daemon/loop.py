@@ -28,6 +28,7 @@ from ..transform import CycleTransform, OK as CT_OK
 from . import shm as S
 from .disablewalk import DisableWalk
 from .faults import F_BUS, F_DEADLINE, F_ENABLE, F_LIMIT, F_NONE, F_SETPOINT, F_SUPERVISOR, F_TEST
+from .homeloop import HomingCycle, home_command, home_step
 from .faults import fault_message  # noqa: F401 (re-export)
 from .cyclestats import CycleStats, publish_status
 from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
@@ -153,6 +154,8 @@ class HotLoop:
         self.stats_reset = False
         self.travel = [0.0] * 6
         self.sends = 0
+        self.homer: HomingCycle | None = None
+        self.home_then = S.ST_IDLE    # state after a homing that was stopped
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -239,6 +242,8 @@ class HotLoop:
         self.dwalk.begin(time.monotonic_ns())
 
     def _command(self, code: int, arg: int, now: int) -> None:
+        if (code == S.CMD_HOME or self.state == S.ST_HOMING) and home_command(self, code, now):
+            return
         st = self.state
         if code == S.CMD_STOP:
             self.sh.h[S.H_RING_R] = self.sh.h[S.H_RING_W]
@@ -485,6 +490,8 @@ class HotLoop:
             self.stopping(t0)
         elif st == S.ST_BOOT:
             self.enabling(t0)
+        elif st == S.ST_HOMING:
+            home_step(self, t0)
         elif self.dwalk.active:
             self.dwalk.step(t0)
 

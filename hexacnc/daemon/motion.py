@@ -137,7 +137,7 @@ class MotionMixin:
             if self.current is not None:
                 self.stop_requested = True
                 self._command(self.current.source.stop)
-            elif self.sh.h[S.H_STATE] == S.ST_RUNNING:
+            elif self.sh.h[S.H_STATE] in (S.ST_RUNNING, S.ST_HOMING):     # homing: stopped, not referenced
                 self.sh.command(S.CMD_STOP)
             self.cv.notify_all()
         return self.status()

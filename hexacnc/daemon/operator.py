@@ -229,7 +229,7 @@ class Operator:
         if d.current is not None or d.queue:
             d.stop()
             d.wait(timeout_s)
-        if d.sh.h[S.H_STATE] in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING):
+        if d.sh.h[S.H_STATE] in (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING, S.ST_HOMING):
             d.sh.command(S.CMD_DISABLE)
             t_end = time.monotonic() + timeout_s
             while d.sh.h[S.H_STATE] != S.ST_DISABLED and time.monotonic() < t_end:
@@ -247,8 +247,38 @@ class Operator:
             self.referenced = True
             return {"referenced": True, "method": "absolute",
                     "message": "absolute encoders: the struts are referenced from their readings"}
-        raise OperatorError("home: [homing] method = \"cia402\" (drive homing mode 6) is not implemented in "
-                            "this daemon yet; use absolute encoders", "unsupported")
+        return self._home_cia402(hm)
+
+    def _home_cia402(self, hm) -> dict:
+        """Every strut's drive homes in mode 6, run by the hot loop (:mod:`.homeloop`); waits for it."""
+        from .homecodes import DONE, E_UNSUPPORTED, ERROR_TEXT, HOME_TIMEOUT_S, RUNNING
+        d = self.daemon
+        sh = d.sh
+        with d.lock:
+            self._idle_checks("home")
+            if sh.h[S.H_STATE] != S.ST_IDLE:
+                raise OperatorError(f"home refused: the loop is {S.STATE_NAMES.get(sh.h[S.H_STATE], '?')}, "
+                                    f"not idle", "invalid_state")
+            self.referenced = False
+            sh.h[S.H_HOME_RESULT] = RUNNING
+            seq = sh.command(S.CMD_HOME)
+        t_end = time.monotonic() + HOME_TIMEOUT_S + 5.0
+        while time.monotonic() < t_end:
+            if sh.h[S.H_CMD_ACK] >= seq and sh.h[S.H_HOME_RESULT] != RUNNING \
+                    and sh.h[S.H_STATE] != S.ST_HOMING:
+                break
+            time.sleep(0.01)
+        r, strut = sh.h[S.H_HOME_RESULT], sh.h[S.H_HOME_STRUT]
+        if r != DONE:
+            where = f" (strut {strut})" if strut else ""
+            why = ERROR_TEXT.get(r, "no answer from the hot loop" if r == RUNNING else f"code {r}")
+            raise OperatorError(f"home failed{where}: {why}", "unsupported" if r == E_UNSUPPORTED else "fault")
+        self.referenced = True
+        st = d.status()
+        return {"referenced": True, "method": "cia402", "homing_method": int(hm.homing_method),
+                "offset_mm": [float(v) for v in hm.offset_mm], "struts_act_mm": st.get("struts_act_mm"),
+                "message": "every strut referenced by its drive (homing mode 6); back in cyclic synchronous "
+                           "position mode"}
 
     # ------------------------------------------------------------------ jog
     def jog(self, axis: str, frame: str = "base", distance: float | None = None,

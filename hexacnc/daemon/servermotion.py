@@ -61,7 +61,8 @@ class MotionOps:
             self._wake()
         with self._motion_cv:
             self._motion_submitted += 1
-        control = req.op in ("stop", "pause", "resume", "reset") and getattr(self, "_control_pool", None)
+        # disable too: machine off never waits behind a motion op (e.g. a running CiA 402 home)
+        control = req.op in ("stop", "pause", "resume", "reset", "disable") and getattr(self, "_control_pool", None)
         (self._control_pool if control else self._motion_pool).submit(job)
 
     def _op_program(self, conn: _Conn, req: P.Request) -> None:

@@ -62,6 +62,8 @@ H_PHASE_SUM_NS = 44     #: N_PHASES slots: compute time per phase of the cycle, 
 H_PHASE_MAX_NS = 50     #: N_PHASES slots: longest time of each phase since the stats reset
 H_SUP_PID = 56          #: the supervisor's pid (the hot loop stops if it is no longer its parent)
 H_FAULT_NS = 57         #: monotonic ns when the fault was latched (detection latency)
+H_HOME_RESULT = 61      #: CiA 402 homing: 0 never, 1 running, 2 done, < 0 error (hexacnc.daemon.homeloop)
+H_HOME_STRUT = 62       #: 1-based strut of the homing error, 0 n/a
 N_PHASES = 6
 PHASE_NAMES = ("poll", "supervise", "transform", "send", "feedback", "stats")
 N_HEADER = 64
@@ -96,6 +98,7 @@ CMD_SHUTDOWN = 3        #: controlled stop, disable drives, exit
 CMD_DISABLE = 4         #: controlled stop then disable, no fault
 CMD_FAULT_TEST = 5      #: raise an internal fault (tests): arg = fault code
 CMD_STATS_RESET = 6     #: zero the overrun counters and maxima (the supervisor zeroes the histograms)
+CMD_HOME = 9            #: CiA 402 homing of every strut (idle only; hexacnc.daemon.homeloop)
 
 # -- hot loop states -------------------------------------------------------------------------
 ST_BOOT = 0
@@ -105,8 +108,10 @@ ST_STOPPING = 3         #: controlled stop in progress
 ST_FAULT = 4            #: drives disabled, fault latched
 ST_DISABLED = 5         #: drives disabled, no fault
 ST_EXITED = 6
+ST_HOMING = 8           #: drives homing on their own (mode 6), targets = measured positions
 STATE_NAMES = {ST_BOOT: "boot", ST_IDLE: "idle", ST_RUNNING: "running", ST_STOPPING: "stopping",
-               ST_FAULT: "fault", ST_DISABLED: "disabled", ST_EXITED: "exited"}
+               ST_FAULT: "fault", ST_DISABLED: "disabled", ST_EXITED: "exited",
+               ST_HOMING: "homing"}
 
 # -- row flags -------------------------------------------------------------------------------
 
