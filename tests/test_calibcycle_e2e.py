@@ -139,7 +139,7 @@ def test_probing_stops_on_contact_and_reports_the_readings_at_the_edge(machine, 
         tip = truth.tool_tip_mm(truth.platform_pose_rad(np.asarray(k["q_mm"])))
         art = TouchProbe(0)
         assert abs(np.linalg.norm(tip - (c + art.sphere_error[13])) - 13.5) < 0.002
-    assert 0.02 < np.linalg.norm(r["centre_mm"] - c) < 3.0     # the uncalibrated machine sees it moved
+    assert 0.005 < np.linalg.norm(r["centre_mm"] - c) < 3.0    # the uncalibrated machine sees it moved (probe noise ~1 um)
     assert r["residual_um"] < 5.0
     # no contact: error for G38.2, none for G38.3 (#5070 = 0)
     far = tip_of(cur, cur.home_pose)

@@ -268,11 +268,20 @@ def reload_daemon(server: Any, cfg: Any) -> dict:
             log.error("reload of %s failed (%s); restarting with the previous description", cfg.path, exc)
             back = Daemon(old.cfg, **kw)
             attach(back, truth, seed)
-            server.daemon = back
+            _serve_daemon(server, back, old.cfg)
             raise
         attach(new, truth, seed)
-        server.daemon = new
+        _serve_daemon(server, new, cfg)
     finally:
         server.calib_reloading = False
     log.info("reloaded machine description %s (%s)", cfg.path, cfg.name)
     return {"config": cfg.path, "machine": cfg.name}
+
+
+def _serve_daemon(server: Any, daemon: Any, cfg: Any) -> None:
+    """Make ``daemon`` the one the server (and its operator functions) drive."""
+    from .ops_operator import attach_operator
+    server.daemon = daemon
+    server.cfg = cfg
+    if getattr(server, "operator", None) is not None:
+        server.operator = attach_operator(daemon, cfg)
