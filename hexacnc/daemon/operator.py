@@ -115,7 +115,6 @@ class Operator:
     # ------------------------------------------------------------------ programs and MDI
     def load_program(self, text: str, name: str, mdi: bool = False) -> dict:
         """Interpret from the persistent state, plan, check and queue; commit the new state."""
-        from ..planner import plan_program as planner_plan
         from .core import Job
         from .program import ProgramSource
         d = self.daemon
@@ -128,16 +127,26 @@ class Operator:
         with d.lock:
             d._require_motion_ok()
             start = d._planned_start()
+            stops = d._stops
         state = self.store.snapshot()
         tip0 = self.tip_pose_deg(start)
-        prog, new_state = interpret(text, name, self.cfg, tip0, state)
-        if mdi:
-            self._check_soft_limits(prog)
-        if not prog.motion_blocks:
+        # interpreted and planned in a child with bounded memory and time ([daemon] max_plan_memory_mb,
+        # max_plan_s), started outside the lock; a stop kills it (issue 13: the control path never waits)
+        from .planproc import PlanJob
+        pj = PlanJob(self.cfg, text, name, start, d.period_s, work=interpret_and_plan, work_args=(tip0, state, mdi))
+        with d.lock:
+            d._planning.add(pj)
+            if d._stops != stops:
+                pj.cancel()
+        try:
+            plan, prog, new_state = pj.result()
+        finally:
+            with d.lock:
+                d._planning.discard(pj)
+        if plan is None:
             self.store.commit(new_state)
             self.status_view.program_loaded(name, text, prog, 0.0)
             return {"blocks": len(prog.blocks), "duration_s": 0.0, "moved": False}
-        plan = planner_plan(prog.blocks, self.cfg, hexapod=d.hx, period_s=d.period_s)
         p0 = np.asarray(plan.start_pose_platform, dtype=float)
         if float(np.max(np.abs(p0 - np.asarray(start, dtype=float)))) > 1e-6:
             raise PlanError(f"{what} does not start where the machine is", limit="start")
@@ -165,15 +174,7 @@ class Operator:
         return self.load_program(text.rstrip("\n") + "\n", "MDI", mdi=True)
 
     def _check_soft_limits(self, prog) -> None:
-        box = tip_box(self.cfg)
-        for b in prog.motion_blocks:
-            pts = [b.end]
-            if b.kind == "arc" and b.center is not None:
-                pts.extend(_arc_points(b))
-            for p in pts:
-                why = tip_violation(self.cfg, p, box)
-                if why:
-                    raise PlanError(f"line {b.line}: {why}", line=b.line, limit="workspace")
+        _check_tip_limits(self.cfg, prog)
 
     # ------------------------------------------------------------------ overrides
     def set_override(self, feed: float | None = None, rapid: float | None = None) -> dict:
@@ -453,3 +454,31 @@ def _arc_points(b, n: int = 32) -> list:
             + rad * (math.cos(t * ang) * u + math.sin(t * ang) * v)
         out.append(q)
     return out
+
+
+def interpret_and_plan(cfg, text: str, name: str, start_rad, period_s: float, tip0, state, mdi: bool):
+    """The operator's program path, run in the bounded planning child (:mod:`.planproc`): interpret
+    from the persistent ``state`` at tool tip ``tip0`` (mm, deg), the tool tip's soft limits for MDI,
+    plan. Returns ``(plan or None without motion, program without its blocks, state after it)``."""
+    from ..kinematics import Hexapod
+    from ..planner import plan_program as planner_plan
+    prog, new_state = interpret(text, name, cfg, tip0, state)
+    if mdi:
+        _check_tip_limits(cfg, prog)
+    plan = None
+    if prog.motion_blocks:
+        plan = planner_plan(prog.blocks, cfg, hexapod=Hexapod(cfg), period_s=period_s)
+    return plan, prog, new_state
+
+
+def _check_tip_limits(cfg, prog) -> None:
+    """MDI: every end point (and 32 points of each arc) of the tool tip within the [workspace] box."""
+    box = tip_box(cfg)
+    for b in prog.motion_blocks:
+        pts = [b.end]
+        if b.kind == "arc" and b.center is not None:
+            pts.extend(_arc_points(b))
+        for p in pts:
+            why = tip_violation(cfg, p, box)
+            if why:
+                raise PlanError(f"line {b.line}: {why}", line=b.line, limit="workspace")

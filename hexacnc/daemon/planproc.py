@@ -95,7 +95,7 @@ def _innermost(tb):
     return tb.tb_frame if tb is not None else None
 
 
-def _child(conn, cfg, text, name, start_rad, period_s, max_mb, max_s) -> None:
+def _child(conn, cfg, text, name, start_rad, period_s, max_mb, max_s, work=None, work_args=()) -> None:
     import resource
     if max_mb > 0:
         lim = int(max_mb) << 20
@@ -107,11 +107,16 @@ def _child(conn, cfg, text, name, start_rad, period_s, max_mb, max_s) -> None:
     if max_s > 0:
         signal.setitimer(signal.ITIMER_REAL, float(max_s))
     try:
-        from ..kinematics import Hexapod
-        from .program import plan_program
-        plan = plan_program(cfg, Hexapod(cfg), text, name, start_rad, period_s)
-        signal.setitimer(signal.ITIMER_REAL, 0.0)
-        out = ("ok", plan.source.plan, plan.blocks, plan.duration_s, plan.end_rad, plan.summary)
+        if work is not None:            # another interpret-and-plan (the operator's: persistent state in and out)
+            res = work(cfg, text, name, start_rad, period_s, *work_args)
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
+            out = ("ok",) + tuple(res)
+        else:
+            from ..kinematics import Hexapod
+            from .program import plan_program
+            plan = plan_program(cfg, Hexapod(cfg), text, name, start_rad, period_s)
+            signal.setitimer(signal.ITIMER_REAL, 0.0)
+            out = ("ok", plan.source.plan, plan.blocks, plan.duration_s, plan.end_rad, plan.summary)
     except PlanLimit as exc:
         out = ("time", exc.args[0], exc.args[1])
     except MemoryError as exc:
@@ -137,7 +142,10 @@ def _child(conn, cfg, text, name, start_rad, period_s, max_mb, max_s) -> None:
 class PlanJob:
     """One program being planned in a child; :meth:`result` waits, :meth:`cancel` kills."""
 
-    def __init__(self, cfg, text: str, name: str, start_rad, period_s: float):
+    def __init__(self, cfg, text: str, name: str, start_rad, period_s: float, work=None, work_args: tuple = ()):
+        """``work``: a module-level function ``work(cfg, text, name, start_rad, period_s, *work_args)``
+        run in the child instead of the plain interpret-and-plan; its returned tuple is what
+        :meth:`result` returns."""
         d = cfg.daemon
         self.max_mb = float(getattr(d, "max_plan_memory_mb", 0) or 0)
         self.max_s = float(getattr(d, "max_plan_s", 0) or 0)
@@ -145,7 +153,7 @@ class PlanJob:
         ctx = _context()
         self._r, w = ctx.Pipe(duplex=False)
         self.proc = ctx.Process(target=_child, args=(w, cfg, text, name, start_rad, period_s, self.max_mb,
-                                                     self.max_s), name="hexacnc-plan", daemon=True)
+                                                     self.max_s, work, work_args), name="hexacnc-plan", daemon=True)
         self.proc.start()
         w.close()
         self.cancelled = False
