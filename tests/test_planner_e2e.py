@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-core = pytest.importorskip("hexacnc.daemon.core", reason="the daemon (hexacnc.daemon.core) is not there yet")
+from hexacnc.daemon import core  # noqa: F401  (a broken import fails the suite, never skips it)
 
 from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtures)
 

@@ -176,27 +176,19 @@ def plan_separate(cfg, causes: list[str], n_poses: int, measure_set: str = "xyza
             "criterion": "Ds-optimal: log det of the causes' information after marginalising the geometry"}
 
 
-def main_separate(cfg, args) -> int:
-    """``hexacnc calib plan --separate``: CSV of the poses with their conditions, JSON report."""
-    import json
+#: the CSV columns a separation plan adds after x..c, q1..q6 (the condition each pose is measured in)
+CONDITION_COLUMNS = "payload_kg,T_strut_C,approach"
 
-    from .measurements import atomic_write_text
-    from .output import to_jsonable, write_json
+
+def condition_cells(c: dict) -> str:
+    """The :data:`CONDITION_COLUMNS` cells of one pose's condition."""
+    return f"{c['payload_kg']:g},{c['T_C']:g},{'extending' if c['approach'] > 0 else 'retracting'}"
+
+
+def run_separate(cfg, args) -> dict:
+    """``hexacnc calib plan --separate``: the plan for the causes of ``args.separate`` (checked)."""
     causes = parse_separate(args.separate)
     if args.payload_kg is not None and not args.payload_kg > 0:
         raise DataError(f"--payload-kg must be positive, got {args.payload_kg}")
-    res = plan_separate(cfg, causes, args.poses, args.measure, min(args.candidates, 1000), args.seed,
+    return plan_separate(cfg, causes, args.poses, args.measure, min(args.candidates, 1000), args.seed,
                         args.noise_mm, args.noise_deg, args.frame, args.payload_kg)
-    if args.out:
-        lines = ["x,y,z,a,b,c,q1,q2,q3,q4,q5,q6,payload_kg,T_strut_C,approach"]
-        for p, q, c in zip(res["poses"], res["readings_mm"], res["conditions"]):
-            lines.append(",".join(f"{v:.6f}" for v in list(p) + list(q))
-                         + f",{c['payload_kg']:g},{c['T_C']:g},{'extending' if c['approach'] > 0 else 'retracting'}")
-        atomic_write_text(args.out, "\n".join(lines) + "\n")
-    rep = {k: v for k, v in res.items() if k not in ("poses", "readings_mm")}
-    if args.out:
-        rep["poses_csv"] = args.out
-    if args.json:
-        write_json(args.json, rep)
-    print(json.dumps(to_jsonable(rep), indent=2))
-    return 0

@@ -96,14 +96,19 @@ def _plan(args) -> int:
     from ..calib.plan import plan
     from ..config import load_config
     cfg = load_config(args.config)
-    if args.separate:
-        from ..calib.plan_separate import main_separate
-        return main_separate(cfg, args)
-    res = plan(cfg, args.poses, args.measure, args.candidates, args.seed, args.noise_mm, args.noise_deg, args.frame)
+    header, cells = "x,y,z,a,b,c,q1,q2,q3,q4,q5,q6", None
+    if args.separate:               # the poses carry the condition each is measured in
+        from ..calib.plan_separate import CONDITION_COLUMNS, condition_cells, run_separate
+        res = run_separate(cfg, args)
+        header += "," + CONDITION_COLUMNS
+        cells = [condition_cells(c) for c in res["conditions"]]
+    else:
+        res = plan(cfg, args.poses, args.measure, args.candidates, args.seed, args.noise_mm, args.noise_deg,
+                   args.frame)
     if args.out:
-        lines = ["x,y,z,a,b,c,q1,q2,q3,q4,q5,q6"]
-        for p, q in zip(res["poses"], res["readings_mm"]):
-            lines.append(",".join(f"{v:.6f}" for v in list(p) + list(q)))
+        lines = [header]
+        for k, (p, q) in enumerate(zip(res["poses"], res["readings_mm"])):
+            lines.append(",".join(f"{v:.6f}" for v in list(p) + list(q)) + ("," + cells[k] if cells else ""))
         atomic_write_text(args.out, "\n".join(lines) + "\n")
     rep = {k: v for k, v in res.items() if k not in ("poses", "readings_mm")}
     if args.out:

@@ -35,7 +35,7 @@ simulation) and :mod:`.load` (files, the embedded default).  Everything importab
 from __future__ import annotations
 
 from ..opconfig import OperatorConfig, parse_operator
-from .load import DEFAULT_CONFIG_NAME, default_config_path, load_config
+from .load import DEFAULT_CONFIG_NAME, default_config_path, load_config, read_toml
 from .machine import (_KNOWN_SECTIONS, MachineConfig, ToolConfig, _check_geometry, parse_carrier, parse_config,
                       parse_frame, parse_tool, parse_workspace)
 from .models import (CalibrationConfig, DynamicsConfig, KinematicsConfig, SpindleConfig, ThermalConfig,
@@ -52,7 +52,7 @@ __all__ = [
     "BusConfig", "CalibrationConfig", "ConfigError", "CycleConfig", "DEFAULT_CONFIG_NAME", "DaemonConfig",
     "DynamicsConfig", "GcodeConfig", "KinematicsConfig", "MachineConfig", "OperatorConfig", "PlannerConfig",
     "Section", "Sections", "SpindleConfig", "ThermalConfig", "ToolConfig", "ToolTableConfig",
-    "default_config_path", "load_config", "parse_bus", "parse_carrier", "parse_config", "parse_cycle",
+    "default_config_path", "load_config", "read_toml", "parse_bus", "parse_carrier", "parse_config", "parse_cycle",
     "parse_dynamics", "parse_frame", "parse_kinematics", "parse_operator", "parse_planner", "parse_spindle",
     "parse_thermal", "parse_tool", "parse_tools", "parse_workspace",
     # private helpers, importable as before the split

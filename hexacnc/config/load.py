@@ -21,15 +21,19 @@ def default_config_path() -> Path:
     return Path(str(resources.files("hexacnc") / "data" / DEFAULT_CONFIG_NAME))
 
 
-def load_config(path: str | os.PathLike | None = None) -> MachineConfig:
-    """Read and check a machine description; ``None`` gives the embedded default."""
-    p = Path(path) if path is not None else default_config_path()
+def read_toml(p: Path, what: str = "machine description") -> dict:
+    """The TOML document of file ``p``; ConfigError naming the file and ``what`` it should hold."""
     try:
         text = p.read_text(encoding="utf-8")
     except OSError as exc:
-        raise ConfigError(f"{p}: cannot read machine description: {exc.strerror or exc}") from exc
+        raise ConfigError(f"{p}: cannot read {what}: {exc.strerror or exc}") from exc
     try:
-        doc = tomllib.loads(text)
+        return tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
-    return parse_config(doc, str(p))
+
+
+def load_config(path: str | os.PathLike | None = None) -> MachineConfig:
+    """Read and check a machine description; ``None`` gives the embedded default."""
+    p = Path(path) if path is not None else default_config_path()
+    return parse_config(read_toml(p), str(p))

@@ -25,13 +25,12 @@ side only: the simulated instruments in :mod:`hexacnc.sim.instruments`).
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from ..config import MachineConfig, Section, parse_config
+from ..config import MachineConfig, Section, parse_config, read_toml
 from ..errors import ConfigError
 from ..kinematics import Hexapod
 from ..pose import matrix_from_euler
@@ -124,15 +123,7 @@ def parse_truth(doc: dict, path: str = "<truth>") -> TrueMachine:
 def load_truth(path) -> TrueMachine:
     """Read and check a truth file (a machine description plus ``[truth]``); ConfigError on anything bad."""
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except OSError as exc:
-        raise ConfigError(f"{p}: cannot read the true machine description: {exc.strerror or exc}") from exc
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{p}: not valid TOML: {exc}") from exc
-    return parse_truth(doc, str(p))
+    return parse_truth(read_toml(p, "the true machine description"), str(p))
 
 
 def _signed(rng, lo: float, hi: float, n: int) -> np.ndarray:
