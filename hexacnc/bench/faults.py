@@ -10,7 +10,10 @@ path and reads what the drives received off the rings (:class:`~hexacnc.bench.ri
   (drive faults), or to the supervisor's report (hot loop lost);
 * ``stop_distance_mm``: per strut, from the provocation to rest;
 * ``peak_fraction``: peak strut velocity/acceleration/jerk during the stop as a fraction of the
-  limits (finite differences over 1/2/8 cycles, see :func:`~hexacnc.bench.ringtap.motion_peaks`);
+  limits (k-th differences over windows chosen so that the rounding of the targets to drive
+  increments moves an estimate by at most 2 % of the limit; windows and resolution in the summary's
+  ``peak_estimator``, see :func:`~hexacnc.bench.ringtap.peak_estimator`). The controlled stop is
+  planned at ``stopgen.STOP_SHARE`` (0.9) of the acceleration and jerk limits;
 * ``drives_disabled``: every drive's last statusword on the ring is a disabled state;
 * ``spurious``: a fault other than the path's own.
 
@@ -41,7 +44,8 @@ import numpy as np
 
 from drivers import cia402
 from ..config import load_config
-from .ringtap import RingTap, motion_peaks
+from ..daemon.stopgen import STOP_SHARE
+from .ringtap import RingTap, motion_peaks, peak_estimator
 
 HELP = "safety chain: detection, latency, stop distance and peaks of every end and drive fault path"
 PROGRAM = "G21 G90 G64 P0.02\nG0 X0 Y0 Z20\n" + "G1 X60 F9000\nG1 X-60\n" * 6 + "G1 X0\nM2\n"
@@ -80,7 +84,8 @@ def judge(tap: RingTap, cfg, t0: float, t_detect: float | None = None) -> dict:
             t_detect = float(t[slow[0] + 1])
         rest = np.nonzero(v < 1e-6)[0]
         end = rest[0] + 1 if len(rest) else len(L) - 1
-        pk = motion_peaks(L[: end + 1], dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3)
+        pk = motion_peaks(L[: end + 1], dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,
+                          1.0 / cfg.bus.increments_per_mm)
         out.update(speed_at_start_mm_s=round(float(v[0]), 1), at_rest=bool(len(rest)),
                    stop_distance_mm=[round(float(x), 3) for x in np.abs(L[end] - L[0])],
                    peak_fraction={k: round(x, 3) for k, x in pk.items()})
@@ -390,12 +395,15 @@ def soak(cfg, seconds: float, seed: int = 1) -> dict:
             "spurious": len(faults)}
 
 
-def _paths(args) -> dict:
-    cfgtext = machine_text()
-    tmp = tempfile.mkdtemp(prefix="hxbc", dir="/tmp")
-    p = Path(tmp) / "m.toml"
-    p.write_text(cfgtext)
-    cfg = load_config(str(p))
+def bench_config():
+    """The bench's machine (:func:`machine_text`) loaded from a file, as ``hexacnc run`` loads it."""
+    with tempfile.TemporaryDirectory(prefix="hxbc") as tmp:
+        p = Path(tmp) / "m.toml"
+        p.write_text(machine_text())
+        return load_config(str(p))
+
+
+def _paths(args, cfg) -> dict:
     paths = {}
     for target in ("supervisor", "hot", "group"):
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -418,7 +426,8 @@ def _paths(args) -> dict:
 def main(args: argparse.Namespace) -> int:
     only = {x for x in args.only.split(",") if x}
     res = {}
-    for name, (fn, *a) in _paths(args).items():
+    cfg = bench_config()
+    for name, (fn, *a) in _paths(args, cfg).items():
         if only and name not in only:
             continue
         t0 = time.time()
@@ -436,6 +445,9 @@ def main(args: argparse.Namespace) -> int:
         "drives_disabled": sum(1 for r in res.values() if r.get("drives_disabled")),
         "max_peak_fraction": {k: max((r["peak_fraction"][k] for r in stops), default=None) for k in ("v", "a", "j")},
         "spurious": [k for k, r in res.items() if r.get("spurious")],
+        "stop_share_of_limits": STOP_SHARE,
+        "peak_estimator": peak_estimator(cfg.cycle.period_s, 1.0 / cfg.bus.increments_per_mm, cfg.max_velocity_mm_s,
+                                         cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3).as_dict(cfg.cycle.period_s),
         "loadavg": os.getloadavg(),
     }
     print(json.dumps({"summary": summary, "paths": res}, indent=1))
