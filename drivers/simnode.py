@@ -20,7 +20,7 @@ from .errors import BusError
 from . import cia402
 from .simfaults import FaultSpec  # noqa: F401  (re-exported)
 from .simhooks import EXTENSIONS, OdHooks
-from .simreact import Reactions
+from .simreact import TICK_S, Reactions
 from .strutmodel import StrutModel
 from .touchprobe import TouchProbe
 
@@ -84,6 +84,7 @@ class SimDrive:
         self.scheduled: list[tuple[float, str, int]] = []    #: (due monotonic s, kind, code)
         self.pending_faults: list[FaultSpec] = []           #: armed at first enable
         self.master_hb_s: float | None = None
+        self._last_hk_s: float | None = None     # the last housekeeping tick (own stalls)
         self.last_sync_s = 0.0
         self.rpdo_subs: list[tuple[int, Callable]] = []
         self.tpdos: list[_Tpdo] = []
@@ -583,6 +584,11 @@ class SimDrive:
                 self.apply_injection(kind, code)
         if self.silent and self.node.nmt._send_task is not None:
             self.node.nmt.stop_heartbeat()
+        # a simulated drive can be descheduled (a real one cannot): its own stall is not the master's
+        # silence (the frames queued meanwhile are still to be read), as for the RPDO deadline
+        last_hk, self._last_hk_s = self._last_hk_s, now
+        if last_hk is not None and self.master_hb_s is not None and now - last_hk > 3 * TICK_S:
+            self.master_hb_s += now - last_hk
         if self.node.nmt.state == "OPERATIONAL":
             for tp in self.tpdos:
                 if tp.trans >= 254 and ((tp.pending and now - tp.last_s >= tp.inhibit_s)

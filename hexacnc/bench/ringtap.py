@@ -45,6 +45,22 @@ class Seen:
     missed: int = 0                                  #: records overwritten before the tap read them
 
 
+def write_index(seg, side: int) -> int:
+    """Records published so far on one direction of a frame ring (0: master -> drives, 1: back)."""
+    return int(np.frombuffer(seg.buf, dtype=np.int64, count=1, offset=8 * _I_W[side])[0])
+
+
+def attach(name: str) -> shared_memory.SharedMemory:
+    """Attach to a daemon's frame ring segment without taking it over (no resource tracking)."""
+    seg = shared_memory.SharedMemory(name=name)
+    try:
+        from multiprocessing import resource_tracker
+        resource_tracker.unregister(seg._name, "shared_memory")  # type: ignore[attr-defined]
+    except Exception:
+        pass
+    return seg
+
+
 class RingTap:
     """``RingTap(cfg, names).start()`` ... ``.stop()``; ``.seen`` holds the decoded frames."""
 
@@ -53,15 +69,7 @@ class RingTap:
         self.ipm = float(cfg.bus.increments_per_mm)
         self.off = np.asarray(cfg.strut_offset_mm, dtype=float)
         self.poll_s = poll_s
-        self.segs = []
-        for name in names:
-            seg = shared_memory.SharedMemory(name=name)
-            try:
-                from multiprocessing import resource_tracker
-                resource_tracker.unregister(seg._name, "shared_memory")  # type: ignore[attr-defined]
-            except Exception:
-                pass
-            self.segs.append(seg)
+        self.segs = [attach(name) for name in names]
         self.n = [int(np.frombuffer(seg.buf, dtype=np.int64, count=2)[1]) for seg in self.segs]
         self.pos = [[self._w(b, 0), self._w(b, 1)] for b in range(len(self.segs))]
         self.seen = Seen(targets=[[] for _ in self.segs])
@@ -84,7 +92,7 @@ class RingTap:
         self.lock = threading.Lock()
 
     def _w(self, b: int, side: int) -> int:
-        return int(np.frombuffer(self.segs[b].buf, dtype=np.int64, count=1, offset=8 * _I_W[side])[0])
+        return write_index(self.segs[b], side)
 
     def start(self) -> "RingTap":
         self._thread = threading.Thread(target=self._run, name="ringtap", daemon=True)
