@@ -143,4 +143,4 @@ class UploadOps:
             return P.ok_reply(req.id, **info)
         operator = getattr(self, "operator", None)     # as op "program": the operator's state when there is one
         load = operator.load_program if operator is not None else self.daemon.load_program
-        self._submit_motion(conn, req, lambda: load("".join(parts), name), reply)
+        self._submit_motion(conn, req, self._unless_stopped(lambda: load("".join(parts), name), name), reply)
