@@ -85,6 +85,7 @@ class SimDrive:
         self.pending_faults: list[FaultSpec] = []           #: armed at first enable
         self.master_hb_s: float | None = None
         self._last_hk_s: float | None = None     # the last housekeeping tick (own stalls)
+        self._dem: list | None = [start_inc / self.k] * 9      # the last 9 demands, mm (newest first)
         self.last_sync_s = 0.0
         self.rpdo_subs: list[tuple[int, Callable]] = []
         self.tpdos: list[_Tpdo] = []
@@ -121,6 +122,13 @@ class SimDrive:
         if not isinstance(od[index], canopen.objectdictionary.ODVariable) and sub not in od[index]:
             return default
         return self.raw(index, sub)
+
+    def demand_state_mm(self) -> tuple[float, float, float]:
+        """Position (mm), velocity (mm/s) and acceleration (mm/s^2) of the last demands: the
+        acceleration over 4-cycle steps, so the rounding of the targets to units hardly shows."""
+        dem = self._dem or [self.pos_inc / self.k] * 9
+        dt = self._dt_s
+        return dem[0], (dem[0] - dem[1]) / dt, (dem[0] - 2.0 * dem[4] + dem[8]) / (4.0 * dt) ** 2
 
     def model_amax(self) -> float:
         return float(getattr(self.model, "amax", 20000.0))
@@ -273,6 +281,7 @@ class SimDrive:
                 if self.mode != cia402.MODE_CSP:
                     break                   # no mode selected: stays Switched on
                 self.demand_inc = self.target_inc = self.pos_inc
+                self._dem = [self.pos_inc / self.k] * 9
                 self.latched.pop(0x607A, None)
                 self.ferr_time_s = 0.0
                 self.model.reset(self.pos_inc / self.k)
@@ -420,6 +429,7 @@ class SimDrive:
                      SIM_LEAD_MM)
             self.k = k
             self.pos_inc = self.demand_inc = self.target_inc = int(round(x * k))
+            self._dem = [x] * 9
 
     def unsubscribe_pdos(self) -> None:
         net = self.sim.networks[self.bus_index]
@@ -518,6 +528,11 @@ class SimDrive:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
         self.pos_inc = int(round(x * self.k))
+        dem = self._dem
+        if dem is None:
+            self._dem = dem = [self.demand_inc / self.k] * 9
+        dem.pop()
+        dem.insert(0, self.demand_inc / self.k)
         if self.touch.function & 1:
             sig = getattr(self.sim, "probe_signal", None)
             if sig is not None:

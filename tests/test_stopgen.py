@@ -151,3 +151,38 @@ def test_peak_estimate_sees_a_real_excess():
     L = 1000.0 + np.cumsum(v) * DT
     pk = motion_peaks(np.round(np.repeat(L[:, None], 6, axis=1) / INC_MM) * INC_MM, DT, VMAX, AMAX, JMAX, INC_MM)
     assert pk["j"] > 1.05
+
+
+# -- the simulated drives' own quick stop (0x6085 at the profile jerk 0x60A4:1) ----------------
+def _ramp_demands(v, a, decel, jerk):
+    from drivers.simreact import Ramp
+    r = Ramp(1000.0, v, decel, None, jerk, a)
+    xs = [1000.0 - 2 * v * DT + a * DT * DT, 1000.0 - v * DT, 1000.0]   # the demands before: v, a
+    for _ in range(20000):
+        if r.done:
+            break
+        xs.append(r.step(DT))
+    else:
+        raise AssertionError("the ramp did not end")
+    xs += [xs[-1]] * 3
+    X = np.array(xs)
+    return np.diff(X) / DT, np.diff(X, 2) / DT ** 2, np.diff(X, 3) / DT ** 3
+
+
+def test_drive_quick_stop_ramp_is_jerk_limited_from_the_demand_it_had():
+    rng = np.random.default_rng(3)
+    decel, jerk = STOP_SHARE * AMAX, STOP_SHARE * JMAX
+    for _ in range(200):
+        v, a = rng.uniform(-400, 400), rng.uniform(-decel, decel)
+        if v * a > 0 and peak_speed(v, a, jerk, DT) > VMAX:
+            continue
+        V, A, J = _ramp_demands(v, a, decel, jerk)
+        assert np.abs(J).max() <= jerk * (1 + 1e-6) + 1e-3, (v, a, np.abs(J).max())
+        assert np.abs(A[1:]).max() <= decel * (1 + 1e-6) + 1e-3
+        assert np.all(V[-2:] == 0.0)
+
+
+def test_drive_quick_stop_without_profile_jerk_is_the_0x6085_trapezoid():
+    V, A, J = _ramp_demands(50.0, 0.0, 1000.0, 0.0)
+    assert np.abs(A[1:]).max() == pytest.approx(1000.0, rel=1e-6)
+    assert (len(V) - 4) * DT == pytest.approx(50.0 / 1000.0, abs=2 * DT)

@@ -296,6 +296,7 @@ def _paths(args, cfg) -> dict:
                                           lambda d: (d.inject_drive("drop", 0, 0.5), time.sleep(0.3)))
     paths["stop_during_planning"] = (stop_during_planning, cfg, args.lines, 0.5)
     paths["stop_at_program_end"] = (stop_during_planning, cfg, args.lines, 0.0)
+    paths["stop_no_program_baseline"] = (stop_during_planning, cfg, 0, None)
     if args.soak_s > 0:
         paths["soak"] = (soak, cfg, args.soak_s)
     return paths
