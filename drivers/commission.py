@@ -161,6 +161,10 @@ def configure_units(m: "Master") -> list[dict]:
 
 
 # -- communication-loss and fault reactions --------------------------------------------------------
+#: objects a drive may lack although its description lists them (a refusal is logged, not fatal)
+OPTIONAL_OBJECTS = frozenset({0x60A4})
+
+
 def stop_ramp_objects(cfg, bus_cfg, strut: int) -> list[tuple]:
     """The drive's own quick stop within the strut's limits, at :data:`drivers.jerkstop.STOP_SHARE`
     of them as the loop's controlled stop: 0x6085 quick-stop deceleration and 0x60A4:1 profile jerk
@@ -187,13 +191,21 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
                 (0x605E, None, FAULT_REACTION_OPTION, "fault reaction option"),
                 *stop_ramp_objects(m.cfg, m.bus_cfg, nd.index)]
         rep = {"node_id": nd.node_id, "missing": []}
+        refused = set()
         for index, sub, value, name in want:
             if not desc.has(index):
                 rep["missing"].append(f"0x{index:04X}")
                 continue
-            m.sdo_write(nd, name, index, sub, value)
+            try:
+                m.sdo_write(nd, name, index, sub, value)
+            except BusError as exc:
+                if index not in OPTIONAL_OBJECTS:
+                    raise
+                refused.add(index)          # described but not in the drive: its ramps stay trapezoids
+                rep["missing"].append(f"0x{index:04X}")
+                log.warning("%s: %s; its quick stop ramps without a jerk limit", m.who(nd), exc)
         for index, sub, value, name in want:
-            if not desc.has(index):
+            if not desc.has(index) or index in refused:
                 continue
             back = m.sdo_read(nd, f"{name} read-back", index, sub)
             if back != value:
