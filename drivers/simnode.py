@@ -3,7 +3,6 @@
 canopen's ``LocalNode`` answers SDO and NMT and produces the heartbeat; :class:`SimDrive` adds
 RPDO application per the SDO-configured mapping, TPDOs on SYNC and on change, the CiA 402 state
 machine, software limits, following error and master-heartbeat supervision, fault injection.
-All methods run with the owning ``SimDrives.lock`` held.
 """
 from __future__ import annotations
 
@@ -20,7 +19,7 @@ from .errors import BusError
 from . import cia402
 from .simfaults import FaultSpec  # noqa: F401  (re-exported)
 from .simhooks import EXTENSIONS, OdHooks
-from .simreact import TICK_S, Reactions
+from .simreact import Reactions
 from .strutmodel import StrutModel
 from .touchprobe import TouchProbe
 
@@ -84,8 +83,6 @@ class SimDrive:
         self.scheduled: list[tuple[float, str, int]] = []    #: (due monotonic s, kind, code)
         self.pending_faults: list[FaultSpec] = []           #: armed at first enable
         self.master_hb_s: float | None = None
-        self._last_hk_s: float | None = None     # the last housekeeping tick (own stalls)
-        self._dem: list | None = [start_inc / self.k] * 9      # the last 9 demands, mm (newest first)
         self.last_sync_s = 0.0
         self.rpdo_subs: list[tuple[int, Callable]] = []
         self.tpdos: list[_Tpdo] = []
@@ -122,13 +119,6 @@ class SimDrive:
         if not isinstance(od[index], canopen.objectdictionary.ODVariable) and sub not in od[index]:
             return default
         return self.raw(index, sub)
-
-    def demand_state_mm(self) -> tuple[float, float, float]:
-        """Position (mm), velocity (mm/s) and acceleration (mm/s^2) of the last demands: the
-        acceleration over 4-cycle steps, so the rounding of the targets to units hardly shows."""
-        dem = self._dem or [self.pos_inc / self.k] * 9
-        dt = self._dt_s
-        return dem[0], (dem[0] - dem[1]) / dt, (dem[0] - 2.0 * dem[4] + dem[8]) / (4.0 * dt) ** 2
 
     def model_amax(self) -> float:
         return float(getattr(self.model, "amax", 20000.0))
@@ -281,7 +271,7 @@ class SimDrive:
                 if self.mode != cia402.MODE_CSP:
                     break                   # no mode selected: stays Switched on
                 self.demand_inc = self.target_inc = self.pos_inc
-                self._dem = [self.pos_inc / self.k] * 9
+                self.react.fill_demands(self.pos_inc / self.k)
                 self.latched.pop(0x607A, None)
                 self.ferr_time_s = 0.0
                 self.model.reset(self.pos_inc / self.k)
@@ -429,7 +419,6 @@ class SimDrive:
                      SIM_LEAD_MM)
             self.k = k
             self.pos_inc = self.demand_inc = self.target_inc = int(round(x * k))
-            self._dem = [x] * 9
 
     def unsubscribe_pdos(self) -> None:
         net = self.sim.networks[self.bus_index]
@@ -528,11 +517,7 @@ class SimDrive:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
         self.pos_inc = int(round(x * self.k))
-        dem = self._dem
-        if dem is None:
-            self._dem = dem = [self.demand_inc / self.k] * 9
-        dem.pop()
-        dem.insert(0, self.demand_inc / self.k)
+        self.react.track_demand(self.demand_inc / self.k)
         if self.touch.function & 1:
             sig = getattr(self.sim, "probe_signal", None)
             if sig is not None:
@@ -599,11 +584,7 @@ class SimDrive:
                 self.apply_injection(kind, code)
         if self.silent and self.node.nmt._send_task is not None:
             self.node.nmt.stop_heartbeat()
-        # a simulated drive can be descheduled (a real one cannot): its own stall is not the master's
-        # silence (the frames queued meanwhile are still to be read), as for the RPDO deadline
-        last_hk, self._last_hk_s = self._last_hk_s, now
-        if last_hk is not None and self.master_hb_s is not None and now - last_hk > 3 * TICK_S:
-            self.master_hb_s += now - last_hk
+        self.master_hb_s = self.react.excuse_own_stall(now, self.master_hb_s)
         if self.node.nmt.state == "OPERATIONAL":
             for tp in self.tpdos:
                 if tp.trans >= 254 and ((tp.pending and now - tp.last_s >= tp.inhibit_s)

@@ -77,6 +77,37 @@ class Reactions:
         self.comm_error = cia402.COMM_ERROR_PRE_OPERATIONAL
         self.last_step_s = 0.0
         self.last_tick_s: float | None = None
+        self.last_hk_s: float | None = None          # the drive's last housekeeping tick
+        self.demands: list[float] | None = None      # the last 9 demands, mm, newest first
+
+    # -- the demand the drive had (where a stop ramp starts) ------------------------------------
+    def fill_demands(self, x_mm: float) -> None:
+        self.demands = [x_mm] * 9
+
+    def track_demand(self, x_mm: float) -> None:
+        dem = self.demands
+        if dem is None:
+            self.demands = [x_mm] * 9
+            return
+        dem.pop()
+        dem.insert(0, x_mm)
+
+    def demand_state_mm(self) -> tuple[float, float, float]:
+        """Position (mm), velocity (mm/s) and acceleration (mm/s^2) of the last demands: the
+        acceleration over 4-cycle steps, so the rounding of the targets to units hardly shows."""
+        d = self.d
+        dem = self.demands or [d.pos_inc / d.k] * 9
+        dt = d._dt_s
+        return dem[0], (dem[0] - dem[1]) / dt, (dem[0] - 2.0 * dem[4] + dem[8]) / (4.0 * dt) ** 2
+
+    def excuse_own_stall(self, now: float, master_hb_s: float | None) -> float | None:
+        """The master heartbeat's time moved on by the drive's own stall (housekeeping late by more
+        than 3 ticks): a descheduled simulator is not a silent master, the frames queued meanwhile are
+        still to be read (as for the RPDO deadline in :meth:`supervise`)."""
+        last, self.last_hk_s = self.last_hk_s, now
+        if last is not None and master_hb_s is not None and now - last > 3 * TICK_S:
+            return master_hb_s + (now - last)
+        return master_hb_s
 
     # -- configuration (NMT start) -------------------------------------------------------------
     def configure(self) -> None:
@@ -105,7 +136,7 @@ class Reactions:
         d = self.d
         a = self.decel_mm_s2(quick)
         j = d.raw_or(0x60A4, 1, 0) / d.k
-        x, v, acc = d.demand_state_mm()
+        x, v, acc = self.demand_state_mm()
         self.ramp = Ramp(x, v, a, then, j, acc)
         self.last_step_s = now
         self.note(now, f"{why}: {'quick stop' if quick else 'slow down'} ramp {a:g} mm/s^2"
