@@ -77,6 +77,7 @@ def probe_move(daemon: Any, tip: np.ndarray, feed: float, mode: str) -> dict:
     if want == (s <= 0):
         raise HexacncError(f"G{mode}: the probe is {'already' if want else 'not'} tripped at the start")
     words = " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", tip))
+    stops = daemon._stops
     daemon.load_program(f"G21 G90 G94\nG53 G1 {words} F{feed:.4f}\nM2\n", f"probe G{mode}")
     prev = (t, q, s)
     s_min = s
@@ -96,6 +97,7 @@ def probe_move(daemon: Any, tip: np.ndarray, feed: float, mode: str) -> dict:
             w = prev[2] / (prev[2] - s) if prev[2] != s else 1.0
             hit = (prev[0] + w * (t - prev[0]), prev[1] + w * (q - prev[1]))
             daemon.stop()
+            stops += 1                      # our own stop at the edge
             break
         prev = (t, q, s)
         s_min = min(s_min, s)
@@ -105,6 +107,8 @@ def probe_move(daemon: Any, tip: np.ndarray, feed: float, mode: str) -> dict:
         if st == "fault" or (idle and (started or time.monotonic() > t_start)):
             break
     st = daemon.wait(60.0)
+    if daemon._stops != stops:
+        raise HexacncError(f"G{mode}: probe move stopped")
     if st.get("state") == "fault":
         raise HexacncError(f"G{mode}: probe move aborted: {(st.get('fault') or {}).get('message', 'fault')}")
     if hit is None:

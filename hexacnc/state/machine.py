@@ -155,7 +155,7 @@ def _read_state_attributes(it, old: MachineState) -> tuple[dict, dict]:
     return newp, tools
 
 
-def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
+def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState, interpreter=None):
     """Interpret ``text`` from ``state`` starting at the tool tip pose ``start_tip_deg`` (mm, deg;
     the tool tip of the current tool).  Returns ``(Program, MachineState after it)``; ``state`` is
     not changed.  Raises GcodeError.
@@ -163,11 +163,13 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
     With an interpreter that takes ``initial_state`` and reports ``Program.final_state`` (the
     contract with hexacnc.gcode) the state goes through that; with today's interpreter the
     persistent parameters are loaded into and read from its state attributes.  The modal state
-    (MDI) is carried through the interpreter's modal attributes either way."""
+    (MDI) is carried through the interpreter's modal attributes either way.  ``interpreter``: another
+    Interpreter class (a subclass; probe synchronisation, :mod:`hexacnc.gcode.probesync`)."""
     import gc
 
     from ..gcode.factory import machine_defaults
     from ..gcode.interp import Interpreter
+    Interpreter = interpreter or Interpreter
     P = state.params
     kw = machine_defaults(cfg)
     kw["start_pose"] = [float(v) for v in start_tip_deg]
