@@ -126,7 +126,7 @@ class Operator:
             raise OperatorError(f"{what} refused: a jog is running", "busy")
         from .probeprog import has_probe_words, run_probe_program
         if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
-            return run_probe_program(d, text, name, operator=self, mdi=mdi)
+            return run_probe_program(d, text, name, self, _check_tip_limits if mdi else None)
         with d.lock:
             d._require_motion_ok()
             start = d._planned_start()

@@ -43,9 +43,9 @@ def has_probe_words(text: str) -> bool:
     return _G38.search(text) is not None
 
 
-def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, state, known, mdi: bool):
+def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, state, known, tip_check):
     """Planning child: interpret with the ``known`` probe results up to the next probe, plan what
-    comes after the last known one.  Returns ``(plan or None, blocks, probe dict or None, state
+    comes after the last known one (``tip_check(cfg, program)``: MDI's tool-tip limits, or None).  Returns ``(plan or None, blocks, probe dict or None, state
     after the program or None, messages)``."""
     from ..gcode import blocks as B
     from ..gcode.probesync import ProbeSync, make_sync_interpreter, segment_after
@@ -66,9 +66,8 @@ def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, st
     except ProbeSync as exc:
         blocks, new_state = exc.interpreter.blocks, None
     seg, probe = segment_after(blocks, len(known))
-    if mdi:
-        from .operator import _check_tip_limits
-        _check_tip_limits(cfg, type("Seg", (), {"motion_blocks": [b for b in seg if b.kind in B.MOTION_KINDS]}))
+    if tip_check is not None:
+        tip_check(cfg, type("Segment", (), {"motion_blocks": [b for b in seg if b.kind in B.MOTION_KINDS]}))
     plan = None
     if any(b.kind in B.MOTION_KINDS for b in seg):
         plan = planner_plan(seg, cfg, hexapod=Hexapod(cfg), period_s=period_s)
@@ -97,8 +96,8 @@ def _tip_deg(cfg, platform_rad, tool_length_mm: float) -> np.ndarray:
 class _Run:
     """One probe-synchronised program run on a daemon (see the module text)."""
 
-    def __init__(self, daemon: Any, text: str, name: str, operator: Any, mdi: bool):
-        self.d, self.text, self.name, self.op, self.mdi = daemon, text, name, operator, mdi
+    def __init__(self, daemon: Any, text: str, name: str, operator: Any, tip_check):
+        self.d, self.text, self.name, self.op, self.tip_check = daemon, text, name, operator, tip_check
         with daemon.lock:
             daemon._require_motion_ok()
             self.start = daemon._planned_start()
@@ -119,7 +118,7 @@ class _Run:
         from .planproc import PlanJob
         d = self.d
         pj = PlanJob(d.cfg, self.text, self.name, self.start, d.period_s, work=plan_segment,
-                     work_args=(self.tip0, self.state, tuple(self.known), self.mdi))
+                     work_args=(self.tip0, self.state, tuple(self.known), self.tip_check))
         with d.lock:
             d._planning.add(pj)
             if d._stops != self.stops:
@@ -205,10 +204,12 @@ class _Run:
         return {"blocks": self.blocks, "duration_s": self.duration_s, "probes": self.probes, "messages": messages}
 
 
-def run_probe_program(daemon: Any, text: str, name: str, operator: Any = None, mdi: bool = False) -> dict:
+def run_probe_program(daemon: Any, text: str, name: str, operator: Any = None, tip_check=None) -> dict:
     """Run a program (or MDI) with G38.x probe-synchronised; returns when it has ended.  A failure
-    (no contact for G38.2/G38.4, a fault, a stop) is recorded as the program's abort reason."""
-    run = _Run(daemon, text, name, operator, mdi)
+    (no contact for G38.2/G38.4, a fault, a stop) is recorded as the program's abort reason.
+    ``operator``: interpret from its persistent state and commit the state after the program;
+    ``tip_check``: a module-level ``f(cfg, program)`` run on each segment (MDI's tool-tip limits)."""
+    run = _Run(daemon, text, name, operator, tip_check)
     try:
         return run.run()
     except HexacncError as exc:
