@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from e2e_fixtures import cfg, running_machine  # noqa: F401
 
+from hexacnc.calib.output import dumps_toml
 from hexacnc.daemon import calibops
 from hexacnc.daemon.jog import tip_poses
 from hexacnc.daemon import protocol as P
@@ -21,8 +22,12 @@ CENTRE = C + TouchProbe(0).sphere_error[13]   # where it really is (artefact cal
 
 
 @pytest.fixture(scope="module")
-def machine(cfg):  # noqa: F811
-    truth = parse_truth(synth_truth_doc(cfg, 3, magnitude=0.0), "<truth = model>")
+def machine(cfg, tmp_path_factory):  # noqa: F811
+    doc = synth_truth_doc(cfg, 3, magnitude=0.0)
+    path = tmp_path_factory.mktemp("truth") / "truth.toml"
+    path.write_text(dumps_toml(doc))
+    truth = parse_truth(doc, str(path))
+    cfg = cfg.replace(simulation_truth=str(path))       # the simulated drives' probe input (their latch)
     gen = running_machine(cfg, name="probe")
     daemon, srv = next(gen)
     calibops.attach(daemon, truth)
@@ -76,6 +81,8 @@ def test_probe_sets_results_and_the_program_moves_to_them(machine, client):
     # every contact went into the probe log (strut readings, pose, time)
     log = list(machine[0].calib_probe_log)[-2:]
     assert all(len(e["q_mm"]) == 6 and len(e["tip_pose"]) == 6 and e["t_s"] > 0 for e in log)
+    # ... with the readings the drives latched at the edge (CiA 402 0x60BA over SDO by the hot loop)
+    assert all(e["latched"] for e in log)
     # the last move used #5070 (= 0 after the G38.3) and #5063 of the first probe: Y 3, Z top + 10
     client.call("wait", timeout_s=30.0)
     tip = tip_poses(machine[0].cfg, np.asarray(client.call("status")["pose_cmd"])[None, :], 0.0)[0]
