@@ -55,7 +55,19 @@ class ProbeSignal:
             q[d.strut] = x
         return q
 
-    def distance_mm(self, q: np.ndarray, now: float) -> float:
+    def deflection_mm(self) -> np.ndarray | None:
+        """The drives' dynamic elastic deflection (coupled strut model of the true machine), or None."""
+        out = np.zeros(6)
+        for d in self.sim.drives:
+            v = getattr(getattr(d, "model", None), "deflection_mm", None)
+            if v is None:
+                return None
+            out[d.strut] = v
+        return out
+
+    def distance_mm(self, q: np.ndarray, now: float, extra_mm=None) -> float:
+        """Distance (mm) of the true tool tip to the nearest sphere surface at readings ``q``;
+        ``extra_mm``: dynamic strut deflection on top of the static elastic elongation."""
         tm = self.truth
         if self._X is None:
             self._X = tm.platform_pose_rad(q)
@@ -63,6 +75,8 @@ class ProbeSignal:
             self._elong = tm.forces_N(self._X) / tm.k
             self._t_force = now
         L = tm.lengths_unloaded(q, np.ones(6)) + self._elong
+        if extra_mm is not None:
+            L = L + extra_mm
         X = self._X
         for _ in range(8):                 # one step per SYNC while following; more after a jump
             dX = np.linalg.solve(tm.hx.jacobian_rad(X), L - tm.hx.lengths_rad(X))
@@ -77,7 +91,7 @@ class ProbeSignal:
         n = self.steps[strut] + 1
         v = self._by_step.get(n)
         if v is None:
-            v = self._by_step[n] = self.distance_mm(self.readings_mm(strut), now)
+            v = self._by_step[n] = self.distance_mm(self.readings_mm(strut), now, self.deflection_mm())
             if len(self._by_step) > 64:
                 self._by_step.pop(next(iter(self._by_step)))
         return v
@@ -91,9 +105,11 @@ def artefact_spheres_mm(seed: int = 0) -> np.ndarray:
     return art.spheres + art.sphere_error
 
 
-def attach_probe_signal(sim, truth_path: str) -> ProbeSignal:
+def attach_probe_signal(sim, truth) -> ProbeSignal:
+    """``truth``: a :class:`~hexacnc.sim.truth.TrueMachine` or the path of its file."""
     from .truth import load_truth
-    sig = ProbeSignal(load_truth(truth_path), sim, artefact_spheres_mm(0))
+    tm = load_truth(truth) if isinstance(truth, (str, bytes)) or hasattr(truth, "__fspath__") else truth
+    sig = ProbeSignal(tm, sim, artefact_spheres_mm(0))
     for d in sim.drives:
         d.hooks.sync.append(sig.count_step)
     sim.probe_signal = sig
