@@ -130,14 +130,28 @@ def retarget_probe(cfg, poses_deg: np.ndarray, spheres_mm: np.ndarray) -> np.nda
     return np.asarray(out)
 
 
+def outside_box(cfg, poses_deg: np.ndarray) -> np.ndarray:
+    """(N,) True where a platform pose (mm/deg) is outside the ``[workspace]`` box (the planner's soft limits)."""
+    from ..planner.softlimits import outside
+    under, over = outside(cfg, poses_deg)
+    return np.any(under | over, axis=1)
+
+
+def unreachable(cfg, poses_deg: np.ndarray, approach_mm: float = 0.3) -> np.ndarray:
+    """(N,) True where a pose or its approach pose is outside the strut/joint limits or the workspace box."""
+    hx = Hexapod(cfg)
+    P = np.atleast_2d(np.asarray(poses_deg, dtype=float))
+    pre = np.array([approach_pose(hx, X, approach_mm) for X in P])
+    return hx.batch_violations(P) | hx.batch_violations(pre) | outside_box(cfg, P) | outside_box(cfg, pre)
+
+
 def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan") -> None:
     """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits."""
-    hx = Hexapod(cfg)
-    pre = np.array([approach_pose(hx, X, approach_mm) for X in poses_deg])
-    bad = hx.batch_violations(poses_deg) | hx.batch_violations(pre)
+    bad = unreachable(cfg, poses_deg, approach_mm)
     if bad.any():
         rows = np.where(bad)[0]
         raise DataError(f"{source}: {len(rows)} pose(s) the machine cannot reach within its strut and joint limits "
+                        f"and the [workspace] box (pose or its approach pose) "
                         f"(rows {', '.join(str(int(r) + 1) for r in rows[:20])}{' ...' if len(rows) > 20 else ''}); "
                         f"nothing moved")
 
