@@ -137,6 +137,20 @@ def outside_box(cfg, poses_deg: np.ndarray) -> np.ndarray:
     return np.any(under | over, axis=1)
 
 
+#: calib plan keeps its poses this far (mm) inside the [workspace] box: the moves between poses are straight
+#: lines of the tool tip with the orientation interpolated, along which the platform bulges out by up to
+#: |tip| * angle^2 / 8 (250 mm tip, 0.6 rad: 11 mm) - the planner refuses any sample outside the box
+BOX_MARGIN_MM = 15.0
+
+
+def near_box_edge(cfg, poses_deg: np.ndarray, margin_mm: float = BOX_MARGIN_MM) -> np.ndarray:
+    """(N,) True where a platform pose's x, y or z is within ``margin_mm`` of the ``[workspace]`` box."""
+    P = np.atleast_2d(np.asarray(poses_deg, dtype=float))
+    lo = np.asarray(cfg.workspace_min, dtype=float)[:3] + margin_mm
+    hi = np.asarray(cfg.workspace_max, dtype=float)[:3] - margin_mm
+    return np.any((P[:, :3] < lo[None]) | (P[:, :3] > hi[None]), axis=1)
+
+
 def unreachable(cfg, poses_deg: np.ndarray, approach_mm: float = 0.3) -> np.ndarray:
     """(N,) True where a pose or its approach pose is outside the strut/joint limits or the workspace box."""
     hx = Hexapod(cfg)
