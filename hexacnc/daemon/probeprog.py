@@ -45,8 +45,8 @@ def has_probe_words(text: str) -> bool:
 
 def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, state, known, tip_check):
     """Planning child: interpret with the ``known`` probe results up to the next probe, plan what
-    comes after the last known one (``tip_check(cfg, program)``: MDI's tool-tip limits, or None).  Returns ``(plan or None, blocks, probe dict or None, state
-    after the program or None, messages)``."""
+    comes after the last known one (``tip_check(cfg, program)``: MDI's tool-tip limits, or None).
+    Returns ``(plan or None, blocks, probe dict or None, state after the program or None, messages)``."""
     from ..gcode import blocks as B
     from ..gcode.probesync import ProbeSync, make_sync_interpreter, segment_after
     from ..kinematics import Hexapod
