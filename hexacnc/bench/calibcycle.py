@@ -145,20 +145,24 @@ def _true_errors_um(truth, verify: dict) -> dict:
 
 def contact_errors_um(truth, probes_jsonl: Path) -> dict:
     """How far from the artefact's surface the TRUE tool tip is at the stored contact readings (um):
-    the drives' latched readings vs the readings interpolated between the supervisor's samples."""
+    the drives' latched readings vs the readings interpolated between the supervisor's samples; and
+    how far apart the two tips are (the interpolated readings mix the two buses' feedback instants)."""
     from ..sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM, artefact_spheres_mm
     spheres = artefact_spheres_mm(0)
-    err: dict = {"latched": [], "interpolated": []}
+    err: dict = {"latched": [], "interpolated": [], "interpolated_vs_latched_tip": []}
     n = 0
     for line in probes_jsonl.read_text().splitlines() if probes_jsonl.exists() else []:
         e = json.loads(line)
         n += 1
+        tips = {}
         for key, q in (("latched", e["q_mm"] if e.get("latched") else None), ("interpolated", e.get("q_interp_mm"))):
             if q is None:
                 continue
-            tip = truth.tool_tip_mm(truth.platform_pose_rad(np.asarray(q, dtype=float)))
+            tip = tips[key] = truth.tool_tip_mm(truth.platform_pose_rad(np.asarray(q, dtype=float)))
             d = np.min(np.linalg.norm(spheres - tip[None], axis=1)) - SPHERE_RADIUS_MM - STYLUS_RADIUS_MM
             err[key].append(1e3 * d)
+        if len(tips) == 2:      # both on the surface, but where: the latched set is one instant of all six drives
+            err["interpolated_vs_latched_tip"].append(1e3 * float(np.linalg.norm(tips["latched"] - tips["interpolated"])))
     out: dict = {"contacts": n}
     for key, v in err.items():
         a = np.abs(np.asarray(v))
