@@ -162,7 +162,8 @@ def contact_errors_um(truth, probes_jsonl: Path) -> dict:
             d = np.min(np.linalg.norm(spheres - tip[None], axis=1)) - SPHERE_RADIUS_MM - STYLUS_RADIUS_MM
             err[key].append(1e3 * d)
         if len(tips) == 2:      # both on the surface, but where: the latched set is one instant of all six drives
-            err["interpolated_vs_latched_tip"].append(1e3 * float(np.linalg.norm(tips["latched"] - tips["interpolated"])))
+            gap = float(np.linalg.norm(tips["latched"] - tips["interpolated"]))
+            err["interpolated_vs_latched_tip"].append(1e3 * gap)
     out: dict = {"contacts": n}
     for key, v in err.items():
         a = np.abs(np.asarray(v))
