@@ -143,6 +143,35 @@ def _true_errors_um(truth, verify: dict) -> dict:
     return {"rms_um": float(np.sqrt(np.mean(e ** 2))) if e.size else None, "max_um": float(e.max()) if e.size else None}
 
 
+def contact_errors_um(truth, probes_jsonl: Path) -> dict:
+    """How far from the artefact's surface the TRUE tool tip is at the stored contact readings (um):
+    the drives' latched readings vs the readings interpolated between the supervisor's samples; and
+    how far apart the two tips are (the interpolated readings mix the two buses' feedback instants)."""
+    from ..sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM, artefact_spheres_mm
+    spheres = artefact_spheres_mm(0)
+    err: dict = {"latched": [], "interpolated": [], "interpolated_vs_latched_tip": []}
+    n = 0
+    for line in probes_jsonl.read_text().splitlines() if probes_jsonl.exists() else []:
+        e = json.loads(line)
+        n += 1
+        tips = {}
+        for key, q in (("latched", e["q_mm"] if e.get("latched") else None), ("interpolated", e.get("q_interp_mm"))):
+            if q is None:
+                continue
+            tip = tips[key] = truth.tool_tip_mm(truth.platform_pose_rad(np.asarray(q, dtype=float)))
+            d = np.min(np.linalg.norm(spheres - tip[None], axis=1)) - SPHERE_RADIUS_MM - STYLUS_RADIUS_MM
+            err[key].append(1e3 * d)
+        if len(tips) == 2:      # both on the surface, but where: the latched set is one instant of all six drives
+            gap = float(np.linalg.norm(tips["latched"] - tips["interpolated"]))
+            err["interpolated_vs_latched_tip"].append(1e3 * gap)
+    out: dict = {"contacts": n}
+    for key, v in err.items():
+        a = np.abs(np.asarray(v))
+        out[key] = {"n": int(a.size), "rms_um": float(np.sqrt(np.mean(a ** 2))) if a.size else None,
+                    "max_um": float(a.max()) if a.size else None}
+    return out
+
+
 def _causes(truth, nominal) -> list[str]:
     out = ["joint positions (geometry)", "strut offsets"]
     if np.any(np.asarray(truth.cfg.calibration.strut_scale) != 1.0):
@@ -211,6 +240,9 @@ def main(args: argparse.Namespace) -> int:
                 "times_s": {k: round(v, 2) for k, v in r["times"].items()},
                 "faults_reset": r["faults_reset"],
             }
+            if inst == "probe":
+                out["instruments"][inst]["contact_reading_error"] = contact_errors_um(
+                    truth, work / "meas_probe.csv.probes.jsonl")
         first = out["instruments"][insts[0]]
         for k in ("before", "after", "noise_floor_um", "machine_time_s"):
             out[k] = first[k]

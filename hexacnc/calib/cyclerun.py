@@ -130,14 +130,42 @@ def retarget_probe(cfg, poses_deg: np.ndarray, spheres_mm: np.ndarray) -> np.nda
     return np.asarray(out)
 
 
+def outside_box(cfg, poses_deg: np.ndarray) -> np.ndarray:
+    """(N,) True where a platform pose (mm/deg) is outside the ``[workspace]`` box (the planner's soft limits)."""
+    from ..planner.softlimits import outside
+    under, over = outside(cfg, poses_deg)
+    return np.any(under | over, axis=1)
+
+
+#: calib plan keeps its poses this far (mm) inside the [workspace] box: the moves between poses are straight
+#: lines of the tool tip with the orientation interpolated, along which the platform bulges out by up to
+#: |tip| * angle^2 / 8 (250 mm tip, 0.6 rad: 11 mm) - the planner refuses any sample outside the box
+BOX_MARGIN_MM = 15.0
+
+
+def near_box_edge(cfg, poses_deg: np.ndarray, margin_mm: float = BOX_MARGIN_MM) -> np.ndarray:
+    """(N,) True where a platform pose's x, y or z is within ``margin_mm`` of the ``[workspace]`` box."""
+    P = np.atleast_2d(np.asarray(poses_deg, dtype=float))
+    lo = np.asarray(cfg.workspace_min, dtype=float)[:3] + margin_mm
+    hi = np.asarray(cfg.workspace_max, dtype=float)[:3] - margin_mm
+    return np.any((P[:, :3] < lo[None]) | (P[:, :3] > hi[None]), axis=1)
+
+
+def unreachable(cfg, poses_deg: np.ndarray, approach_mm: float = 0.3) -> np.ndarray:
+    """(N,) True where a pose or its approach pose is outside the strut/joint limits or the workspace box."""
+    hx = Hexapod(cfg)
+    P = np.atleast_2d(np.asarray(poses_deg, dtype=float))
+    pre = np.array([approach_pose(hx, X, approach_mm) for X in P])
+    return hx.batch_violations(P) | hx.batch_violations(pre) | outside_box(cfg, P) | outside_box(cfg, pre)
+
+
 def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan") -> None:
     """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits."""
-    hx = Hexapod(cfg)
-    pre = np.array([approach_pose(hx, X, approach_mm) for X in poses_deg])
-    bad = hx.batch_violations(poses_deg) | hx.batch_violations(pre)
+    bad = unreachable(cfg, poses_deg, approach_mm)
     if bad.any():
         rows = np.where(bad)[0]
         raise DataError(f"{source}: {len(rows)} pose(s) the machine cannot reach within its strut and joint limits "
+                        f"and the [workspace] box (pose or its approach pose) "
                         f"(rows {', '.join(str(int(r) + 1) for r in rows[:20])}{' ...' if len(rows) > 20 else ''}); "
                         f"nothing moved")
 

@@ -27,6 +27,7 @@ from ..errormodel import PARAM_NAMES, reading_parameter_jacobian
 from ..errors import DataError
 from ..kinematics import Hexapod
 from .model import FRAME_NAMES, jacobian_batch, measure, strut_geometry
+from .cyclerun import near_box_edge, unreachable
 from .synth import sample_poses
 
 MEASURE_CHOICES = "xyzabc"
@@ -131,7 +132,7 @@ def plan(cfg, n_poses: int, measure_set: str = "xyzabc", candidates: int = 2000,
     P = sample_poses(cfg, rng, candidates, shrink=1.0)
     hx = Hexapod(cfg)
     cond_ok = np.array([hx.condition(p) <= cfg.kinematics.max_condition for p in P])
-    P = P[cond_ok]
+    P = P[cond_ok & ~unreachable(cfg, P) & ~near_box_edge(cfg, P)]     # calib run's moves stay within the box
     rows = identification_rows(cfg, P, keep, noise_mm, noise_deg, frame)     # (M, m, P)
     npar = rows.shape[2]
     scale = column_scale(cfg, npar)

@@ -19,6 +19,7 @@ from ..kinematics import Hexapod
 from .measurements import Measurements
 from .model import CAUSES, T_REF_C, VARIANTS, Context, cause_model, jacobian_batch, strut_geometry
 from .plan import column_scale, identification_rows, parse_measure
+from .cyclerun import near_box_edge, unreachable
 from .synth import sample_poses
 
 KNOWN = CAUSES + tuple(VARIANTS.values())
@@ -126,7 +127,8 @@ def plan_separate(cfg, causes: list[str], n_poses: int, measure_set: str = "xyza
     rng = np.random.default_rng(seed)
     hx = Hexapod(cfg)
     P = sample_poses(cfg, rng, max(candidates, 2 * n_poses), shrink=1.0)
-    P = P[np.array([hx.condition(p) <= cfg.kinematics.max_condition for p in P])]
+    ok = np.array([hx.condition(p) <= cfg.kinematics.max_condition for p in P])
+    P = P[ok & ~unreachable(cfg, P) & ~near_box_edge(cfg, P)]
     geo = identification_rows(cfg, P, keep, noise_mm, noise_deg, frame)
     geo = geo * column_scale(cfg, geo.shape[2])[None, None, :]
     ng = geo.shape[2]

@@ -69,7 +69,8 @@ def probe_sphere(client, centre_mm, abc_deg, radius_mm: float, clearance_mm: flo
             with open(log_path, "a", encoding="utf-8") as f:
                 f.write(json.dumps({"sphere_mm": c.tolist(), "direction": n.tolist(), "t_s": r["t_s"],
                                     "q_mm": r["q_mm"], "tip_pose": r["tip_pose"],
-                                    "overtravel_mm": r["overtravel_mm"]}) + "\n")
+                                    "overtravel_mm": r["overtravel_mm"], "latched": r.get("latched", False),
+                                    "q_interp_mm": r.get("q_interp_mm")}) + "\n")
     _go(client, f"G21 G90 G94\nG53 G0 {_words(here, abc_deg)}\nG53 G0 {_words([here[0], here[1], safe_z], abc_deg)}"
                 f"\nM2\n", "probe retract")
     pts = np.array([r["tip_pose"][:3] for r in contacts])

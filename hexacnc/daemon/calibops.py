@@ -116,10 +116,8 @@ def attach(daemon: Any, truth=None, seed: int = 0) -> None:
     daemon.calib_seed = seed
     daemon.calib_probe_signal = None
     if truth is not None:        # the touch probe's input (op probe): the true tool tip against the artefact
-        from ..sim.instruments import TouchProbe
-        from ..sim.probesignal import ProbeSignal
-        art = TouchProbe(seed)
-        daemon.calib_probe_signal = ProbeSignal(truth, None, art.spheres + art.sphere_error)
+        from ..sim.probesignal import ProbeSignal, artefact_spheres_mm
+        daemon.calib_probe_signal = ProbeSignal(truth, None, artefact_spheres_mm(seed))
 
 
 def _check_values(values: dict) -> dict:

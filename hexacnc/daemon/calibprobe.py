@@ -13,9 +13,13 @@ Already tripped at the start (.2/.3) or not tripped (.4/.5): error.  Every edge 
 probe log (last 1000, returned in the reply as ``log_index``; ``calib run`` writes them to
 ``MEAS.csv.probes.jsonl``).
 
-The drives' own latch (CiA 402 0x60B8-0x60BB, :mod:`drivers.touchprobe`) is not read by the hot
-loop yet: the edge readings come from this 2 ms sampling (at 5 mm/s, 10 um between samples, a
-straight line at constant speed: interpolation error well below 1 um).
+The drives' own latch (CiA 402 0x60B8-0x60BB, :mod:`drivers.touchprobe`) is armed for the edge
+before the move and read by the hot loop over SDO (:mod:`.probelatch`): ``q_mm`` are the readings
+the drives latched at the edge (``latched: true``); without a latch (a drive refuses 0x60B8, no
+SDO channel, not every drive latched within 0.3 s) the readings interpolated between the two 2 ms
+samples around the edge (``latched: false``; both kept: ``q_interp_mm``).  On a machine without
+a simulated probe signal the latch alone is the probe input (the first drive that latched stops
+the move).
 """
 from __future__ import annotations
 
@@ -29,6 +33,7 @@ import numpy as np
 from ..errors import HexacncError
 
 POLL_S = 0.002
+LATCH_WAIT_S = 0.3
 MODES = ("38.2", "38.3", "38.4", "38.5")
 OPS = {"probe": {"tip_mm": ((list, tuple), True), "feed_mm_min": ((int, float), True), "mode": ((str,), False)}}
 MAX_FEED_MM_MIN = 3000.0
@@ -66,60 +71,118 @@ def _check(fields: dict) -> tuple[np.ndarray, float, str]:
     return np.asarray(tip, dtype=float), feed, mode
 
 
-def probe_move(daemon: Any, tip: np.ndarray, feed: float, mode: str) -> dict:
-    sig = getattr(daemon, "calib_probe_signal", None)
-    if sig is None:
-        raise HexacncError("no probe input on this daemon (simulation: hexacnc run --truth)")
-    hist = daemon.calib_history
-    want = mode in ("38.2", "38.3")
-    t, q = hist.current()
-    s = sig.distance_mm(q, time.monotonic())
-    if want == (s <= 0):
-        raise HexacncError(f"G{mode}: the probe is {'already' if want else 'not'} tripped at the start")
+class _Watch:
+    """The probe input seen by the supervisor: the simulated signal (2 ms samples, edge readings
+    interpolated) and/or the drives' latch (hot loop over SDO, :mod:`.probelatch`)."""
+
+    def __init__(self, daemon: Any, mode: str):
+        from . import probelatch as PL
+        self.d, self.mode, self.PL = daemon, mode, PL
+        self.want = mode in ("38.2", "38.3")
+        self.sig = getattr(daemon, "calib_probe_signal", None)
+        self.hist = daemon.calib_history
+        self.req = PL.arm(daemon.sh, 1 if self.want else 2)
+        self.latch_ok = PL.wait_state(daemon.sh, self.req, (PL.ARMED,), LATCH_WAIT_S) == PL.ARMED
+        if self.sig is None and not self.latch_ok:
+            PL.disarm(daemon.sh)
+            raise HexacncError("no probe input on this daemon: the drives' touch-probe latch cannot be armed "
+                               "(simulation: hexacnc run --truth)")
+        t, q = self.hist.current()
+        s = self.sig.distance_mm(q, time.monotonic()) if self.sig is not None else 1.0
+        if self.sig is not None and self.want == (s <= 0):
+            PL.disarm(daemon.sh)
+            raise HexacncError(f"G{mode}: the probe is {'already' if self.want else 'not'} tripped at the start")
+        self.prev = (t, q, s)
+        self.s_min = s
+        self.hit = None
+
+    def edge(self) -> bool:
+        """One 2 ms look; True at the edge (``hit``: time and interpolated readings, or None)."""
+        t, q = self.hist.current()
+        s = 1.0
+        if self.sig is not None:
+            try:
+                s = self.sig.distance_mm(q, time.monotonic())
+            except (ValueError, np.linalg.LinAlgError) as exc:
+                self.d.stop()
+                raise HexacncError(f"G{self.mode}: probe input lost ({exc})") from None
+            p = self.prev
+            if (p[2] > 0 >= s) if self.want else (p[2] <= 0 < s):
+                w = p[2] / (p[2] - s) if p[2] != s else 1.0
+                self.hit = (p[0] + w * (t - p[0]), p[1] + w * (q - p[1]))
+                return True
+        elif self.latch_ok and self.PL.read(self.d.sh)[1]:
+            self.hit = (t, q)
+            return True
+        self.prev = (t, q, s)
+        self.s_min = min(self.s_min, s)
+        return False
+
+    def latched(self):
+        """The drive readings (mm) latched at the edge, or None (latch not armed, not every drive)."""
+        PL = self.PL
+        if not self.latch_ok:
+            return None
+        st = PL.wait_state(self.d.sh, self.req, (PL.LATCHED,), LATCH_WAIT_S)
+        if st != PL.LATCHED:
+            return None
+        return np.asarray(PL.read(self.d.sh)[2], dtype=float) / float(self.d.cfg.bus.increments_per_mm)
+
+
+def _move_until_edge(daemon: Any, w: _Watch, tip: np.ndarray, feed: float, mode: str) -> bool:
     words = " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", tip))
+    stops = daemon._stops
     daemon.load_program(f"G21 G90 G94\nG53 G1 {words} F{feed:.4f}\nM2\n", f"probe G{mode}")
-    prev = (t, q, s)
-    s_min = s
-    hit = None
+    found = False
     t_end = time.monotonic() + 600.0
     t_start = time.monotonic() + 10.0
     started = False
     while time.monotonic() < t_end:
         time.sleep(POLL_S)
-        t, q = hist.current()
-        try:
-            s = sig.distance_mm(q, time.monotonic())
-        except (ValueError, np.linalg.LinAlgError) as exc:
+        if w.edge():
             daemon.stop()
-            raise HexacncError(f"G{mode}: probe input lost ({exc})") from None
-        if (prev[2] > 0 >= s) if want else (prev[2] <= 0 < s):
-            w = prev[2] / (prev[2] - s) if prev[2] != s else 1.0
-            hit = (prev[0] + w * (t - prev[0]), prev[1] + w * (q - prev[1]))
-            daemon.stop()
+            stops += 1                      # our own stop at the edge
+            found = True
             break
-        prev = (t, q, s)
-        s_min = min(s_min, s)
         st = daemon.status_state()
         started = started or st == "running"
         idle = daemon.current is None and not daemon.queue
         if st == "fault" or (idle and (started or time.monotonic() > t_start)):
             break
     st = daemon.wait(60.0)
+    if daemon._stops != stops:
+        raise HexacncError(f"G{mode}: probe move stopped")
     if st.get("state") == "fault":
         raise HexacncError(f"G{mode}: probe move aborted: {(st.get('fault') or {}).get('message', 'fault')}")
-    if hit is None:
+    return found
+
+
+def probe_move(daemon: Any, tip: np.ndarray, feed: float, mode: str) -> dict:
+    from . import probelatch as PL
+    w = _Watch(daemon, mode)
+    try:
+        found = _move_until_edge(daemon, w, tip, feed, mode)
+        q_latch = w.latched() if found else None
+    finally:
+        PL.disarm(daemon.sh)
+    if not found:
         if mode in ("38.2", "38.4"):
-            raise HexacncError(f"G{mode}: move finished without the probe {'tripping' if want else 'releasing'} "
-                               f"(closest {s_min:.4f} mm from the surface)")
+            near = f" (closest {w.s_min:.4f} mm from the surface)" if w.sig is not None else ""
+            raise HexacncError(f"G{mode}: move finished without the probe {'tripping' if w.want else 'releasing'}"
+                               + near)
         return {"contact": False, "params": {"5070": 0}, "mode": mode}
-    t_c, q_c = hit
+    t_c, q_i = w.hit if w.hit is not None else (time.time(), None)
+    q_c = q_latch if q_latch is not None else q_i
+    if q_c is None:
+        raise HexacncError(f"G{mode}: the probe tripped but the drives' latched readings could not be read")
     pose = model_tip_pose(daemon.cfg, q_c)
-    _, q_end = hist.current()
+    _, q_end = w.hist.current()
     over = float(np.linalg.norm(model_tip_pose(daemon.cfg, q_end)[:3] - pose[:3]))
     params = {str(5061 + i): float(v) for i, v in enumerate(pose)}
     params.update({"5067": 0.0, "5068": 0.0, "5069": 0.0, "5070": 1})
     entry = {"mode": mode, "t_s": float(t_c), "q_mm": [float(v) for v in q_c], "tip_pose": pose.tolist(),
-             "overtravel_mm": over}
+             "overtravel_mm": over, "latched": q_latch is not None,
+             "q_interp_mm": None if q_i is None else [float(v) for v in q_i]}
     log = daemon.__dict__.setdefault("calib_probe_log", deque(maxlen=1000))
     log.append(entry)
     return dict(entry, contact=True, params=params, log_index=len(log) - 1)

@@ -28,8 +28,9 @@ from ..transform import CycleTransform, OK as CT_OK
 from . import shm as S
 from .disablewalk import DisableWalk
 from .faults import F_BUS, F_DEADLINE, F_ENABLE, F_LIMIT, F_NONE, F_SETPOINT, F_SUPERVISOR, F_TEST
-from .homeloop import HomingCycle, home_command, home_step
 from .faults import fault_message  # noqa: F401 (re-export)
+from .homeloop import HomingCycle, home_command, home_step
+from .probelatch import ProbeLatch
 from .cyclestats import CycleStats, publish_status
 from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
 from .enablewalk import ENABLE_TIMEOUT_NS, EnableWalk, op_enabled  # noqa: F401 (re-export)
@@ -128,8 +129,7 @@ class HotLoop:
         # preallocated state
         self.out = [0.0] * 6          # strut command this cycle, mm
         self.l0 = [0.0] * 6           # command history (last, one before, two before)
-        self.l1 = [0.0] * 6
-        self.l2 = [0.0] * 6
+        self.l1, self.l2 = [0.0] * 6, [0.0] * 6
         self.act = [0.0] * 6          # measured lengths, mm
         self.hold = [0.0] * 6         # pose held when the ring is empty (mm, rad)
         self.walk = EnableWalk(io, self.lmin, self.lmax)
@@ -156,6 +156,7 @@ class HotLoop:
         self.sends = 0
         self.homer: HomingCycle | None = None
         self.home_then = S.ST_IDLE    # state after a homing that was stopped
+        self.latch = ProbeLatch(self)  # touch-probe latch over SDO, stepped after the frames went out
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -306,10 +307,8 @@ class HotLoop:
         self._enter_run()
         stats = self.stats = CycleStats(self.sh, self.period_ns)
         h = self.sh.h
-        mono = time.monotonic_ns
-        phase = stats.phase
-        ct = self.ct
-        act = self.act
+        mono, phase = time.monotonic_ns, stats.phase
+        ct, act = self.ct, self.act
         last_state = -1
         t_end = t1 = 0
         gc.collect()
@@ -569,6 +568,7 @@ class HotLoop:
         self.resync = False
         stats = self.stats
         before = stats.overruns
+        self.latch.step(t0)
         deadline = stats.account(t0, t1, deadline, resync)
         if stats.overruns != before and stats.in_row > self.max_in_row and self.state == S.ST_RUNNING:
             self._fault(F_DEADLINE, 0, stats.in_row)

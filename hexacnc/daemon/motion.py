@@ -72,6 +72,9 @@ class MotionMixin:
 
     def load_program(self, text: str, name: str) -> dict:
         """Parse, plan and check the whole program, then queue it. Raises GcodeError/PlanError."""
+        from .probeprog import has_probe_words, run_probe_program
+        if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
+            return run_probe_program(self, text, name)
         from .planproc import PlanJob
         from .program import ProgramSource
         with self.lock:

@@ -125,6 +125,9 @@ class Operator:
             self._idle_checks("MDI")
         if self.active_jog() is not None:
             raise OperatorError(f"{what} refused: a jog is running", "busy")
+        from .probeprog import has_probe_words, run_probe_program
+        if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
+            return run_probe_program(d, text, name, self, _check_tip_limits if mdi else None)
         with d.lock:
             d._require_motion_ok()
             start = d._planned_start()

@@ -85,6 +85,12 @@ S_THERMAL_APP = 52      #: 6: growth applied by the loop (slewed towards the tar
 S_SPINDLE_TGT = 58      #: spindle growth target, mm
 S_SPINDLE_APP = 59      #: spindle growth applied, mm
 S_TRAVEL = 60           #: 6: cumulative commanded strut travel, mm (thermal model input)
+S_PROBE_ARM = 66        #: touch-probe latch request (supervisor): 0 disarm, 1 contact, 2 release edge (.probelatch)
+S_PROBE_REQ = 67        #: supervisor increments after writing S_PROBE_ARM
+S_PROBE_ACK = 68        #: last request the hot loop took
+S_PROBE_STATE = 69      #: latch state (hexacnc.daemon.probelatch OFF/ARMING/ARMED/LATCHED, < 0 error)
+S_PROBE_MASK = 70       #: bit per drive whose latched position is read
+S_PROBE_POS = 72        #: 6: latched drive positions at the edge, increments
 N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)

@@ -106,6 +106,26 @@ def _serve_stdin(sim) -> bool:
     return False
 
 
+def _truth(cfg):
+    """The true machine of ``[simulation] truth`` (``hexacnc run --truth``), or None."""
+    if not getattr(cfg, "simulation_truth", ""):
+        return None
+    from ..sim.truth import load_truth
+    return load_truth(cfg.simulation_truth)       # checked by the supervisor before it started us
+
+
+def _plant_factory(truth):
+    """The strut model of the drives: the true machine's (its ``[dynamics] simulated_drives``,
+    per-strut stiffness, carrier mass and centre of gravity with the payload, strut offsets and
+    limits), not the controller's description; None: the controller's (no truth)."""
+    if truth is None:
+        return None
+    from drivers.strutmodel import config_model_factory
+    plant_cfg = truth.plant_config()
+    base = config_model_factory(plant_cfg)
+    return lambda strut, _controller_cfg: base(strut, plant_cfg)
+
+
 def main() -> int:
     for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
         signal.signal(s, signal.SIG_IGN)
@@ -131,13 +151,11 @@ def main() -> int:
     else:
         buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
-    sim = SimDrives(cfg, buses, faults=faults)
-    if getattr(cfg, "simulation_truth", ""):     # touch-probe input from the true machine (hexacnc.sim.probesignal)
+    truth = _truth(cfg)
+    sim = SimDrives(cfg, buses, faults=faults, model_factory=_plant_factory(truth))
+    if truth is not None:        # touch-probe input from the true machine (hexacnc.sim.probesignal)
         from ..sim.probesignal import attach_probe_signal
-        try:
-            attach_probe_signal(sim, cfg.simulation_truth)
-        except Exception as exc:   # the drives run without a probe input rather than not at all
-            logging.getLogger("hexacnc.simhost").warning("no touch-probe input: %s", exc)
+        attach_probe_signal(sim, truth)
     try:
         sim.start()
         print("READY", flush=True)

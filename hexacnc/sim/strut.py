@@ -121,6 +121,12 @@ class _StrutView:
     def velocity_mm_s(self) -> float:
         return float(self.s.cs.velocity_mm_s[self.i]) if self.s.cs else 0.0
 
+    @property
+    def deflection_mm(self) -> float:
+        """Dynamic elastic deflection of this strut (true length minus drive-side position), mm."""
+        cs = self.s.cs
+        return float(cs.length_mm[self.i] - cs.position_mm[self.i]) if cs else 0.0
+
     def reset(self, position_mm: float) -> None:
         self.s.reset(self.i, position_mm)
 

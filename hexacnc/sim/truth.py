@@ -96,6 +96,15 @@ class TrueMachine:
         self._X = X.copy()
         return X
 
+    def plant_config(self) -> MachineConfig:
+        """The true machine as the simulated drives' strut model sees it: the payload (at the
+        tool tip) merged into the carrier's mass and centre of gravity."""
+        m, p = float(self.cfg.mass_kg), float(self.extras.payload_kg)
+        if p <= 0.0:
+            return self.cfg
+        cog = (m * np.asarray(self.cfg.center_of_gravity_mm, dtype=float) + p * self.tip) / (m + p)
+        return self.cfg.replace(mass_kg=m + p, center_of_gravity_mm=cog)
+
     def tool_tip_mm(self, X: np.ndarray) -> np.ndarray:
         R = matrix_from_euler(*X[3:6])
         return X[:3] + R @ self.tip

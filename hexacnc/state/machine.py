@@ -115,18 +115,20 @@ def _from_interp_state(fs) -> tuple[dict, dict]:
     return params, {int(t): replace(e) for t, e in fs.tools.items()}
 
 
-def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
+def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState, interpreter=None):
     """Interpret ``text`` from ``state`` starting at the tool tip pose ``start_tip_deg`` (mm, deg;
     the tool tip of the current tool).  Returns ``(Program, MachineState after it)``; ``state`` is
     not changed.  Raises GcodeError.
 
     The persistent state goes in as the interpreter's ``initial_state`` and comes back as
     ``Program.final_state`` (the contract with hexacnc.gcode); the modal state (MDI) is carried
-    through the interpreter's modal attributes."""
+    through the interpreter's modal attributes.  ``interpreter``: another Interpreter class (a
+    subclass; probe synchronisation, :mod:`hexacnc.gcode.probesync`)."""
     import gc
 
     from ..gcode.factory import machine_defaults
     from ..gcode.interp import Interpreter
+    Interpreter = interpreter or Interpreter
     kw = machine_defaults(cfg)
     kw["start_pose"] = [float(v) for v in start_tip_deg]
     for k in ("work_offsets", "g28_pose", "g30_pose", "tool_table"):
