@@ -197,31 +197,10 @@ def suggest_layouts(cfg, period_s: float | None = None, max_load: float | None =
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m drivers.busload [--config F] [--period-s P]``: the report and fitting layouts as JSON."""
-    import argparse
-    import json
-    import sys
-
-    from hexacnc.config import load_config
-    from .errors import ControlError as HexacncError
-
-    ap = argparse.ArgumentParser(prog="python -m drivers.busload", description=__doc__.splitlines()[0])
-    ap.add_argument("--config", help="machine description (TOML); default: the embedded default")
-    ap.add_argument("--period-s", type=float, help="cycle period (default [cycle] period_s)")
-    args = ap.parse_args(argv)
-    try:
-        cfg = load_config(args.config)
-        period = args.period_s if args.period_s is not None else cfg.cycle.period_s
-        rep = bus_time(cfg.bus, period)
-    except HexacncError as exc:
-        print(f"busload: {exc}", file=sys.stderr)
-        return 2
+def load_report(bus_cfg, period_s: float) -> dict[str, Any]:
+    """``hexacnc bus load``: the :func:`bus_time` report with its one-line ``summary`` and the fitting
+    layouts (``suggestions``, :func:`suggest_layouts`)."""
+    rep = bus_time(bus_cfg, period_s)
     rep["summary"] = describe(rep)
-    rep["suggestions"] = suggest_layouts(cfg.bus, period)
-    print(json.dumps(rep, indent=1))
-    return 0 if rep["fits"] else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    rep["suggestions"] = suggest_layouts(bus_cfg, period_s)
+    return rep
