@@ -19,6 +19,7 @@ import random
 import statistics
 from typing import Callable
 
+from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 
@@ -96,8 +97,8 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
             hb = heartbeat_producer_ms(bus_cfg.heartbeat_ms, nd.index) if staggered else bus_cfg.heartbeat_ms
             periodic(start + ev * 1e-3, ev * 1e-3, lambda k, nd=nd: add(k, nd.tpdo2_cob_id, (0x1637).to_bytes(2, "little")))
             periodic(start + hb * 1e-3, hb * 1e-3, lambda k, nd=nd: add(k, 0x700 + nd.node_id, b"\x05"))
-        periodic(rng.uniform(0, bus_cfg.heartbeat_ms * 1e-3), bus_cfg.heartbeat_ms * 1e-3,
-                 lambda k: add(k, 0x77F, b"\x05"))
+        mhb = master_heartbeat_s(bus_cfg)          # as drivers.cyclic sends it while cycling
+        periodic(rng.uniform(0, mhb), mhb, lambda k: add(k, 0x77F, b"\x05"))
         q = statistics.quantiles(demand, n=100)
         rep = {"bus": b, "median_us": round(statistics.median(demand), 1), "p99_us": round(q[98], 1),
                "p999_us": round(statistics.quantiles(demand, n=1000)[998], 1), "max_us": round(max(demand), 1),

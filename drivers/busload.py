@@ -26,6 +26,7 @@ from typing import Any
 from .errors import BusError
 
 from .description import bus_period_s
+from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 ASYNC_RESERVE_BYTES = 2
@@ -100,7 +101,7 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
     emcy = frame_time_us(EMCY_BYTES, br, False)
     n = len(bus_cfg.node_ids)
     hb_rate = sum(1000.0 / heartbeat_producer_ms(bus_cfg.heartbeat_ms, i) for i in range(n)) \
-        + 1000.0 / bus_cfg.heartbeat_ms
+        + 1.0 / master_heartbeat_s(bus_cfg)
     status_rate = sum(1000.0 / status_event_timer_ms(i) for i in range(n))
     return {
         "layout": plan.layout, "requested_layout": plan.requested_layout or bus_cfg.layout,
