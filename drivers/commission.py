@@ -172,6 +172,8 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
                 (0x605A, None, QUICK_STOP_OPTION, "quick stop option"),
                 (0x605C, None, DISABLE_OPERATION_OPTION, "disable operation option"),
                 (0x605E, None, FAULT_REACTION_OPTION, "fault reaction option")]
+        if desc.has_bundled(0x2010):        # the bundled EDS's SYNC-loss time-out = the RPDO deadline
+            want.append((0x2010, None, m.comm_loss_ms(), "SYNC-loss time-out (ms)"))
         rep = {"node_id": nd.node_id, "missing": []}
         for index, sub, value, name in want:
             if not desc.has(index):

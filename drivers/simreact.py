@@ -7,9 +7,14 @@ supervision of the master, exactly as the master configured them by SDO.
   them, on the housekeeping clock (every ``TICK_S``) once SYNC has stopped.
 * Communication loss: RPDO1 deadline monitoring (0x1400 sub 5 event timer, armed by the first
   RPDO after NMT start, supervised while the drive is enabled: Operation enabled / Quick stop
-  active) -> EMCY 0x8250; master heartbeat lost (0x1016) -> EMCY 0x8130. Either
+  active) -> EMCY 0x8250; SYNC lost (no SYNC for the SYNC-loss time-out, armed by the first SYNC
+  after NMT start, supervised while enabled) -> EMCY 0x8700; master heartbeat lost (0x1016) -> EMCY 0x8130. Each
   applies 0x1029 sub 1 (NMT state) and 0x6007 (1 fault -> 0x605E, 2 disable voltage, 3 quick
   stop -> 0x605A) while the power stage is on.
+
+SYNC-loss time-out: manufacturer object 0x2010 (ms, written and read back by the master as
+``[bus] comm_loss_timeout_s``), or 1.5 x the communication cycle period 0x1006 where 0x2010 is 0 or
+absent (the CiA 301 SYNC consumer's rule; 0x1006 = 0: no SYNC supervision).
 
 Every reaction is appended to ``events`` as (monotonic s, text) for tests and the log.
 """
@@ -63,6 +68,9 @@ class Reactions:
         self.comm_error = cia402.COMM_ERROR_PRE_OPERATIONAL
         self.last_step_s = 0.0
         self.last_tick_s: float | None = None
+        self.sync_loss_s = 0.0
+        self._sync_seen_s = 0.0                 #: the drive's last_sync_s when last looked at
+        self._sync_ref_s: float | None = None   #: SYNC-loss deadline base (None: not armed)
 
     # -- configuration (NMT start) -------------------------------------------------------------
     def configure(self) -> None:
@@ -71,6 +79,8 @@ class Reactions:
         self.abort_option = d.raw_or(0x6007, 0, cia402.ABORT_FAULT)
         self.comm_error = d.raw_or(0x1029, 1, cia402.COMM_ERROR_PRE_OPERATIONAL)
         self.last_rpdo_s = None
+        self.sync_loss_s = sync_loss_timeout_s(d.raw_or(0x2010, 0, 0), d.raw_or(0x1006, 0, 0))
+        self._sync_seen_s, self._sync_ref_s = d.last_sync_s, None
 
     def note(self, now: float, text: str) -> None:
         self.events.append((now, text))
@@ -132,9 +142,11 @@ class Reactions:
         # A simulated drive can be descheduled (a real one cannot): a gap in its own clock is not
         # the master's silence, and frames queued meanwhile are still to be read. Extend the
         # deadline by the drive's own stall.
-        if self.last_tick_s is not None and self.last_rpdo_s is not None and now - self.last_tick_s > 3 * TICK_S:
-            self.last_rpdo_s += now - self.last_tick_s
+        stall = now - self.last_tick_s if self.last_tick_s is not None else 0.0
+        if self.last_rpdo_s is not None and stall > 3 * TICK_S:
+            self.last_rpdo_s += stall
         self.last_tick_s = now
+        self._supervise_sync(now, stall)
         if (self.rpdo_timer_s > 0 and self.last_rpdo_s is not None
                 and now - self.last_rpdo_s > self.rpdo_timer_s
                 and d.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)):
@@ -147,6 +159,19 @@ class Reactions:
                 self.last_step_s += d._dt_s
                 d.step(d._dt_s, self.last_step_s, own_clock=True)
                 n += 1
+
+    def _supervise_sync(self, now: float, stall: float) -> None:
+        """SYNC loss: armed by each SYNC (the drive's ``last_sync_s``), extended by the drive's own stall."""
+        d = self.d
+        if d.last_sync_s != self._sync_seen_s:
+            self._sync_seen_s = self._sync_ref_s = d.last_sync_s
+        elif self._sync_ref_s is not None and stall > 3 * TICK_S:
+            self._sync_ref_s += stall
+        if (self.sync_loss_s > 0 and self._sync_ref_s is not None and now - self._sync_ref_s > self.sync_loss_s
+                and d.state in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE)):
+            self._sync_ref_s = None                 # once; re-armed by the next SYNC
+            self.comm_loss(cia402.EMCY_SYNC_LOSS, now, f"no SYNC for {self.sync_loss_s * 1e3:g} ms "
+                           "(0x2010 SYNC-loss time-out, else 1.5 x 0x1006)")
 
     def comm_loss(self, code: int, now: float, why: str) -> None:
         """Communication error: EMCY, 0x1029 NMT reaction, 0x6007 drive reaction (when powered)."""
@@ -170,3 +195,10 @@ class Reactions:
             d.node.nmt.state = "PRE-OPERATIONAL"
         elif self.comm_error == cia402.COMM_ERROR_STOPPED:
             d.node.nmt.state = "STOPPED"
+
+
+def sync_loss_timeout_s(obj_2010_ms: int, cycle_period_us: int) -> float:
+    """The SYNC-loss time-out of a simulated drive: 0x2010 (ms) when set, else 1.5 x 0x1006 (us); 0: none."""
+    if obj_2010_ms > 0:
+        return obj_2010_ms * 1e-3
+    return 1.5 * cycle_period_us * 1e-6
