@@ -190,6 +190,9 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
         rep["0x6085_quick_stop_decel"] = m.sdo_read_optional(nd, 0x6085)
         rep["rpdo1_event_timer_ms"] = m.sdo_read(nd, "RPDO1 event timer read-back", 0x1400, 5)
         rep["heartbeat_consumer"] = m.sdo_read(nd, "heartbeat consumer read-back", 0x1016, 1)
+        if desc.has_bundled(0x2110):        # the drive manages its brake: the disable walk waits for it
+            rep["brake_release_ms"] = m.sdo_read(nd, "brake release delay", 0x2110, 1)
+            rep["brake_engage_ms"] = m.sdo_read(nd, "brake engage delay", 0x2110, 2)
         if 0x6007 not in desc.objects:
             log.warning("%s: no 0x6007 in %s: the drive's reaction to a silent master is its own default",
                         m.who(nd), desc.path)

@@ -36,22 +36,27 @@ _POWERED = (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCHED_
 
 
 class Ramp:
-    """Demand decelerating from the strut's velocity to rest at ``decel_mm_s2``; ``then`` = state
-    after standstill (``None``: stay)."""
-    __slots__ = ("x_mm", "v_mm_s", "decel_mm_s2", "then", "done")
+    """Demand decelerating from the strut's velocity to rest at ``decel_mm_s2``, then held (torque on)
+    for ``hold_s`` (the holding brake's engage delay); ``then`` = state after that (``None``: stay)."""
+    __slots__ = ("x_mm", "v_mm_s", "decel_mm_s2", "then", "done", "hold_s", "held_s")
 
-    def __init__(self, x_mm: float, v_mm_s: float, decel_mm_s2: float, then: int | None):
+    def __init__(self, x_mm: float, v_mm_s: float, decel_mm_s2: float, then: int | None, hold_s: float = 0.0):
         self.x_mm, self.v_mm_s, self.decel_mm_s2, self.then = x_mm, v_mm_s, max(1e-9, decel_mm_s2), then
-        self.done = abs(v_mm_s) < 1e-12
+        self.hold_s, self.held_s = hold_s, 0.0
+        self.done = abs(v_mm_s) < 1e-12 and hold_s <= 0
 
     def step(self, dt: float) -> float:
         v = self.v_mm_s
+        if v == 0.0:
+            self.held_s += dt
+            self.done = self.held_s >= self.hold_s - 1e-9
+            return self.x_mm
         dv = self.decel_mm_s2 * dt
         nv = 0.0 if abs(v) <= dv else v - (dv if v > 0 else -dv)
         self.x_mm += 0.5 * (v + nv) * dt
         self.v_mm_s = nv
         if nv == 0.0:
-            self.done = True
+            self.done = self.hold_s <= 0
         return self.x_mm
 
 
@@ -71,6 +76,9 @@ class Reactions:
         self.sync_loss_s = 0.0
         self._sync_seen_s = 0.0                 #: the drive's last_sync_s when last looked at
         self._sync_ref_s: float | None = None   #: SYNC-loss deadline base (None: not armed)
+        self.brake = HoldingBrake()
+        drive.hooks.on_read(0x2110, lambda sub: int(self.brake.engaged) if sub == 3 else None)
+        drive.hooks.on_sync(self._brake_sync)
 
     # -- configuration (NMT start) -------------------------------------------------------------
     def configure(self) -> None:
@@ -81,6 +89,8 @@ class Reactions:
         self.last_rpdo_s = None
         self.sync_loss_s = sync_loss_timeout_s(d.raw_or(0x2010, 0, 0), d.raw_or(0x1006, 0, 0))
         self._sync_seen_s, self._sync_ref_s = d.last_sync_s, None
+        self.brake.release_s = d.raw_or(0x2110, 1, 0) * 1e-3
+        self.brake.engage_s = d.raw_or(0x2110, 2, 0) * 1e-3
 
     def note(self, now: float, text: str) -> None:
         self.events.append((now, text))
@@ -94,10 +104,10 @@ class Reactions:
         units = d.raw_or(0x6085, 0, 0) if quick else d.raw_or(0x6084, 0, 0) or d.raw_or(0x6085, 0, 0)
         return units / d.k if units > 0 else d.model_amax()
 
-    def start_ramp(self, quick: bool, then: int | None, now: float, why: str) -> None:
+    def start_ramp(self, quick: bool, then: int | None, now: float, why: str, hold_s: float = 0.0) -> None:
         d = self.d
         a = self.decel_mm_s2(quick)
-        self.ramp = Ramp(d.pos_inc / d.k, d.model.velocity_mm_s, a, then)
+        self.ramp = Ramp(d.pos_inc / d.k, d.model.velocity_mm_s, a, then, hold_s)
         self.last_step_s = now
         self.note(now, f"{why}: {'quick stop' if quick else 'slow down'} ramp {a:g} mm/s^2 from "
                        f"{d.model.velocity_mm_s:.3f} mm/s")
@@ -123,14 +133,39 @@ class Reactions:
     def disable_operation(self, now: float) -> bool:
         """Transition 5 asked: True when the drive ramps first (0x605C = 1, still moving)."""
         opt = self.d.raw_or(0x605C, 0, cia402.DISABLE_OP_SLOW_DOWN)
-        if opt == cia402.DISABLE_OP_SLOW_DOWN and abs(self.d.model.velocity_mm_s) > 1e-9:
-            self.start_ramp(False, cia402.SWITCHED_ON, now, "disable operation (0x605C = 1)")
+        hold = self.brake.engage_s
+        if opt == cia402.DISABLE_OP_SLOW_DOWN and (abs(self.d.model.velocity_mm_s) > 1e-9 or hold > 0):
+            self.start_ramp(False, cia402.SWITCHED_ON, now, "disable operation (0x605C = 1)"
+                            + (f", then the holding brake engages with torque on for {hold * 1e3:g} ms (0x2110:2)"
+                               if hold > 0 else ""), hold)
+            self.brake.engaging = hold > 0
             return True
         self.note(now, f"disable operation (0x605C = {opt}): brake engaged, Switched on")
         return False
 
     def ramp_demand(self, dt: float) -> float:
         return self.ramp.step(dt)
+
+    def _brake_sync(self, d, now: float) -> None:
+        """After each step: the brake opens (0x2110:1 release delay; 0x2110:3 reads engaged until then:
+        the strut is not held meanwhile, the master's enable walk sends the measured position) once
+        Operation enabled, and is engaged when the power stage is off or the disable ramp's hold ends."""
+        b = self.brake
+        if not b.fitted():
+            return
+        if d.state == cia402.OPERATION_ENABLED and not d.disabling:
+            if b.engaged:
+                if b.release_t0 is None:
+                    b.release_t0 = now
+                    self.note(now, f"holding brake releasing ({b.release_s * 1e3:g} ms, 0x2110:1)")
+                if now - b.release_t0 < b.release_s:
+                    return
+                b.engaged, b.release_t0 = False, None
+                self.note(now, "holding brake released")
+        elif not b.engaged and (d.state not in (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE,
+                                                cia402.FAULT_REACTION_ACTIVE) or (b.engaging and (self.ramp is None or self.ramp.done))):
+            b.engaged, b.engaging = True, False
+            self.note(now, f"holding brake engaged, torque off ({cia402.state_name(d.state)})")
 
     # -- supervision ----------------------------------------------------------------------------
     def rpdo_received(self, now: float) -> None:
@@ -202,3 +237,20 @@ def sync_loss_timeout_s(obj_2010_ms: int, cycle_period_us: int) -> float:
     if obj_2010_ms > 0:
         return obj_2010_ms * 1e-3
     return 1.5 * cycle_period_us * 1e-6
+
+
+class HoldingBrake:
+    """The holding brake of a simulated drive, managed by the drive: delays from the bundled EDS's
+    manufacturer record 0x2110 "Holding brake" (sub 1 release delay ms, sub 2 engage delay ms, sub 3
+    engaged, read only). Real drives keep these in vendor objects too (e.g. Synapticon 0x2004 brake
+    options); 0 / 0: no brake fitted."""
+    __slots__ = ("release_s", "engage_s", "engaged", "engaging", "release_t0")
+
+    def __init__(self):
+        self.release_s = self.engage_s = 0.0
+        self.engaged = True                 #: power off: the brake holds
+        self.engaging = False               #: disable operation: held with torque for engage_s
+        self.release_t0: float | None = None
+
+    def fitted(self) -> bool:
+        return self.release_s > 0 or self.engage_s > 0
