@@ -102,6 +102,7 @@ def test_session_against_profile_captured_and_decoded(tmp_path, profile):
         assert res["frames"] > 1000 and res["malformed"] == 0 and res["sdo_aborts"] == [], res
         for node, objs in res["read"].items():       # every configured reaction read back
             for o in ("0x60C2:1", "0x60C2:2", "0x6007:0", "0x605A:0", "0x605C:0", "0x605E:0", "0x1029:1",
-                      "0x1006:0", "0x1400:5", "0x1016:1", "0x1018:1", "0x1000:0", "0x6502:0"):
+                      "0x1006:0", "0x1400:5", "0x1016:1", "0x1018:1", "0x1000:0", "0x6502:0", "0x2010:0",
+                      "0x2110:1", "0x2110:2"):
                 assert o in objs, (f, node, o)
         assert res["nmt_commands"].get("0x80") == 1            # end of session: pre-operational
