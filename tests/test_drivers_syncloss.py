@@ -25,7 +25,8 @@ def test_master_writes_and_reads_back_the_sync_loss_timeout():
 
 
 def test_sync_stops_the_drives_quick_stop_on_their_0x6085_ramp():
-    # RPDO deadline 0.5 s (the rig's comm_loss_timeout_s); SYNC-loss time-out 30 ms: SYNC loss comes first
+    # RPDO deadline 0.5 s (the rig's comm_loss_timeout_s), master heartbeat consumer 350 ms; SYNC-loss time-out
+    # 100 ms: SYNC loss comes first (100 ms: this process's own stalls while it moves must stay below it)
     with SimRig() as rig:
         rec = Recorder(rig.cfg)
         try:
@@ -33,7 +34,7 @@ def test_sync_stops_the_drives_quick_stop_on_their_0x6085_ramp():
             m.boot()
             m.configure()
             for nd in m.plan.nodes:
-                m.sdo_write(nd, "test", 0x2010, None, 30)
+                m.sdo_write(nd, "test", 0x2010, None, 100)
                 m.sdo_write(nd, "test", 0x6085, None, 10_000_000)      # 1000 mm/s^2 (1e4 units/mm)
             m.start()
             m.enable()
@@ -48,13 +49,14 @@ def test_sync_stops_the_drives_quick_stop_on_their_0x6085_ramp():
                 d = rig.sim.drives[nd.index]
                 codes = [(t, int.from_bytes(x[:2], "little")) for t, x in rec.of(0x80 + nd.node_id)]
                 assert codes and codes[0][1] == cia402.EMCY_SYNC_LOSS, codes        # not the RPDO deadline
-                assert 0.029 <= codes[0][0] - t_silent < 0.03 + 0.25, codes[0][0] - t_silent
+                assert 0.099 <= codes[0][0] - t_silent < 0.1 + 0.2, codes[0][0] - t_silent
                 seq = [cia402.state_from_status(int.from_bytes(x[:2], "little"))
                        for t, x in rec.of(0x280 + nd.node_id) if t > t_silent]
-                assert seq[:1] == [cia402.QUICK_STOP_ACTIVE] and seq[-1] == cia402.SWITCH_ON_DISABLED, seq
+                assert cia402.QUICK_STOP_ACTIVE in seq and seq[-1] == cia402.SWITCH_ON_DISABLED, seq
+                assert set(seq[:seq.index(cia402.QUICK_STOP_ACTIVE)]) <= {cia402.OPERATION_ENABLED}, seq
                 assert states[nd.index] == cia402.SWITCH_ON_DISABLED
                 ev = [e for _, e in d.react.events]
-                assert any("no SYNC for 30 ms" in e and "0x6007 = 3" in e for e in ev), ev
+                assert any("no SYNC for 100 ms" in e and "0x6007 = 3" in e for e in ev), ev
                 assert abs(v_mm_s[nd.index]) > 5 and any("1000 mm/s^2" in e for e in ev), ev
         finally:
             rec.close()
