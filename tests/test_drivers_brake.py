@@ -32,6 +32,7 @@ def test_disable_keeps_torque_until_the_brake_is_engaged_and_the_walk_waits():
             start = m.positions_inc()
             io = rig.cyclic()
             last = move(io, start, 20, 200)
+            assert rig.sim.states() == [cia402.OPERATION_ENABLED] * 6, [d.react.events[-2:] for d in rig.sim.drives]
             t_walk = time.monotonic()
             for _ in range(2000):                       # the loop's walk: 0x0007 until Switched on, then 0x0000
                 if not io.step_towards(cia402.SWITCH_ON_DISABLED):
