@@ -140,19 +140,23 @@ def main(argv: Sequence[str] | None = None) -> int:
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *a: stop.set())
     signal.signal(signal.SIGINT, lambda *a: stop.set())
-    sim = None
+    sims: list[SimDrives] = []
     try:
-        sim = sim_drives(cfg, buses, faults=faults, model_factory=factory)
-        sim.start()
+        sims.append(sim_drives(cfg, buses, faults=faults, model_factory=factory).start())
         print("READY", flush=True)
-        while not stop.wait(0.2):
+        while not stop.wait(0.2):       # wakes for the signal handlers
             pass
     finally:
-        if sim is not None:
-            sim.stop()
-        for b in buses:
-            b.shutdown()
+        close_all(sims, buses)
     return 0
+
+
+def close_all(sims: Sequence[SimDrives], buses) -> None:
+    """Stop the drives (heartbeats, listeners), then shut the bus objects down."""
+    for sim in sims:
+        sim.stop()
+    for b in buses:
+        b.shutdown()
 
 
 if __name__ == "__main__":
