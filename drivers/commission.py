@@ -6,7 +6,8 @@
 * :func:`configure_units` - factor group 0x608F / 0x6091 / 0x6092 read (or 0x6092 written) and
   compared with ``[bus] increments_per_mm`` x ``[bus] feed_mm_per_rev``;
 * :func:`configure_reactions` - communication-loss and fault reactions (0x1006, 0x6007, 0x1029,
-  0x605A, 0x605C, 0x605E, 0x6085 read) written and read back.
+  0x605A, 0x605C, 0x605E; the quick stop 0x6085 and profile jerk 0x60A4:1 at ``STOP_SHARE`` of the
+  strut limits) written and read back.
 
 Each function takes the :class:`drivers.master.Master` (its ``sdo_read``/``sdo_write`` name the node,
 the step and the object in every error) and returns a plain dict for the boot report.
@@ -21,6 +22,7 @@ from canopen.sdo.exceptions import SdoAbortedError
 from .errors import BusError
 
 from . import cia402
+from .jerkstop import STOP_SHARE
 from .description import bus_period_s, expected_identity, identity_problems, interpolation_candidates, modes_text
 
 if TYPE_CHECKING:
@@ -159,6 +161,21 @@ def configure_units(m: "Master") -> list[dict]:
 
 
 # -- communication-loss and fault reactions --------------------------------------------------------
+#: objects a drive may lack although its description lists them (a refusal is logged, not fatal)
+OPTIONAL_OBJECTS = frozenset({0x60A4})
+
+
+def stop_ramp_objects(cfg, bus_cfg, strut: int) -> list[tuple]:
+    """The drive's own quick stop within the strut's limits, at :data:`drivers.jerkstop.STOP_SHARE`
+    of them as the loop's controlled stop: 0x6085 quick-stop deceleration and 0x60A4:1 profile jerk
+    (the simulated drives ramp jerk-limited with it), in position units."""
+    ipm = float(bus_cfg.increments_per_mm)
+    dec = int(round(STOP_SHARE * float(cfg.max_acceleration_mm_s2[strut]) * ipm))
+    jerk = int(round(STOP_SHARE * float(cfg.max_jerk_mm_s3[strut]) * ipm))
+    return [(0x6085, None, max(1, min(0xFFFFFFFF, dec)), "quick stop deceleration"),
+            (0x60A4, 1, max(1, min(0xFFFFFFFF, jerk)), "profile jerk 1")]
+
+
 def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
     """Write the reactions each description supports and read every one back (BusError on a
     difference). RPDO event timers (comm loss) and the heartbeat consumer are written with the PDO
@@ -171,17 +188,26 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
                 (0x1029, 1, COMM_ERROR_BEHAVIOUR, "error behaviour: communication"),
                 (0x605A, None, QUICK_STOP_OPTION, "quick stop option"),
                 (0x605C, None, DISABLE_OPERATION_OPTION, "disable operation option"),
-                (0x605E, None, FAULT_REACTION_OPTION, "fault reaction option")]
+                (0x605E, None, FAULT_REACTION_OPTION, "fault reaction option"),
+                *stop_ramp_objects(m.cfg, m.bus_cfg, nd.index)]
         if desc.has_bundled(0x2010):        # the bundled EDS's SYNC-loss time-out = the RPDO deadline
             want.append((0x2010, None, m.comm_loss_ms(), "SYNC-loss time-out (ms)"))
         rep = {"node_id": nd.node_id, "missing": []}
+        refused = set()
         for index, sub, value, name in want:
             if not desc.has(index):
                 rep["missing"].append(f"0x{index:04X}")
                 continue
-            m.sdo_write(nd, name, index, sub, value)
+            try:
+                m.sdo_write(nd, name, index, sub, value)
+            except BusError as exc:
+                if index not in OPTIONAL_OBJECTS:
+                    raise
+                refused.add(index)          # described but not in the drive: its ramps stay trapezoids
+                rep["missing"].append(f"0x{index:04X}")
+                log.warning("%s: %s; its quick stop ramps without a jerk limit", m.who(nd), exc)
         for index, sub, value, name in want:
-            if not desc.has(index):
+            if not desc.has(index) or index in refused:
                 continue
             back = m.sdo_read(nd, f"{name} read-back", index, sub)
             if back != value:

@@ -3,7 +3,6 @@
 canopen's ``LocalNode`` answers SDO and NMT and produces the heartbeat; :class:`SimDrive` adds
 RPDO application per the SDO-configured mapping, TPDOs on SYNC and on change, the CiA 402 state
 machine, software limits, following error and master-heartbeat supervision, fault injection.
-All methods run with the owning ``SimDrives.lock`` held.
 """
 from __future__ import annotations
 
@@ -272,6 +271,7 @@ class SimDrive:
                 if self.mode != cia402.MODE_CSP:
                     break                   # no mode selected: stays Switched on
                 self.demand_inc = self.target_inc = self.pos_inc
+                self.react.fill_demands(self.pos_inc / self.k)
                 self.latched.pop(0x607A, None)
                 self.ferr_time_s = 0.0
                 self.model.reset(self.pos_inc / self.k)
@@ -517,6 +517,7 @@ class SimDrive:
             x = self.model.step(self.pos_inc / self.k, dt, False)
             self.demand_inc = self.pos_inc
         self.pos_inc = int(round(x * self.k))
+        self.react.track_demand(self.demand_inc / self.k)
         if self.touch.function & 1:
             sig = getattr(self.sim, "probe_signal", None)
             if sig is not None:
@@ -583,6 +584,7 @@ class SimDrive:
                 self.apply_injection(kind, code)
         if self.silent and self.node.nmt._send_task is not None:
             self.node.nmt.stop_heartbeat()
+        self.master_hb_s = self.react.excuse_own_stall(now, self.master_hb_s)
         if self.node.nmt.state == "OPERATIONAL":
             for tp in self.tpdos:
                 if tp.trans >= 254 and ((tp.pending and now - tp.last_s >= tp.inhibit_s)

@@ -3,7 +3,7 @@ supervision of the master, exactly as the master configured them by SDO.
 
 * Stop ramps: quick stop (controlword bit 2, transition 11) per 0x605A, fault reaction per 0x605E,
   disable operation (transition 5) per 0x605C; slow-down ramp = 0x6084, quick-stop ramp = 0x6085
-  (position units/s^2). The ramp runs on the drive's own clock: on SYNC while the master sends
+  (position units/s^2), jerk-limited at the profile jerk 0x60A4:1 (units/s^3) where the drive has it. The ramp runs on the drive's own clock: on SYNC while the master sends
   them, on the housekeeping clock (every ``TICK_S``) once SYNC has stopped.
 * Communication loss: RPDO1 deadline monitoring (0x1400 sub 5 event timer, armed by the first
   RPDO after NMT start, supervised while the drive is enabled: Operation enabled / Quick stop
@@ -24,6 +24,7 @@ import logging
 from typing import TYPE_CHECKING
 
 from . import cia402
+from .jerkstop import stop_accel
 
 if TYPE_CHECKING:
     from .simnode import SimDrive
@@ -36,27 +37,47 @@ _POWERED = (cia402.OPERATION_ENABLED, cia402.QUICK_STOP_ACTIVE, cia402.SWITCHED_
 
 
 class Ramp:
-    """Demand decelerating from the strut's velocity to rest at ``decel_mm_s2``, then held (torque on)
-    for ``hold_s`` (the holding brake's engage delay); ``then`` = state after that (``None``: stay)."""
-    __slots__ = ("x_mm", "v_mm_s", "decel_mm_s2", "then", "done", "hold_s", "held_s")
+    """Demand decelerating from the strut's velocity to rest at ``decel_mm_s2``, then held there (torque
+    on) for ``hold_s`` (the holding brake's engage delay); ``then`` = state after that (``None``: stay).
+    With ``jerk_mm_s3`` > 0 (the drive's profile jerk 0x60A4:1) the deceleration is reached and left at
+    that jerk (:func:`drivers.jerkstop.stop_accel`, from the acceleration ``accel_mm_s2`` the demand had),
+    else it is applied at once (a trapezoid)."""
+    __slots__ = ("x_mm", "v_mm_s", "a_mm_s2", "decel_mm_s2", "jerk_mm_s3", "then", "done", "stopped",
+                 "hold_s", "held_s")
 
-    def __init__(self, x_mm: float, v_mm_s: float, decel_mm_s2: float, then: int | None, hold_s: float = 0.0):
+    def __init__(self, x_mm: float, v_mm_s: float, decel_mm_s2: float, then: int | None,
+                 jerk_mm_s3: float = 0.0, accel_mm_s2: float = 0.0, hold_s: float = 0.0):
         self.x_mm, self.v_mm_s, self.decel_mm_s2, self.then = x_mm, v_mm_s, max(1e-9, decel_mm_s2), then
+        self.jerk_mm_s3 = max(0.0, jerk_mm_s3)
+        self.a_mm_s2 = accel_mm_s2 if self.jerk_mm_s3 > 0 else 0.0
         self.hold_s, self.held_s = hold_s, 0.0
-        self.done = abs(v_mm_s) < 1e-12 and hold_s <= 0
+        self.stopped = abs(v_mm_s) < 1e-12 and self.a_mm_s2 == 0.0
+        self.done = self.stopped and hold_s <= 0
+
+    def _stop(self) -> None:
+        self.stopped = True
+        self.done = self.hold_s <= 0
 
     def step(self, dt: float) -> float:
-        v = self.v_mm_s
-        if v == 0.0:
+        if self.stopped:                    # at rest: held for the brake's engage delay
             self.held_s += dt
             self.done = self.held_s >= self.hold_s - 1e-9
+            return self.x_mm
+        v = self.v_mm_s
+        if self.jerk_mm_s3 > 0.0:
+            a = stop_accel(v, self.a_mm_s2, self.jerk_mm_s3, self.decel_mm_s2, dt)
+            nv = v + a * dt
+            self.x_mm += nv * dt
+            self.v_mm_s, self.a_mm_s2 = nv, a
+            if nv == 0.0 and a == 0.0:
+                self._stop()
             return self.x_mm
         dv = self.decel_mm_s2 * dt
         nv = 0.0 if abs(v) <= dv else v - (dv if v > 0 else -dv)
         self.x_mm += 0.5 * (v + nv) * dt
         self.v_mm_s = nv
         if nv == 0.0:
-            self.done = self.hold_s <= 0
+            self._stop()
         return self.x_mm
 
 
@@ -79,6 +100,37 @@ class Reactions:
         self.brake = HoldingBrake()
         drive.hooks.on_read(0x2110, lambda sub: int(self.brake.engaged) if sub == 3 else None)
         drive.hooks.on_sync(self._brake_sync)
+        self.last_hk_s: float | None = None          # the drive's last housekeeping tick
+        self.demands: list[float] | None = None      # the last 9 demands, mm, newest first
+
+    # -- the demand the drive had (where a stop ramp starts) ------------------------------------
+    def fill_demands(self, x_mm: float) -> None:
+        self.demands = [x_mm] * 9
+
+    def track_demand(self, x_mm: float) -> None:
+        dem = self.demands
+        if dem is None:
+            self.demands = [x_mm] * 9
+            return
+        dem.pop()
+        dem.insert(0, x_mm)
+
+    def demand_state_mm(self) -> tuple[float, float, float]:
+        """Position (mm), velocity (mm/s) and acceleration (mm/s^2) of the last demands: the
+        acceleration over 4-cycle steps, so the rounding of the targets to units hardly shows."""
+        d = self.d
+        dem = self.demands or [d.pos_inc / d.k] * 9
+        dt = d._dt_s
+        return dem[0], (dem[0] - dem[1]) / dt, (dem[0] - 2.0 * dem[4] + dem[8]) / (4.0 * dt) ** 2
+
+    def excuse_own_stall(self, now: float, master_hb_s: float | None) -> float | None:
+        """The master heartbeat's time moved on by the drive's own stall (housekeeping late by more
+        than 3 ticks): a descheduled simulator is not a silent master, the frames queued meanwhile are
+        still to be read (as for the RPDO deadline in :meth:`supervise`)."""
+        last, self.last_hk_s = self.last_hk_s, now
+        if last is not None and master_hb_s is not None and now - last > 3 * TICK_S:
+            return master_hb_s + (now - last)
+        return master_hb_s
 
     # -- configuration (NMT start) -------------------------------------------------------------
     def configure(self) -> None:
@@ -105,12 +157,17 @@ class Reactions:
         return units / d.k if units > 0 else d.model_amax()
 
     def start_ramp(self, quick: bool, then: int | None, now: float, why: str, hold_s: float = 0.0) -> None:
+        """The ramp starts where the demand was (position, velocity and acceleration of the last
+        demands: the strut model follows its demand, a restart from the measured position would
+        step it), at the profile jerk 0x60A4:1 where the drive has one; held ``hold_s`` at rest."""
         d = self.d
         a = self.decel_mm_s2(quick)
-        self.ramp = Ramp(d.pos_inc / d.k, d.model.velocity_mm_s, a, then, hold_s)
+        j = d.raw_or(0x60A4, 1, 0) / d.k
+        x, v, acc = self.demand_state_mm()
+        self.ramp = Ramp(x, v, a, then, j, acc, hold_s)
         self.last_step_s = now
-        self.note(now, f"{why}: {'quick stop' if quick else 'slow down'} ramp {a:g} mm/s^2 from "
-                       f"{d.model.velocity_mm_s:.3f} mm/s")
+        self.note(now, f"{why}: {'quick stop' if quick else 'slow down'} ramp {a:g} mm/s^2"
+                       + (f", jerk {j:g} mm/s^3" if j > 0 else "") + f" from {v:.3f} mm/s")
 
     def quick_stop_option(self, now: float, why: str) -> None:
         """Start the quick stop reaction per 0x605A (state already Quick stop active)."""

@@ -15,7 +15,7 @@ from hexacnc.daemon.faults import (F_DEADLINE, F_EMCY, F_FOLLOWING, F_HEARTBEAT,
 from hexacnc.daemon.feed import ArraySource, check_rows, point_to_point
 from hexacnc.daemon.loop import CMD_STALL, HotLoop
 from hexacnc.daemon.simio import SimIO
-from hexacnc.daemon.stopgen import StrutStop
+from hexacnc.daemon.stopgen import STOP_SHARE, StrutStop
 from hexacnc.kinematics import Hexapod
 from hexacnc.transform import LIMIT_ACCELERATION, LIMIT_LENGTH, LIMIT_VELOCITY
 
@@ -130,8 +130,9 @@ def test_strut_stop_respects_limits_from_random_feasible_states():
         assert np.abs(A).max() <= amax + 1e-6
         assert np.abs(J[1:]).max() <= jmax * (1 + 1e-6)
         assert np.all(V[-2:] == 0.0)                           # at rest at the end
-        # stopping time close to the time-optimal bound (v + a^2/2j)/amax + 2 amax/jmax
-        bound = np.max((np.abs(v) + a * a / (2 * jmax)) / amax) + 2 * amax / jmax + 0.01
+        # stopping time close to the time-optimal bound (v + a^2/2j)/amax + 2 amax/jmax at the stop's share
+        am, jm = STOP_SHARE * amax, STOP_SHARE * jmax
+        bound = np.max((np.abs(v) + a * a / (2 * jm)) / am) + 2 * am / jm + 0.01
         assert n * PERIOD <= bound
 
 

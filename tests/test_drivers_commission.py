@@ -5,6 +5,7 @@ import time
 import pytest
 
 from drivers import cia402
+from drivers.jerkstop import STOP_SHARE
 from drivers.cyclic import SEND_OK
 from drivers.description import DEFAULT_EDS, STRICT_EDS, load_description
 from hexacnc.sim.rig import SimRig
@@ -108,6 +109,10 @@ def test_reactions_written_and_read_back():
             assert r["0x1029:1"] == cia402.COMM_ERROR_NO_CHANGE and r["0x1006"] == 500
             assert r["rpdo1_event_timer_ms"] == 30 and r["heartbeat_consumer"] >> 16 == 0x7F
             assert not r["missing"]
+            # the drive's own quick stop at the controlled stop's share of the strut limits (units)
+            ipm = rig.cfg.bus.increments_per_mm
+            assert r["0x6085"] == round(STOP_SHARE * rig.cfg.max_acceleration_mm_s2[0] * ipm)
+            assert r["0x60A4:1"] == round(STOP_SHARE * rig.cfg.max_jerk_mm_s3[0] * ipm)
 
 
 def test_boot_timeout_names_the_silent_node():

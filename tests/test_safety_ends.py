@@ -136,8 +136,8 @@ def assert_controlled_stop(run: Run, t_signal: float) -> None:
     t, L = run.tap.lengths_mm(t_signal - 0.02)
     assert len(L) > 30, "no targets after the signal"
     pk = motion_peaks(L, cfg.cycle.period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
-                      cfg.max_jerk_mm_s3)
-    assert pk["v"] <= 1.0 and pk["a"] <= 1.05 and pk["j"] <= 1.1, pk
+                      cfg.max_jerk_mm_s3, 1.0 / cfg.bus.increments_per_mm)
+    assert pk["v"] <= 1.0 and pk["a"] <= 1.0 and pk["j"] <= 1.0, pk
     v_end = np.abs(L[-1] - L[-2]) / cfg.cycle.period_s
     assert np.all(v_end < 1e-6), f"still commanding {v_end} mm/s when the frames stopped"
     v_start = np.max(np.abs(L[1] - L[0])) / cfg.cycle.period_s

@@ -69,8 +69,8 @@ def _assert_stopped_and_disabled(tap, cfg, t_from):
     t, L = tap.lengths_mm(t_from)
     assert len(L) > 20
     pk = motion_peaks(L, cfg.cycle.period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
-                      cfg.max_jerk_mm_s3)
-    assert pk["v"] <= 1.0 and pk["a"] <= 1.05 and pk["j"] <= 1.1, pk
+                      cfg.max_jerk_mm_s3, 1.0 / cfg.bus.increments_per_mm)
+    assert pk["v"] <= 1.0 and pk["a"] <= 1.0 and pk["j"] <= 1.0, pk
     assert np.all(np.abs(L[-1] - L[-2]) < 1e-9)
     assert tap.last_controlwords() == [CW_DISABLE_VOLTAGE] * 6
     # the drives that still followed: the loop's stop, then the CiA 402 walk (0x0007, 0x0000)

@@ -10,7 +10,10 @@ path and reads what the drives received off the rings (:class:`~hexacnc.bench.ri
   (drive faults), or to the supervisor's report (hot loop lost);
 * ``stop_distance_mm``: per strut, from the provocation to rest;
 * ``peak_fraction``: peak strut velocity/acceleration/jerk during the stop as a fraction of the
-  limits (finite differences over 1/2/8 cycles, see :func:`~hexacnc.bench.ringtap.motion_peaks`);
+  limits (k-th differences over windows chosen so that the rounding of the targets to drive
+  increments moves an estimate by at most 2 % of the limit; windows and resolution in the summary's
+  ``peak_estimator``, see :func:`~hexacnc.bench.ringtap.peak_estimator`). The controlled stop is
+  planned at ``stopgen.STOP_SHARE`` (0.9) of the acceleration and jerk limits;
 * ``drives_disabled``: every drive's last statusword on the ring is a disabled state;
 * ``spurious``: a fault other than the path's own.
 
@@ -18,13 +21,13 @@ Paths: SIGINT/SIGTERM/SIGHUP to the supervisor, to the hot loop and to the proce
 SIGKILL and SIGSTOP of the supervisor and of the hot loop; the drives' process stalled 0.4 s;
 50 % of the position frames lost (then a 2 mm error); a silent drive with a live heartbeat; NMT
 reset of one drive mid-move; an EMCY; a 2 mm following error; stop during the planning of a
-1e6-line program; and a soak (``--soak-s``) with drive stalls below the bound, counting faults.
+1e6-line program; and a soak (``--soak-s``, :mod:`hexacnc.bench.soak`) with drive stalls below the
+bound (``[cycle] feedback_timeout_s``), stalls injected and measured on the rings, faults judged.
 Timing figures depend on the machine's load (printed as ``loadavg``).
 """
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import re
@@ -39,13 +42,16 @@ from pathlib import Path
 
 import numpy as np
 
-from drivers import cia402
 from ..config import load_config
-from .ringtap import RingTap, motion_peaks
+from ..daemon.stopgen import STOP_SHARE
+from .ringgaps import RingGaps
+from .faultjudge import moving_daemon, judge, wait_fault
+from .ringtap import RingTap, peak_estimator
+from .soak import soak
+from .stopplan import stop_during_planning
 
 HELP = "safety chain: detection, latency, stop distance and peaks of every end and drive fault path"
 PROGRAM = "G21 G90 G64 P0.02\nG0 X0 Y0 Z20\n" + "G1 X60 F9000\nG1 X-60\n" * 6 + "G1 X0\nM2\n"
-DISABLED = (cia402.SWITCH_ON_DISABLED, cia402.READY_TO_SWITCH_ON, cia402.FAULT, cia402.NOT_READY)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -59,36 +65,6 @@ def machine_text() -> str:
     """The default machine, tolerant of deadline bursts of a loaded VM (the bench's own figures)."""
     text = (resources.files("hexacnc") / "data" / "default.toml").read_text()
     return re.sub(r"max_overruns_in_row = \d+", "max_overruns_in_row = 1000", text)
-
-
-def speed(L: np.ndarray, period_s: float) -> np.ndarray:
-    """Largest strut speed per SYNC (mm/s)."""
-    return np.max(np.abs(np.diff(L, axis=0)), axis=1) / period_s if len(L) > 1 else np.zeros(0)
-
-
-def judge(tap: RingTap, cfg, t0: float, t_detect: float | None = None) -> dict:
-    """Figures of the stop after ``t0`` from the frames (see the module doc)."""
-    time.sleep(0.05)
-    tap.drain()
-    t, L = tap.lengths_mm(t0 - 0.01)
-    out: dict = {}
-    dt = cfg.cycle.period_s
-    if len(L) > 2:
-        v = speed(L, dt)
-        slow = np.nonzero(v < 0.98 * v[0])[0]
-        if t_detect is None and len(slow) and v[0] > 1.0:
-            t_detect = float(t[slow[0] + 1])
-        rest = np.nonzero(v < 1e-6)[0]
-        end = rest[0] + 1 if len(rest) else len(L) - 1
-        pk = motion_peaks(L[: end + 1], dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3)
-        out.update(speed_at_start_mm_s=round(float(v[0]), 1), at_rest=bool(len(rest)),
-                   stop_distance_mm=[round(float(x), 3) for x in np.abs(L[end] - L[0])],
-                   peak_fraction={k: round(x, 3) for k, x in pk.items()})
-    states = [cia402.state_from_status(s) if s is not None else None for s in tap.last_statuswords()]
-    out["drives_disabled"] = all(s in DISABLED for s in states)
-    out["latency_s"] = round(t_detect - t0, 4) if t_detect is not None else None
-    out["detected"] = t_detect is not None
-    return out
 
 
 # -- hexacnc run as a user starts it ---------------------------------------------------------
@@ -244,40 +220,14 @@ DRIVE_PATHS = {
 }
 
 
-def _moving_daemon(cfg, feed_mm_s: float = 150.0):
-    from ..daemon.core import Daemon
-    d = Daemon(cfg, realtime=False)
-    tap = RingTap(cfg, [seg.name for seg in d.sim.segments]).start()
-    pose = np.array(cfg.home_pose, dtype=float)
-    pose[0] += 100.0
-    d.move_to(pose, feed_mm_s)
-    t_end = time.monotonic() + 10
-    while time.monotonic() < t_end:
-        t, L = tap.lengths_mm(time.monotonic() - 0.05)
-        if len(L) > 10 and speed(L, cfg.cycle.period_s)[-1] > 0.4 * feed_mm_s:
-            break
-        time.sleep(0.01)
-    return d, tap
-
-
-def _wait_fault(d, timeout_s: float) -> dict | None:
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        st = d.status()
-        if st["loop_state"] in ("fault", "disabled") or not d.alive:
-            return st["fault"]
-        time.sleep(0.005)
-    return None
-
-
 def drive_path(cfg, kind: str, node: int, value, expect: str, pre=None) -> dict:
-    d, tap = _moving_daemon(cfg)
+    d, tap = moving_daemon(cfg)
     try:
         if pre is not None:
             pre(d)
         t0 = time.monotonic()
         d.inject_drive(kind, node, value)
-        f = _wait_fault(d, cfg.cycle.feedback_timeout_s + 3.0)
+        f = wait_fault(d, cfg.cycle.feedback_timeout_s + 3.0)
         t_f = d.sh.h[57] * 1e-9 if f else None
         time.sleep(0.3)
         out = judge(tap, cfg, t0, t_detect=t_f)
@@ -290,112 +240,47 @@ def drive_path(cfg, kind: str, node: int, value, expect: str, pre=None) -> dict:
 
 
 def stall_path(cfg, stall_s: float) -> dict:
-    """The drives' process stopped for ``stall_s`` mid-move (SIGSTOP/SIGCONT)."""
-    d, tap = _moving_daemon(cfg)
+    """The drives' process stopped for ``stall_s`` mid-move (SIGSTOP/SIGCONT); the real stall is
+    the drives' silence on the rings (SIGCONT can come late on a loaded machine): a fault after a
+    measured stall below ``[cycle] feedback_timeout_s`` is spurious, none after one above it is a miss."""
+    d, tap = moving_daemon(cfg)
+    gaps = RingGaps([seg.name for seg in d.sim.segments])
+    bound = cfg.cycle.feedback_timeout_s
     try:
+        gaps.start()
+        time.sleep(0.05)
         t0 = time.monotonic()
         os.kill(d.sim.proc.pid, signal.SIGSTOP)
         time.sleep(stall_s)
         os.kill(d.sim.proc.pid, signal.SIGCONT)
-        f = _wait_fault(d, 2.0)
+        f = wait_fault(d, 2.0)
         t_f = d.sh.h[57] * 1e-9 if f else None
         time.sleep(0.3)
+        gaps.stop()
+        lo, hi = gaps.longest(1, t0, t0 + stall_s + 0.5), gaps.longest(1, t0, t0 + stall_s + 0.5, upper=True)
         out = judge(tap, cfg, t0, t_detect=t_f)
-        out.update(stall_s=stall_s, fault=f and f["code"], message=f and f["message"],
-                   spurious=bool(f and stall_s < cfg.cycle.feedback_timeout_s))
+        out.update(stall_s=stall_s, stall_measured_s=[round(lo, 4), round(hi, 4)], bound_s=bound,
+                   watcher_longest_wakeup_s=round(gaps.own_max_gap_s, 4),
+                   fault=f and f["code"], message=f and f["message"],
+                   spurious=bool(f and hi < bound), missed=bool(not f and lo >= bound + 0.01))
+        if not f:
+            out["detected"] = False if out["missed"] else None     # no fault expected below the bound
         return out
     finally:
+        gaps.stop()
         d.close()
         tap.stop()
 
 
-def stop_during_planning(cfg, lines: int) -> dict:
-    """A moving machine; a program of ``lines`` lines is sent over the socket and, while it is
-    being interpreted/planned, ``stop``: time to the first decelerating frame."""
-    import socket
-    from ..daemon import protocol as P
-    from ..daemon.server import SocketServer
-    text = "G0 X0 Y0 Z20\n" + "".join(f"G1 X{(i % 100) * 0.5 - 25:.1f} Y{(i % 7) - 3} F3000\n" for i in range(lines))
-    d, tap = _moving_daemon(cfg, 15.0)           # ~7 s of motion
-    tmp = tempfile.mkdtemp(prefix="hxbp", dir="/tmp")
-    big = cfg.replace(daemon=dataclasses.replace(cfg.daemon, max_message_bytes=max(cfg.daemon.max_message_bytes,
-                                                                                   2 * len(text))))
-    srv = SocketServer(d, big, os.path.join(tmp, "b.sock")).start()
-    s = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
-    try:
-        s.connect(srv.socket_path)
-        s.sendall(P.encode({"id": 1, "op": "program", "text": text, "name": f"{lines}-lines.ngc"}))
-        t_end = time.monotonic() + 30.0         # received and decoded: the planning child runs
-        while not d._planning and time.monotonic() < t_end:
-            time.sleep(0.005)
-        time.sleep(0.5)
-        tap.drain()
-        t0 = time.monotonic()
-        s.sendall(P.encode({"id": 2, "op": "stop"}))
-        dec = P.Decoder()
-        got = {}
-        s.settimeout(30.0)
-        while len(got) < 2:
-            dec.feed(s.recv(65536))
-            for m in dec.messages():
-                got[m["id"]] = (round(time.monotonic() - t0, 4), m.get("ok"))
-        out = judge(tap, cfg, t0)
-        f = d.status()["fault"]
-        out.update(lines=lines, program_bytes=len(text), stop_reply_s=got[2][0], program_refused=not got[1][1],
-                   fault=f and f["code"], spurious=f is not None)
-        return out
-    finally:
-        s.close()
-        srv.close()
-        d.close()
-        tap.stop()
+def bench_config():
+    """The bench's machine (:func:`machine_text`) loaded from a file, as ``hexacnc run`` loads it."""
+    with tempfile.TemporaryDirectory(prefix="hxbc") as tmp:
+        p = Path(tmp) / "m.toml"
+        p.write_text(machine_text())
+        return load_config(str(p))
 
 
-def soak(cfg, seconds: float, seed: int = 1) -> dict:
-    """Moves back and forth for ``seconds`` while the drives' process is stalled 50-300 ms every
-    ~2 s (below the ``feedback_timeout_s`` bound): faults counted (each one spurious)."""
-    from ..daemon.core import Daemon
-    rnd = np.random.default_rng(seed)
-    d = Daemon(cfg, realtime=False)
-    faults, stalls, moves = [], [], 0
-    try:
-        t_end = time.monotonic() + seconds
-        t_stall = time.monotonic() + 2.0
-        sign = 1.0
-        while time.monotonic() < t_end:
-            st = d.status()
-            if st["state"] == "fault":
-                faults.append(st["fault"]["message"])
-                d.reset()
-                continue
-            if st["state"] == "idle":
-                pose = np.array(cfg.home_pose, dtype=float)
-                pose[0] += 80.0 * sign
-                sign = -sign
-                d.move_to(pose, 150.0)
-                moves += 1
-            if time.monotonic() > t_stall:
-                s = float(rnd.uniform(0.05, 0.3))
-                os.kill(d.sim.proc.pid, signal.SIGSTOP)
-                time.sleep(s)
-                os.kill(d.sim.proc.pid, signal.SIGCONT)
-                stalls.append(round(s, 3))
-                t_stall = time.monotonic() + float(rnd.uniform(1.0, 3.0))
-            time.sleep(0.02)
-        fe = d.status()["following_error_max_mm"]
-    finally:
-        d.close()
-    return {"seconds": seconds, "moves": moves, "stalls": len(stalls), "longest_stall_s": max(stalls, default=0.0),
-            "faults": len(faults), "fault_messages": faults[:10], "following_error_max_mm": fe,
-            "spurious": len(faults)}
-
-
-def _paths(args) -> dict:
-    cfgtext = machine_text()
-    tmp = tempfile.mkdtemp(prefix="hxbc", dir="/tmp")
-    p = Path(tmp) / "m.toml"
-    p.write_text(cfgtext)
-    cfg = load_config(str(p))
+def _paths(args, cfg) -> dict:
     paths = {}
     for target in ("supervisor", "hot", "group"):
         for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
@@ -409,7 +294,9 @@ def _paths(args) -> dict:
         paths[name] = (drive_path, cfg, kind, node, value, expect)
     paths["frame_loss_50pct_then_2mm"] = (drive_path, cfg, "offset", 1, 2.0, "following_error",
                                           lambda d: (d.inject_drive("drop", 0, 0.5), time.sleep(0.3)))
-    paths["stop_during_planning"] = (stop_during_planning, cfg, args.lines)
+    paths["stop_during_planning"] = (stop_during_planning, cfg, args.lines, 0.5)
+    paths["stop_at_program_end"] = (stop_during_planning, cfg, args.lines, 0.0)
+    paths["stop_no_program_baseline"] = (stop_during_planning, cfg, 0, None)
     if args.soak_s > 0:
         paths["soak"] = (soak, cfg, args.soak_s)
     return paths
@@ -418,7 +305,8 @@ def _paths(args) -> dict:
 def main(args: argparse.Namespace) -> int:
     only = {x for x in args.only.split(",") if x}
     res = {}
-    for name, (fn, *a) in _paths(args).items():
+    cfg = bench_config()
+    for name, (fn, *a) in _paths(args, cfg).items():
         if only and name not in only:
             continue
         t0 = time.time()
@@ -436,6 +324,9 @@ def main(args: argparse.Namespace) -> int:
         "drives_disabled": sum(1 for r in res.values() if r.get("drives_disabled")),
         "max_peak_fraction": {k: max((r["peak_fraction"][k] for r in stops), default=None) for k in ("v", "a", "j")},
         "spurious": [k for k, r in res.items() if r.get("spurious")],
+        "stop_share_of_limits": STOP_SHARE,
+        "peak_estimator": peak_estimator(cfg.cycle.period_s, 1.0 / cfg.bus.increments_per_mm, cfg.max_velocity_mm_s,
+                                         cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3).as_dict(cfg.cycle.period_s),
         "loadavg": os.getloadavg(),
     }
     print(json.dumps({"summary": summary, "paths": res}, indent=1))

@@ -45,6 +45,22 @@ class Seen:
     missed: int = 0                                  #: records overwritten before the tap read them
 
 
+def write_index(seg, side: int) -> int:
+    """Records published so far on one direction of a frame ring (0: master -> drives, 1: back)."""
+    return int(np.frombuffer(seg.buf, dtype=np.int64, count=1, offset=8 * _I_W[side])[0])
+
+
+def attach(name: str) -> shared_memory.SharedMemory:
+    """Attach to a daemon's frame ring segment without taking it over (no resource tracking)."""
+    seg = shared_memory.SharedMemory(name=name)
+    try:
+        from multiprocessing import resource_tracker
+        resource_tracker.unregister(seg._name, "shared_memory")  # type: ignore[attr-defined]
+    except Exception:
+        pass
+    return seg
+
+
 class RingTap:
     """``RingTap(cfg, names).start()`` ... ``.stop()``; ``.seen`` holds the decoded frames."""
 
@@ -53,15 +69,7 @@ class RingTap:
         self.ipm = float(cfg.bus.increments_per_mm)
         self.off = np.asarray(cfg.strut_offset_mm, dtype=float)
         self.poll_s = poll_s
-        self.segs = []
-        for name in names:
-            seg = shared_memory.SharedMemory(name=name)
-            try:
-                from multiprocessing import resource_tracker
-                resource_tracker.unregister(seg._name, "shared_memory")  # type: ignore[attr-defined]
-            except Exception:
-                pass
-            self.segs.append(seg)
+        self.segs = [attach(name) for name in names]
         self.n = [int(np.frombuffer(seg.buf, dtype=np.int64, count=2)[1]) for seg in self.segs]
         self.pos = [[self._w(b, 0), self._w(b, 1)] for b in range(len(self.segs))]
         self.seen = Seen(targets=[[] for _ in self.segs])
@@ -84,7 +92,7 @@ class RingTap:
         self.lock = threading.Lock()
 
     def _w(self, b: int, side: int) -> int:
-        return int(np.frombuffer(self.segs[b].buf, dtype=np.int64, count=1, offset=8 * _I_W[side])[0])
+        return write_index(self.segs[b], side)
 
     def start(self) -> "RingTap":
         self._thread = threading.Thread(target=self._run, name="ringtap", daemon=True)
@@ -203,18 +211,59 @@ class RingTap:
         return out
 
 
-def motion_peaks(L: np.ndarray, period_s: float, vmax, amax, jmax) -> dict:
-    """Peak |v|, |a|, |j| per strut of a command stream (one row per SYNC) as fractions of the limits.
+#: worst-case error of a peak estimate from the rounding of the targets to drive increments, as a
+#: share of the limit: each estimate uses the shortest window that keeps it within this
+RESOLUTION_TARGET = 0.02
 
-    Differences over 1, 2 and 8 cycles for v, a and j: the 0.1 um increments would otherwise make
-    the jerk of single-cycle third differences up to 16x the 200,000 mm/s^3 limit by rounding alone."""
-    if len(L) < 26:
+
+@dataclass(frozen=True)
+class PeakEstimator:
+    """How :func:`motion_peaks` estimates v/a/j from targets rounded to ``increment_mm``.
+
+    The k-th derivative is the k-th difference over ``h_k`` cycles divided by ``(h_k dt)^k``: a
+    weighted average (positive weights, sum 1: a B-spline kernel over ``k h_k`` cycles) of the
+    single-cycle derivative of the unrounded stream, so it never exceeds that stream's largest
+    single-cycle value. Rounding each target by at most half an increment adds at most
+    ``2^(k-1) increment / (h_k dt)^k`` (the ``resolution``, here as a share of the smallest limit);
+    ``h_k`` is the shortest window that keeps it within :data:`RESOLUTION_TARGET`. A longer window
+    averages a jerk pulse shorter than ``3 h_3`` cycles down (it measures its mean, not its peak)."""
+    window_cycles: dict
+    resolution: dict
+
+    def as_dict(self, period_s: float) -> dict:
+        return {"window_cycles": self.window_cycles,
+                "span_ms": {k: round(n * self.window_cycles[k] * period_s * 1e3, 2)
+                            for n, k in ((1, "v"), (2, "a"), (3, "j"))},
+                "resolution_fraction": {k: round(x, 4) for k, x in self.resolution.items()},
+                "method": "k-th difference over h_k cycles (B-spline average of the single-cycle values); "
+                          "resolution = worst-case rounding error of the 0.5-increment targets / smallest limit"}
+
+
+def peak_estimator(period_s: float, increment_mm: float, vmax, amax, jmax) -> PeakEstimator:
+    """Windows and worst-case rounding resolution for targets of ``increment_mm`` (see :class:`PeakEstimator`)."""
+    lim = {"v": float(np.min(vmax)), "a": float(np.min(amax)), "j": float(np.min(jmax))}
+    win, res = {}, {}
+    for k, name in ((1, "v"), (2, "a"), (3, "j")):
+        h = 1
+        while 2 ** (k - 1) * increment_mm / (h * period_s) ** k > RESOLUTION_TARGET * lim[name] and h < 64:
+            h += 1
+        win[name] = h
+        res[name] = 2 ** (k - 1) * increment_mm / (h * period_s) ** k / lim[name]
+    return PeakEstimator(win, res)
+
+
+def motion_peaks(L: np.ndarray, period_s: float, vmax, amax, jmax, increment_mm: float = 1e-4) -> dict:
+    """Peak |v|, |a|, |j| per strut of a command stream (one row per SYNC) as fractions of the limits,
+    by :func:`peak_estimator` for targets rounded to ``increment_mm`` (0.1 um: ``[bus]
+    increments_per_mm`` 10,000). Single-cycle third differences of such targets would read up to
+    16x the 200,000 mm/s^3 limit by rounding alone."""
+    est = peak_estimator(period_s, increment_mm, vmax, amax, jmax)
+    h1, h2, h3 = est.window_cycles["v"], est.window_cycles["a"], est.window_cycles["j"]
+    if len(L) < 3 * h3 + 2:
         return {"v": 0.0, "a": 0.0, "j": 0.0}
     dt = period_s
-    v = np.diff(L, axis=0) / dt
-    h2 = 2
+    v = (L[h1:] - L[:-h1]) / (h1 * dt)
     a = (L[2 * h2:] - 2 * L[h2:-h2] + L[:-2 * h2]) / (h2 * dt) ** 2
-    h3 = 8
     j = (L[3 * h3:] - 3 * L[2 * h3:-h3] + 3 * L[h3:-2 * h3] - L[:-3 * h3]) / (h3 * dt) ** 3
     return {"v": float(np.max(np.abs(v) / np.asarray(vmax))),
             "a": float(np.max(np.abs(a) / np.asarray(amax))),
@@ -226,7 +275,8 @@ def stop_figures(tap: RingTap, cfg, period_s: float, t_from: float) -> dict:
     t, L = tap.lengths_mm(t_from)
     if len(L) == 0:
         return {"syncs": 0}
-    pk = motion_peaks(L, period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3)
+    pk = motion_peaks(L, period_s, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2, cfg.max_jerk_mm_s3,
+                      1.0 / cfg.bus.increments_per_mm)
     return {"syncs": int(len(L)), "stop_distance_mm": [round(float(x), 4) for x in np.abs(L[-1] - L[0])],
             "peak_fraction": {k: round(v, 3) for k, v in pk.items()},
             "final_speed_mm_s": round(float(np.max(np.abs(L[-1] - L[-2]))) / period_s, 3) if len(L) > 1 else 0.0}

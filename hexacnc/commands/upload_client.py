@@ -8,8 +8,18 @@ import sys
 import time
 from typing import TextIO
 
-#: default chunk size (bytes; the protocol's message limit is 16 MiB)
+#: default chunk size (bytes; the daemon's message limit, [daemon] max_message_bytes, is 2 MiB by default)
 CHUNK_BYTES = 1024 * 1024
+#: bytes of a message besides its text (msgpack framing, id, op, seq, name), with room to spare
+MESSAGE_OVERHEAD_BYTES = 4096
+
+
+def chunk_limit(client, chunk_bytes: int) -> int:
+    """``chunk_bytes``, at most what fits one message of the daemon (its ``hello``'s ``max_message_bytes``)."""
+    limit = (getattr(client, "server_info", None) or {}).get("max_message_bytes")
+    if isinstance(limit, int) and not isinstance(limit, bool) and limit > 2 * MESSAGE_OVERHEAD_BYTES:
+        return max(1024, min(int(chunk_bytes), limit - MESSAGE_OVERHEAD_BYTES))
+    return int(chunk_bytes)
 
 
 def split_chunks(data: bytes, chunk_bytes: int) -> list[bytes]:
@@ -50,6 +60,7 @@ def send_program(client, text: str, name: str, chunk_bytes: int = CHUNK_BYTES, e
     Raises the protocol's DaemonError on a refusal (of a chunk or of the program)."""
     from ..daemon import protocol as P
     err = sys.stderr if err is None else err
+    chunk_bytes = chunk_limit(client, chunk_bytes)
     data = text.encode("utf-8")
     if len(data) <= chunk_bytes:
         return client.call("program", text=text, name=name, reply_timeout_s=None)

@@ -76,7 +76,9 @@ class DaemonConfig:
     status_rate_hz: float = 20.0
     log_level: str = "INFO"
     max_clients: int = 32                      #: simultaneous socket clients
-    max_message_bytes: int = 16 * 1024 * 1024  #: largest protocol message accepted
+    #: largest protocol message accepted: one message is decoded in the socket loop at ~2 ms per MiB
+    #: (with the GIL held), so a larger program goes in chunks (program_begin/program_chunk/program_end)
+    max_message_bytes: int = 2 * 1024 * 1024
     #: a program is interpreted and planned in a child process with at most this address space (MB)
     max_plan_memory_mb: int = 4096
     #: ... and at most this long (s); over either it is refused naming the limit and the line reached

@@ -412,6 +412,7 @@ class Client:
         self.dec = Decoder(max_bytes)
         self.pending: list[dict] = []
         self._next_id = 1
+        self.server_info: dict = {}             #: the daemon's last "hello" reply
 
     @classmethod
     def unix(cls, path: str, timeout_s: float = 5.0) -> "Client":
@@ -528,4 +529,7 @@ class Client:
         """
         if op == "wait" and reply_timeout_s is not None and isinstance(fields.get("timeout_s"), (int, float)):
             reply_timeout_s += float(fields["timeout_s"])
-        return self.reply_to(self.send(op, **fields), reply_timeout_s, check)
+        reply = self.reply_to(self.send(op, **fields), reply_timeout_s, check)
+        if op == "hello" and reply.get("ok"):
+            self.server_info = reply            # e.g. the daemon's max_message_bytes
+        return reply

@@ -220,7 +220,9 @@ class ConnectionIO:
         self.stats["closed_bad"] += 1
         log.warning("%s: %s; closing the connection", conn.label(), exc)
         if conn.dec.too_large:
-            self._send(conn, P.error_reply(None, P.TOO_LARGE, str(exc)))
+            self._send(conn, P.error_reply(None, P.TOO_LARGE, f"{exc} ([daemon] max_message_bytes): send a larger "
+                                           "program in chunks with program_begin / program_chunk / program_end "
+                                           "(hexacnc send does so for files over --chunk-bytes)"))
             conn.closing = True
             self._flush(conn)
         else:

@@ -22,6 +22,8 @@ _MAX_MOTION_PENDING = 64
 class MotionOps:
     """``program``, ``pause``/``resume``/``stop``/``reset``, ``temperatures``, ``release``."""
 
+    _stop_epoch = 0     #: stops received (socket thread), see :meth:`_unless_stopped`
+
     def _take_control(self, conn: _Conn, req: P.Request) -> bool:
         if self._controller is None:
             self._controller = conn
@@ -75,7 +77,23 @@ class MotionOps:
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
         load = self.operator.load_program if self.operator is not None else self.daemon.load_program
-        self._submit_motion(conn, req, lambda: load(text, name), reply)
+        self._submit_motion(conn, req, self._unless_stopped(lambda: load(text, name), name), reply)
+
+    def _unless_stopped(self, load: Callable[[], Any], name: str) -> Callable[[], Any]:
+        """``load`` for the motion worker, unless a ``stop`` arrived after the program (stop runs on
+        its own worker and can overtake it): refused if the stop came before planning began, and
+        stopped again if it came while planning began (the daemon cancels a plan in progress)."""
+        epoch = self._stop_epoch
+
+        def call() -> Any:
+            if self._stop_epoch != epoch:
+                raise HexacncError(f"{name}: stopped before it was interpreted and planned")
+            result = load()
+            if self._stop_epoch != epoch:
+                self.daemon.stop()
+                raise HexacncError(f"{name}: stopped while it was being interpreted and planned")
+            return result
+        return call
 
     def _simple_motion(self, conn: _Conn, req: P.Request) -> None:
         if not self._take_control(conn, req):
@@ -87,7 +105,12 @@ class MotionOps:
             return P.ok_reply(req.id, **extra)
         self._submit_motion(conn, req, fn, reply)
 
-    _op_pause = _op_resume = _op_stop = _op_reset = _simple_motion
+    def _op_stop(self, conn: _Conn, req: P.Request) -> None:
+        if self._controller in (None, conn):
+            self._stop_epoch += 1           # on arrival: programs received before it never start
+        self._simple_motion(conn, req)
+
+    _op_pause = _op_resume = _op_reset = _simple_motion
 
     def _op_temperatures(self, conn: _Conn, req: P.Request) -> None:
         """A probe reading for the thermal observer (controller or sensor role; validated as a whole, applied or not at all)."""

@@ -8,50 +8,42 @@ limits reachable in one cycle.  This is also the profile with the shortest
 stopping distance, so a strut whose commanded motion so far was feasible (it
 could still have stopped, or reversed, inside its length range) stops inside
 its length range too; the lengths are clamped to the range as a final guard.
+
+Margin: the stop is planned at :data:`STOP_SHARE` (0.9) of each strut's acceleration and jerk
+limits, as the planner plans at shares of them (``planner.plan.ETA``), so that the stop measured on
+the 0.1 um drive increments stays below the limits too. A stop that starts above the share (the
+planner's own profile runs up to 0.95) brings the acceleration down to the share at the shared jerk.
+Only a state whose velocity would overshoot ``max_velocity`` while its acceleration ramps down at
+the shared jerk (accelerating near the velocity limit) takes up to the full jerk limit, never more.
+In exact arithmetic every single-cycle difference of the commands stays within these bounds
+(``tests/test_stopgen.py``).
 """
 from __future__ import annotations
 
 import math
 
+from drivers.jerkstop import STOP_SHARE, stop_accel
 
-def stop_accel(v: float, a: float, jmax: float, amax: float, dt: float) -> float:
-    """Acceleration (mm/s^2) for the next cycle of a jerk-limited stop from ``(v, a)``.
+__all__ = ["STOP_SHARE", "StrutStop", "peak_speed", "stop_accel"]
 
-    Discrete model (the one the drive and the guard see): ``v`` and ``a`` are
-    backward differences of the commanded lengths; the next acceleration ``x``
-    gives ``v' = v + x dt``; ramping ``x`` back to zero in steps of ``jmax dt``
-    then adds ``x|x|/(2 jmax) - x dt/2``.  ``x`` solves ``v + x dt/2 + x|x|/(2 jmax) = 0``
-    and is clamped to the jerk and acceleration bounds.
-    """
+
+def peak_speed(v: float, a: float, jmax: float, dt: float) -> float:
+    """|v| reached when ``a`` (same sign as ``v``) ramps down to zero in steps of ``jmax dt``."""
     jdt = jmax * dt
-    lo = a - jdt
-    hi = a + jdt
-    if lo < -amax:
-        lo = -amax
-    if hi > amax:
-        hi = amax
-    xs = -v / dt                      # reach standstill in this very cycle?
-    if lo <= xs <= hi and -jdt <= xs <= jdt:
-        return xs
-    h = 0.5 * dt
-    if v <= 0.0:
-        x = jmax * (-h + math.sqrt(h * h - 2.0 * v / jmax))
-    else:
-        x = jmax * (h - math.sqrt(h * h + 2.0 * v / jmax))
-    if x < lo:
-        return lo
-    if x > hi:
-        return hi
-    return x
+    aa = a if a > 0.0 else -a
+    n = math.floor(aa / jdt)
+    return (v if v > 0.0 else -v) + dt * (n * aa - jdt * n * (n + 1) * 0.5)
 
 
 class StrutStop:
     """Controlled stop of six struts; ``start`` with the last three commands, ``step`` per cycle."""
 
-    def __init__(self, vmax, amax, jmax, lmin, lmax, dt: float):
+    def __init__(self, vmax, amax, jmax, lmin, lmax, dt: float, share: float = STOP_SHARE):
         self.vmax = [float(x) for x in vmax]
-        self.amax = [float(x) for x in amax]
-        self.jmax = [float(x) for x in jmax]
+        self.amax_full = [float(x) for x in amax]
+        self.jmax_full = [float(x) for x in jmax]
+        self.amax = [share * x for x in self.amax_full]
+        self.jmax = [share * x for x in self.jmax_full]
         self.lmin = [float(x) for x in lmin]
         self.lmax = [float(x) for x in lmax]
         self.dt = float(dt)
@@ -68,7 +60,7 @@ class StrutStop:
             v = (l0[i] - l1[i]) / dt
             a = (l0[i] - 2.0 * l1[i] + l2[i]) / (dt * dt)
             vm = self.vmax[i]
-            am = self.amax[i]
+            am = self.amax_full[i]
             self.v[i] = vm if v > vm else (-vm if v < -vm else v)
             self.a[i] = am if a > am else (-am if a < -am else a)
         self.active = True
@@ -83,9 +75,12 @@ class StrutStop:
             if v == 0.0 and a == 0.0:
                 out[i] = self.L[i]
                 continue
-            an = stop_accel(v, a, self.jmax[i], self.amax[i], dt)
-            vn = v + an * dt
             vm = self.vmax[i]
+            j = self.jmax[i]
+            if v * a > 0.0 and peak_speed(v, a, j, dt) > vm:      # ramping a down at the share overshoots
+                j = self.jmax_full[i]
+            an = stop_accel(v, a, j, self.amax[i], dt)
+            vn = v + an * dt
             if vn > vm:
                 vn = vm
                 an = (vn - v) / dt

@@ -5,7 +5,8 @@ name and size in bytes (UTF-8), ``program_chunk`` carries the next piece of text
 (0, 1, 2, ...), ``program_end`` hands the assembled text to the same path as ``program`` (parsed, planned and
 checked before any motion).  Nothing accepted is lost: every chunk is acknowledged with the bytes received so
 far; a chunk out of sequence, over the declared size or with a NUL is refused and changes nothing (the client
-sends it again or starts over).  Memory is bounded: one open upload per connection, at most
+sends it again or starts over).  Each chunk is at most one message (``[daemon] max_message_bytes``,
+2 MiB by default), so the socket loop spends about a millisecond per MiB on it.  Memory is bounded: one open upload per connection, at most
 :data:`MAX_PROGRAM_BYTES` each and :data:`MAX_OPEN_BYTES` over all connections; a disconnect or a new
 ``program_begin`` drops the open upload.
 """
@@ -81,6 +82,12 @@ class Uploads:
 
     def end(self, key) -> tuple[str, str]:
         """(text, name) of the complete upload, which is closed; refused while bytes are missing."""
+        parts, name = self.take(key)
+        return "".join(parts), name
+
+    def take(self, key) -> tuple[list, str]:
+        """As :meth:`end` with the text still in pieces, to be joined off the socket loop (a join of a
+        20 MB program holds the GIL for milliseconds)."""
         up = self._open.get(key)
         if up is None:
             raise UploadError("invalid_state", "op 'program_end': no upload open on this connection")
@@ -88,7 +95,7 @@ class Uploads:
             raise UploadError("bad_value", f"op 'program_end': {up.received} of {up.declared} declared bytes "
                                            f"received (next seq {up.seq})")
         del self._open[key]
-        return "".join(up.parts), up.name
+        return up.parts, up.name
 
     def drop(self, key) -> None:
         self._open.pop(key, None)
@@ -124,7 +131,7 @@ class UploadOps:
         if not self._take_control(conn, req):
             return
         try:
-            text, name = self._uploads.end(conn.num)
+            parts, name = self._uploads.take(conn.num)
         except UploadError as exc:
             self.stats["errors"] += 1
             self._send(conn, P.error_reply(req.id, exc.code, exc.message))
@@ -134,4 +141,6 @@ class UploadOps:
             info = P.plain(result) if isinstance(result, dict) else {"blocks": result}
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
-        self._submit_motion(conn, req, lambda: self.daemon.load_program(text, name), reply)
+        operator = getattr(self, "operator", None)     # as op "program": the operator's state when there is one
+        load = operator.load_program if operator is not None else self.daemon.load_program
+        self._submit_motion(conn, req, self._unless_stopped(lambda: load("".join(parts), name), name), reply)
