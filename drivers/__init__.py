@@ -11,15 +11,17 @@ Modules (one job each):
 * :mod:`drivers.master`   - CANopen master for the non-cyclic work (boot, SDO mapping, enable/disable)
 * :mod:`drivers.scan`     - ``hexacnc bus scan``: every node on the bus and whether it matches the config
 * :mod:`drivers.pcap`     - SocketCAN pcap capture (``hexacnc run --capture``); :mod:`drivers.pcapcheck` (tshark)
-* :mod:`drivers.busdemand` - benchmark: bus demand per cycle, staggered vs uniform timers
+* :mod:`drivers.busdemand` - bus demand per cycle, staggered vs uniform timers (``hexacnc bus demand``)
 * :mod:`drivers.cyclic`   - the hot-path codec (prebuilt frames, ``struct``), no allocation per cycle
-* :mod:`drivers.simdrive` - six simulated CiA 402 drives (separate process or in-process on ``virtual``)
+* :mod:`drivers.simdrive` - six simulated CiA 402 drives (the config glue and the process: :mod:`hexacnc.sim.drives`)
 * :mod:`drivers.simnode`  - one simulated drive node (PDOs, state machine, supervision, fault injection)
 * :mod:`drivers.simreact` - simulated reactions: stop ramps (0x605A/0x605C/0x605E), comm loss (0x6007, 0x1029)
 * :mod:`drivers.simhooks` - object-dictionary hooks for simulated extensions (homing, touch probe)
 * :mod:`drivers.simfaults` - fault injection specs
 * :mod:`drivers.strutmodel` - pluggable strut dynamics for the simulated drives
-* :mod:`drivers.testing`  - run commands inside a private network namespace (cross-process bus tests)
+* :mod:`drivers.testing`  - private network namespaces (cross-process bus tests), an independent PDO decoder
+
+Nothing here imports ``hexacnc`` (``hexacnc bench arch``: layer violations 0).
 
 ``hexapod_drive.eds`` is the default description of the drives (real and simulated, profile
 ``permissive``); ``strict_drive.eds`` the simulated ``strict`` profile.

@@ -3,7 +3,7 @@ simulated seconds (default 10) of the configured layout, with the drives' timers
 (TPDO2 event timers / inhibit times and heartbeat producer times staggered per strut) against the
 former uniform timers (every drive 50 ms / 1 ms / ``heartbeat_ms``, started by one NMT command)::
 
-    python -m drivers.busdemand [--config F] [--seconds 10]      # JSON: median / p99 per variant
+    hexacnc bus demand [--config F] [--seconds 10]      # JSON: median / p99 per variant
 
 Frame times are exact for each frame's bits: base format, 1 Mbit/s classic CAN (``[bus] bitrate``),
 stuff bits counted on the real bit stream (SOF..CRC) of a payload like the drives send (positions
@@ -15,11 +15,11 @@ reaches the drives within ~0.3 ms of each other (SDO-free broadcast order), as o
 from __future__ import annotations
 
 import functools
-import json
 import random
 import statistics
 from typing import Callable
 
+from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 
@@ -97,8 +97,8 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
             hb = heartbeat_producer_ms(bus_cfg.heartbeat_ms, nd.index) if staggered else bus_cfg.heartbeat_ms
             periodic(start + ev * 1e-3, ev * 1e-3, lambda k, nd=nd: add(k, nd.tpdo2_cob_id, (0x1637).to_bytes(2, "little")))
             periodic(start + hb * 1e-3, hb * 1e-3, lambda k, nd=nd: add(k, 0x700 + nd.node_id, b"\x05"))
-        periodic(rng.uniform(0, bus_cfg.heartbeat_ms * 1e-3), bus_cfg.heartbeat_ms * 1e-3,
-                 lambda k: add(k, 0x77F, b"\x05"))
+        mhb = master_heartbeat_s(bus_cfg)          # as drivers.cyclic sends it while cycling
+        periodic(rng.uniform(0, mhb), mhb, lambda k: add(k, 0x77F, b"\x05"))
         q = statistics.quantiles(demand, n=100)
         rep = {"bus": b, "median_us": round(statistics.median(demand), 1), "p99_us": round(q[98], 1),
                "p999_us": round(statistics.quantiles(demand, n=1000)[998], 1), "max_us": round(max(demand), 1),
@@ -110,25 +110,9 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
     return worst
 
 
-def main(argv=None) -> int:
-    import argparse
-
-    from hexacnc.config import load_config
-
-    from .description import bus_period_s
-
-    ap = argparse.ArgumentParser(prog="python -m drivers.busdemand", description=__doc__.splitlines()[0])
-    ap.add_argument("--config")
-    ap.add_argument("--seconds", type=float, default=10.0)
-    args = ap.parse_args(argv)
-    cfg = load_config(args.config)
-    period = bus_period_s(cfg.bus, cfg.cycle.period_s)
-    out = {"layout": plan_layout(cfg.bus).layout, "bus_period_us": period * 1e6, "seconds": args.seconds,
-           "staggered": simulate(cfg.bus, period, args.seconds, True),
-           "uniform_timers": simulate(cfg.bus, period, args.seconds, False)}
-    print(json.dumps(out, indent=1))
-    return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+def demand_report(bus_cfg, period_s: float, seconds: float = 10.0) -> dict:
+    """``hexacnc bus demand``: the layout, the bus period and :func:`simulate` for the configured (staggered)
+    timers and for the former uniform ones."""
+    return {"layout": plan_layout(bus_cfg).layout, "bus_period_us": period_s * 1e6, "seconds": seconds,
+            "staggered": simulate(bus_cfg, period_s, seconds, True),
+            "uniform_timers": simulate(bus_cfg, period_s, seconds, False)}

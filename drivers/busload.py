@@ -26,6 +26,7 @@ from typing import Any
 from .errors import BusError
 
 from .description import bus_period_s
+from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
 
 ASYNC_RESERVE_BYTES = 2
@@ -100,7 +101,7 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
     emcy = frame_time_us(EMCY_BYTES, br, False)
     n = len(bus_cfg.node_ids)
     hb_rate = sum(1000.0 / heartbeat_producer_ms(bus_cfg.heartbeat_ms, i) for i in range(n)) \
-        + 1000.0 / bus_cfg.heartbeat_ms
+        + 1.0 / master_heartbeat_s(bus_cfg)
     status_rate = sum(1000.0 / status_event_timer_ms(i) for i in range(n))
     return {
         "layout": plan.layout, "requested_layout": plan.requested_layout or bus_cfg.layout,
@@ -197,31 +198,10 @@ def suggest_layouts(cfg, period_s: float | None = None, max_load: float | None =
     return out
 
 
-def main(argv=None) -> int:
-    """``python -m drivers.busload [--config F] [--period-s P]``: the report and fitting layouts as JSON."""
-    import argparse
-    import json
-    import sys
-
-    from hexacnc.config import load_config
-    from .errors import ControlError as HexacncError
-
-    ap = argparse.ArgumentParser(prog="python -m drivers.busload", description=__doc__.splitlines()[0])
-    ap.add_argument("--config", help="machine description (TOML); default: the embedded default")
-    ap.add_argument("--period-s", type=float, help="cycle period (default [cycle] period_s)")
-    args = ap.parse_args(argv)
-    try:
-        cfg = load_config(args.config)
-        period = args.period_s if args.period_s is not None else cfg.cycle.period_s
-        rep = bus_time(cfg.bus, period)
-    except HexacncError as exc:
-        print(f"busload: {exc}", file=sys.stderr)
-        return 2
+def load_report(bus_cfg, period_s: float) -> dict[str, Any]:
+    """``hexacnc bus load``: the :func:`bus_time` report with its one-line ``summary`` and the fitting
+    layouts (``suggestions``, :func:`suggest_layouts`)."""
+    rep = bus_time(bus_cfg, period_s)
     rep["summary"] = describe(rep)
-    rep["suggestions"] = suggest_layouts(cfg.bus, period)
-    print(json.dumps(rep, indent=1))
-    return 0 if rep["fits"] else 1
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    rep["suggestions"] = suggest_layouts(bus_cfg, period_s)
+    return rep

@@ -190,6 +190,8 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
                 (0x605C, None, DISABLE_OPERATION_OPTION, "disable operation option"),
                 (0x605E, None, FAULT_REACTION_OPTION, "fault reaction option"),
                 *stop_ramp_objects(m.cfg, m.bus_cfg, nd.index)]
+        if desc.has_bundled(0x2010):        # the bundled EDS's SYNC-loss time-out = the RPDO deadline
+            want.append((0x2010, None, m.comm_loss_ms(), "SYNC-loss time-out (ms)"))
         rep = {"node_id": nd.node_id, "missing": []}
         refused = set()
         for index, sub, value, name in want:
@@ -214,6 +216,9 @@ def configure_reactions(m: "Master", bus_period_s: float) -> list[dict]:
         rep["0x6085_quick_stop_decel"] = m.sdo_read_optional(nd, 0x6085)
         rep["rpdo1_event_timer_ms"] = m.sdo_read(nd, "RPDO1 event timer read-back", 0x1400, 5)
         rep["heartbeat_consumer"] = m.sdo_read(nd, "heartbeat consumer read-back", 0x1016, 1)
+        if desc.has_bundled(0x2110):        # the drive manages its brake: the disable walk waits for it
+            rep["brake_release_ms"] = m.sdo_read(nd, "brake release delay", 0x2110, 1)
+            rep["brake_engage_ms"] = m.sdo_read(nd, "brake engage delay", 0x2110, 2)
         if 0x6007 not in desc.objects:
             log.warning("%s: no 0x6007 in %s: the drive's reaction to a silent master is its own default",
                         m.who(nd), desc.path)

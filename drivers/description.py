@@ -39,6 +39,10 @@ MODE_BITS = {0: "pp", 1: "vl", 2: "pv", 3: "tq", 5: "hm", 6: "ip", 7: "csp", 8: 
 IP_INDEX_RANGE = (-6, -3)
 
 
+#: manufacturer objects of the bundled descriptions the master configures (by index and exact name)
+BUNDLED_OBJECTS = {0x2010: "SYNC loss time-out ms", 0x2110: "Holding brake"}
+
+
 @dataclass(frozen=True)
 class Description:
     path: str
@@ -51,6 +55,12 @@ class Description:
     ip_index_range: tuple     #: (low, high) of 0x60C2 sub 2
     objects: frozenset        #: object indices present
     product_name: str
+    #: manufacturer objects of the bundled EDS present under their name (another vendor's 0x2010 is
+    #: something else): {index: name}, e.g. 0x2010 "SYNC loss time-out ms", 0x2110 "Holding brake"
+    bundled: tuple = ()
+
+    def has_bundled(self, index: int) -> bool:
+        return index in dict(self.bundled)
 
     def has(self, index: int) -> bool:
         return index in self.objects
@@ -98,11 +108,13 @@ def load_description(path: str) -> Description:
     lo = sub2.min if sub2.min is not None else IP_INDEX_RANGE[0]
     hi = sub2.max if sub2.max is not None else IP_INDEX_RANGE[1]
     objects = frozenset(int(i) for i in od.indices)
+    bundled = tuple((i, n) for i, n in BUNDLED_OBJECTS.items() if i in od and od[i].name == n)
     return Description(
         path=path, vendor_id=int(di.vendor_number or 0), product_code=int(di.product_number or 0),
         revision=int(di.revision_number or 0), device_type=int(od[0x1000].default or 0),
         supported_modes=int(od[0x6502].default or 0), dummies=_dummy_usage(path),
-        ip_index_range=(int(lo), int(hi)), objects=objects, product_name=str(di.product_name or ""))
+        ip_index_range=(int(lo), int(hi)), objects=objects, product_name=str(di.product_name or ""),
+        bundled=bundled)
 
 
 def default_path(bus_cfg) -> str:

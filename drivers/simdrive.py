@@ -23,22 +23,16 @@ Fault injection (manufacturer object 0x2000, or ``--fault`` / ``faults=``):
  5           ``N:refuse``            drive refuses transition 4 (stays Switched on)
 =========== ====================== =========================================================
 
-``N`` is the node id; via SDO, sub 2 is a delay in ms from the write. Run as a process::
+``N`` is the node id; via SDO, sub 2 is a delay in ms from the write.
 
-    python -m drivers.simdrive --config F [--interface udp_multicast] [--channel C] [--fault SPEC]...
-                               [--model package.module:factory]
-
-It prints ``READY`` on stdout once the nodes have booted and runs until SIGTERM/SIGINT.
-In-process (``virtual`` bus, unit tests): ``SimDrives(cfg, buses).start()`` / ``.stop()``.
+``SimDrives(cfg, buses, model_factory=..., start_positions_inc=...).start()`` / ``.stop()``; the values that
+come from the machine description (strut model of ``[dynamics] simulated_drives``, readings at the home
+pose) are computed by the host (:mod:`hexacnc.sim.drives`, which also runs the drives as a process):
+this layer imports nothing from ``hexacnc``.
 """
 from __future__ import annotations
 
-import argparse
 import logging
-import os
-import signal
-import subprocess
-import sys
 import threading
 import time
 from typing import Sequence
@@ -46,7 +40,7 @@ from typing import Sequence
 import can
 import canopen
 
-from .errors import BusError, ConfigError
+from .errors import ConfigError
 
 from . import EDS_PATH
 from .description import STRICT_EDS, load_description
@@ -54,11 +48,10 @@ from .layout import plan_layout
 from .simreact import TICK_S
 from .simnode import FaultSpec, SimDrive
 from . import simhoming  # noqa: F401  (registers homing mode 6 in simhooks.EXTENSIONS)
-from .strutmodel import (ModelFactory, SecondOrderStrut, StrutModel, config_model_factory, default_model_factory,
-                         load_model_factory)
+from .strutmodel import ModelFactory, SecondOrderStrut, StrutModel, default_model_factory, load_model_factory
 
 __all__ = ["SimDrives", "SimDrive", "FaultSpec", "StrutModel", "SecondOrderStrut", "ModelFactory",
-           "default_model_factory", "load_model_factory", "spawn", "main"]
+           "default_model_factory", "load_model_factory"]
 
 log = logging.getLogger("hexacnc.simdrive")
 
@@ -69,13 +62,14 @@ log = logging.getLogger("hexacnc.simdrive")
 class SimDrives:
     """Six simulated drives on ``buses`` (one bus object per ``[bus] buses``, strut split per layout).
 
-    ``cfg``: MachineConfig; ``model_factory(strut, cfg) -> StrutModel``; ``faults``: FaultSpecs;
-    ``start_positions_inc``: initial drive readings (default: the home pose).
+    ``cfg``: the machine config (its ``bus`` section, ``max_*`` strut limits; read, never imported);
+    ``model_factory(strut, cfg) -> StrutModel``; ``start_positions_inc``: initial drive readings (6);
+    ``faults``: FaultSpecs.
     """
 
     def __init__(self, cfg, buses: can.BusABC | Sequence[can.BusABC], *,
-                 model_factory: ModelFactory | None = None, faults: Sequence[FaultSpec] = (),
-                 start_positions_inc: Sequence[int] | None = None, eds_path=None):
+                 model_factory: ModelFactory, start_positions_inc: Sequence[int],
+                 faults: Sequence[FaultSpec] = (), eds_path=None):
         """``eds_path``: description of the simulated drives; default per ``[bus] simulate_profile``
         (``permissive``: hexapod_drive.eds, ``strict``: strict_drive.eds)."""
         if isinstance(buses, can.BusABC):
@@ -92,12 +86,9 @@ class SimDrives:
         self.dummies = load_description(self.eds_path).dummies
         self.lock = threading.RLock()
         self.increments_per_mm = cfg.bus.increments_per_mm
-        if start_positions_inc is None:
-            from hexacnc.kinematics import Hexapod
-            lengths = Hexapod(cfg).lengths(cfg.home_pose)
-            start_positions_inc = [round((float(lengths[i]) - float(cfg.strut_offset_mm[i])) *
-                                         self.increments_per_mm) for i in range(6)]
-        factory = model_factory or config_model_factory(cfg)
+        if len(start_positions_inc) != len(self.plan.nodes):
+            raise ValueError(f"SimDrives: {len(start_positions_inc)} start positions for {len(self.plan.nodes)} drives")
+        factory = model_factory
         self.networks = [canopen.Network(b) for b in self.buses]
         self._hb_subs: list[list] = [[] for _ in self.buses]
         self.drives: list[SimDrive] = []
@@ -216,97 +207,3 @@ class SimDrives:
     def states(self) -> list[int]:
         with self.lock:
             return [d.state for d in self.drives]
-
-
-# --------------------------------------------------------------------------------------------
-# process entry
-# --------------------------------------------------------------------------------------------
-def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None, channel: str | None = None,
-          faults: Sequence[str] = (), ready_timeout_s: float = 20.0, env: dict | None = None,
-          extra_args: Sequence[str] = (), model: str | None = None) -> subprocess.Popen:
-    """Start ``python -m drivers.simdrive`` and wait for its ``READY`` line; returns the process.
-
-    Stop it with ``proc.terminate(); proc.wait()``. Raises :class:`BusError` if it exits or
-    does not get ready in time (its stderr in the message).
-    """
-    cmd = [sys.executable, "-m", "drivers.simdrive"]
-    if config_path is not None:
-        cmd += ["--config", str(config_path)]
-    if interface:
-        cmd += ["--interface", interface]
-    if channel:
-        cmd += ["--channel", channel]
-    for f in faults:
-        cmd += ["--fault", f]
-    if model:
-        cmd += ["--model", model]
-    cmd += list(extra_args)
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-    e = dict(os.environ if env is None else env)
-    e["PYTHONPATH"] = root + (os.pathsep + e["PYTHONPATH"] if e.get("PYTHONPATH") else "")
-    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=e)
-    deadline = time.monotonic() + ready_timeout_s
-    import selectors
-    sel = selectors.DefaultSelector()
-    sel.register(proc.stdout, selectors.EVENT_READ)
-    while time.monotonic() < deadline:
-        if sel.select(timeout=0.1):
-            line = proc.stdout.readline()
-            if line.strip() == "READY":
-                sel.close()
-                return proc
-            if not line and proc.poll() is not None:
-                break
-    sel.close()
-    proc.kill()
-    _, err = proc.communicate(timeout=5)
-    raise BusError(f"simulated drives did not start ({' '.join(cmd)}): {err.strip()[-2000:]}")
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    from hexacnc.config import load_config
-    from .errors import ControlError as HexacncError
-    from .canbus import open_buses
-
-    ap = argparse.ArgumentParser(prog="python -m drivers.simdrive", description="simulated CiA 402 strut drives")
-    ap.add_argument("--config", help="machine description (TOML); default: the embedded default")
-    ap.add_argument("--interface", choices=("socketcan", "virtual", "udp_multicast"), help="override [bus] interface")
-    ap.add_argument("--channel", help="override [bus] channel")
-    ap.add_argument("--fault", action="append", default=[], metavar="SPEC",
-                    help="NODE:emcy:CODE@S | NODE:heartbeat@S | NODE:stuck@S | NODE:refuse (S after enable)")
-    ap.add_argument("--model", metavar="MODULE:FACTORY",
-                    help="strut model factory (strut index, MachineConfig) -> StrutModel; "
-                         "default drivers.simdrive:default_model_factory")
-    ap.add_argument("--log-level", default="WARNING")
-    args = ap.parse_args(argv)
-    logging.basicConfig(level=args.log_level.upper(), stream=sys.stderr,
-                        format="simdrive %(levelname)s %(message)s")
-    try:
-        cfg = load_config(args.config)
-        if args.interface:
-            import dataclasses
-            cfg = cfg.replace(bus=dataclasses.replace(cfg.bus, interface=args.interface))
-        faults = [FaultSpec.parse(f) for f in args.fault]
-        factory = load_model_factory(args.model) if args.model else None
-        buses = open_buses(cfg.bus, channel=args.channel)
-    except HexacncError as exc:
-        print(f"simdrive: {exc}", file=sys.stderr)
-        return 2
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *a: stop.set())
-    signal.signal(signal.SIGINT, lambda *a: stop.set())
-    sim = SimDrives(cfg, buses, faults=faults, model_factory=factory)
-    try:
-        sim.start()
-        print("READY", flush=True)
-        while not stop.wait(0.2):
-            pass
-    finally:
-        sim.stop()
-        for b in buses:
-            b.shutdown()
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

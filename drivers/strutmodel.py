@@ -1,8 +1,8 @@
 """Strut dynamics models for the simulated drives: a small callable interface, pluggable.
 
 A model is made per strut by a factory ``(strut index 0..5, MachineConfig or None) -> StrutModel``;
-:func:`load_model_factory` resolves ``"package.module:callable"`` (``python -m drivers.simdrive --model``);
-:func:`config_model_factory` picks the one ``[dynamics] simulated_drives`` names (the daemon's simulated drives).
+:func:`load_model_factory` resolves ``"package.module:callable"`` (``python -m hexacnc.sim.drives --model``);
+the host picks the one ``[dynamics] simulated_drives`` names (``hexacnc.sim.drives.strut_model_factory``).
 Positions are drive readings in mm (strut length - strut_offset_mm).
 """
 from __future__ import annotations
@@ -89,18 +89,6 @@ def default_model_factory(strut: int, cfg) -> StrutModel:
     return SecondOrderStrut(natural_hz=60.0, damping=0.9,
                             max_velocity_mm_s=1.5 * float(cfg.max_velocity_mm_s[strut]),
                             max_acceleration_mm_s2=3.0 * float(cfg.max_acceleration_mm_s2[strut]))
-
-
-def config_model_factory(cfg) -> ModelFactory:
-    """The factory ``[dynamics] simulated_drives`` names: ``second_order`` (:func:`default_model_factory`)
-    or ``coupled`` (six struts and the carrier through the Jacobian, :mod:`hexacnc.sim.strut`)."""
-    kind = getattr(getattr(cfg, "dynamics", None), "simulated_drives", "second_order")
-    if kind == "coupled":
-        from hexacnc.sim.strut import coupled_model_factory
-        return coupled_model_factory()
-    if kind != "second_order":
-        raise ConfigError(f"[dynamics] simulated_drives: unknown strut model {kind!r}")
-    return default_model_factory
 
 
 def load_model_factory(spec: str) -> ModelFactory:

@@ -55,3 +55,9 @@ def test_this_tree_has_no_import_cycles():
     out = arch.measure(REPO)
     assert out["import_cycles"] == [], out["import_cycles"]
     assert out["package_cycles"] == [], out["package_cycles"]
+
+
+def test_this_tree_has_no_layer_violations():
+    """``drivers/`` depends on nothing in ``hexacnc``; the core and the simulator never import the daemon."""
+    out = arch.measure(REPO)
+    assert out["layer_violations"] == [], out["layer_violations"]

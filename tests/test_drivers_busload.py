@@ -112,3 +112,35 @@ def test_split_and_plan():
     assert [n.tpdo1_sync_start for n in p.nodes] == [1, 2, 3, 1, 2, 3]
     assert p.sync_counter_overflow == 3 and p.tpdo_per_cycle(0) == 1
     assert plan_layout(bus(layout="paired", buses=2)).frames[1].length == 4    # odd drive out
+
+
+def test_bus_load_and_demand_commands(tmp_path, capsys):
+    """``hexacnc bus load`` / ``bus demand``: the JSON reports of drivers.busload / drivers.busdemand for the config."""
+    import json
+
+    from hexacnc.cli import main as cli
+
+    assert cli(["bus", "load"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["fits"] and rep["layout"] == "paired" and "max_load" in rep["summary"] and rep["suggestions"]
+    assert cli(["bus", "load", "--period-s", "0.0002"]) == 1          # a 0.2 ms cycle does not fit
+    assert json.loads(capsys.readouterr().out)["fits"] is False
+    assert cli(["bus", "demand", "--seconds", "0.3"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["bus_period_us"] == 500.0 and out["staggered"]["median_us"] > 0
+    assert out["staggered"]["p99_us"] >= out["staggered"]["median_us"]
+    assert cli(["bus", "demand", "--seconds", "0"]) == 2
+    assert "--seconds" in capsys.readouterr().err
+
+
+def test_bus_demand_p99_within_10_percent_with_250ms_heartbeats():
+    """Statusword refresh timers of 1 s (+70 ms/strut) and 250 ms heartbeats: under 1 % of the 0.5 ms cycles
+    carry an asynchronous frame, so the demand's p99 is within 10 % of its median; the former uniform
+    timers (50 ms statusword refresh) are not."""
+    from drivers.busdemand import simulate
+
+    b = bus(heartbeat_ms=250, heartbeat_timeout_ms=800)
+    staggered = simulate(b, 0.0005, 2.0, True)
+    assert staggered["cycles_with_async_frames"] < 0.01
+    assert staggered["p99_over_median"] <= 1.10, staggered
+    assert simulate(b, 0.0005, 2.0, False)["p99_over_median"] > 1.10

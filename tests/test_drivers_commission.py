@@ -8,7 +8,7 @@ from drivers import cia402
 from drivers.jerkstop import STOP_SHARE
 from drivers.cyclic import SEND_OK
 from drivers.description import DEFAULT_EDS, STRICT_EDS, load_description
-from drivers.testing import SimRig
+from hexacnc.sim.rig import SimRig
 from hexacnc.errors import BusError
 
 STRICT_ID = (0x000001A7, 0x00402C53, 0x00030002)

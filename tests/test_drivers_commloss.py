@@ -9,7 +9,7 @@ import can
 from drivers import cia402
 from drivers.canbus import open_buses
 from drivers.cyclic import SEND_OK
-from drivers.testing import SimRig
+from hexacnc.sim.rig import SimRig
 
 
 class Recorder:

@@ -8,7 +8,8 @@ from drivers import cia402
 from drivers.canbus import open_buses
 from drivers.cyclic import (EV_FEEDBACK, SEND_LIMIT, SEND_OK, increments_to_length, length_to_increments,
                             limits_inc)
-from drivers.testing import PdoDecoder, SimRig
+from drivers.testing import PdoDecoder
+from hexacnc.sim.rig import SimRig
 
 
 pytestmark = pytest.mark.bus

@@ -15,7 +15,7 @@ from drivers import cia402
 from drivers.canbus import open_buses
 from drivers.cyclic import EV_EMCY, SEND_OK, CyclicIO, limits_inc
 from drivers.master import Master
-from drivers.simdrive import spawn
+from hexacnc.sim.drives import spawn
 from drivers.testing import PdoDecoder, netns_or_rerun
 
 pytestmark = [pytest.mark.bus, pytest.mark.netns]

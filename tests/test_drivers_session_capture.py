@@ -11,7 +11,7 @@ from importlib import resources
 
 import pytest
 
-from drivers import pcap, pcapcheck
+from drivers import cia402, pcap, pcapcheck
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -37,6 +37,20 @@ def sdo_download(frames, node_id, index, sub):
             n = 4 - ((data[0] >> 2) & 3)
             out.append(int.from_bytes(data[4:4 + n], "little", signed=True))
     return out
+
+
+def disable_sequence_per_0x605C(frames, nodes):
+    """The end of the session in the frames of each node: controlword 0x0007 (disable operation, RPDO2), the
+    statusword (TPDO2) reaching Switched on, and only then 0x0000 (disable voltage), then Switch on disabled."""
+    for node in nodes:
+        cw = [(t, int.from_bytes(d[:2], "little")) for t, cid, d, _ in frames if cid & 0x7FF == 0x300 + node]
+        sw = [(t, cia402.state_from_status(int.from_bytes(d[:2], "little")))
+              for t, cid, d, _ in frames if cid & 0x7FF == 0x280 + node]
+        assert [c for _, c in cw[-2:]] == [cia402.CW_DISABLE_OPERATION, cia402.CW_DISABLE_VOLTAGE], (node, cw[-4:])
+        t7, t0 = cw[-2][0], cw[-1][0]
+        on = [t for t, s in sw if t7 <= t <= t0 and s == cia402.SWITCHED_ON]
+        assert on, (node, [(t - t7, s) for t, s in sw if t >= t7])
+        assert any(s == cia402.SWITCH_ON_DISABLED for t, s in sw if t >= t0), (node, sw[-3:])
 
 
 PROGRAM = """%
@@ -95,6 +109,8 @@ def test_session_against_profile_captured_and_decoded(tmp_path, profile):
     if profile == "strict":
         assert "the bus runs at 1 ms, the loop computes at 0.5 ms" in log
         assert "layout 'separate'" in log
+    for f, nodes in ((files[0], (1, 2, 3)), (files[1], (4, 5, 6))):
+        disable_sequence_per_0x605C(pcap.read_pcap(f), nodes)
     if not pcapcheck.tshark_available():
         pytest.skip("tshark is not installed: the frames were checked by drivers.pcap only")
     for f in files:
@@ -102,6 +118,7 @@ def test_session_against_profile_captured_and_decoded(tmp_path, profile):
         assert res["frames"] > 1000 and res["malformed"] == 0 and res["sdo_aborts"] == [], res
         for node, objs in res["read"].items():       # every configured reaction read back
             for o in ("0x60C2:1", "0x60C2:2", "0x6007:0", "0x605A:0", "0x605C:0", "0x605E:0", "0x1029:1",
-                      "0x1006:0", "0x1400:5", "0x1016:1", "0x1018:1", "0x1000:0", "0x6502:0"):
+                      "0x1006:0", "0x1400:5", "0x1016:1", "0x1018:1", "0x1000:0", "0x6502:0", "0x2010:0",
+                      "0x2110:1", "0x2110:2"):
                 assert o in objs, (f, node, o)
         assert res["nmt_commands"].get("0x80") == 1            # end of session: pre-operational

@@ -13,7 +13,7 @@ from drivers import EDS_PATH, cia402, framerec
 from drivers.cyclic import SEND_LIMIT, SEND_OK, CyclicIO, limits_inc
 from drivers.layout import plan_layout
 from drivers.master import Master
-from drivers.simdrive import SimDrives
+from hexacnc.sim.drives import sim_drives
 from hexacnc.config import load_config
 from hexacnc.daemon.pipebus import PipeBus, socket_pairs
 from hexacnc.daemon.shmbus import ShmBus, create_segments, release_segments
@@ -167,7 +167,7 @@ def test_cyclic_frames_on_the_shm_ring_decode_with_canopen_from_the_sdo_mapping(
     segs = create_segments(plan.buses)
     drive_side = [ShmBus(s.name, side=1, poll_interval_s=0.0001) for s in segs]
     master_side = [ShmBus(s.name, side=0, poll_interval_s=0.0001) for s in segs]
-    sim = SimDrives(cfg, drive_side).start()
+    sim = sim_drives(cfg, drive_side).start()
     try:
         m = Master(cfg, master_side)
         m.bring_up(enable=True)

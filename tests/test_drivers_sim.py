@@ -11,7 +11,7 @@ from hexacnc.errors import BusError
 from drivers import cia402
 from drivers.cyclic import EV_BOOTUP, EV_EMCY, SEND_OK
 from drivers.simdrive import FaultSpec, SecondOrderStrut
-from drivers.testing import SimRig
+from hexacnc.sim.rig import SimRig
 
 
 pytestmark = pytest.mark.bus

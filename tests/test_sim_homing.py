@@ -7,7 +7,7 @@ import pytest
 
 from drivers import cia402, simhoming
 from drivers.cyclic import SEND_OK
-from drivers.testing import SimRig
+from hexacnc.sim.rig import SimRig
 
 pytestmark = pytest.mark.bus
 

@@ -74,7 +74,7 @@ def test_plugs_into_the_simulated_drives():
     import time
 
     from drivers.cyclic import EV_EMCY, SEND_OK
-    from drivers.testing import SimRig
+    from hexacnc.sim.rig import SimRig
 
     with SimRig(model_factory=coupled_model_factory()) as rig:
         rig.master.bring_up()

@@ -85,7 +85,8 @@ def test_plant_heats_with_speed_and_probes_are_noisy_around_truth(cfg):
 
 
 def test_simulated_drives_model_selected_by_config(cfg):
-    from drivers.strutmodel import SecondOrderStrut, config_model_factory
+    from drivers.strutmodel import SecondOrderStrut
+    from hexacnc.sim.drives import strut_model_factory as config_model_factory
     assert isinstance(config_model_factory(cfg)(0, cfg), SecondOrderStrut)
     cc = cfg.replace(dynamics=dataclasses.replace(cfg.dynamics, simulated_drives="coupled"))
     f = config_model_factory(cc)

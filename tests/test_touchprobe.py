@@ -31,7 +31,7 @@ def test_latch_interpolates_the_edge_and_keeps_the_first_event():
 
 def test_simulated_drive_latches_its_position_at_the_input_edge_not_a_cycle_later():
     from drivers.cyclic import SEND_OK
-    from drivers.testing import SimRig
+    from hexacnc.sim.rig import SimRig
     with SimRig() as rig:
         rig.master.bring_up()
         start = rig.master.positions_inc()

@@ -1,4 +1,7 @@
 """``hexacnc bus scan``: list every node on the drive bus(es) and whether it matches the config.
+``hexacnc bus load``: the worst-case bus time per cycle of the layout, and the layouts that fit.
+``hexacnc bus demand``: the bus demand per cycle over simulated seconds (median, p99), as configured
+and with the former uniform timers.
 
 The commissioning command to run first: SDO reads only (no NMT command, nothing enabled). With
 ``[bus] simulate`` the simulated drives are started for the scan (in-process on ``virtual``, as a
@@ -11,7 +14,8 @@ import argparse
 import json
 import sys
 
-HELP = "drive bus commissioning: 'bus scan' lists every node found and whether it matches the config"
+HELP = ("drive bus commissioning: 'bus scan' lists every node found and whether it matches the config; "
+        "'bus load' / 'bus demand' the bus budget")
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -23,21 +27,29 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--channel", help="override [bus] channel")
     p.add_argument("--listen-s", type=float, default=0.5, metavar="S", help="time to collect answers (default 0.5)")
     p.add_argument("--json", action="store_true", help="print the result as JSON")
+    p = sub.add_parser("load", help="worst-case bus time per cycle of the layout and the layouts that fit (JSON); "
+                                    "exit 1 when over [bus] max_load")
+    p.add_argument("--config", metavar="F", help="machine description (TOML); default: the embedded default")
+    p.add_argument("--period-s", type=float, metavar="P", help="cycle period (default [cycle] period_s)")
+    p = sub.add_parser("demand", help="bus demand per cycle over simulated seconds: median, p99, max (JSON)")
+    p.add_argument("--config", metavar="F", help="machine description (TOML); default: the embedded default")
+    p.add_argument("--seconds", type=float, default=10.0, metavar="S", help="simulated seconds (default 10)")
 
 
 def _with_simulation(cfg, channel, fn):
     """Run ``fn(buses)`` with the simulated drives present when ``[bus] simulate``."""
-    from drivers import simdrive
     from drivers.canbus import open_buses
+
+    from ..sim import drives as simdrives
 
     buses = open_buses(cfg.bus, channel=channel)
     sim = proc = sim_buses = None
     try:
         if cfg.bus.simulate and cfg.bus.interface == "virtual":
             sim_buses = open_buses(cfg.bus, channel=channel)
-            sim = simdrive.SimDrives(cfg, sim_buses).start()
+            sim = simdrives.sim_drives(cfg, sim_buses).start()
         elif cfg.bus.simulate:
-            proc = simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=channel or cfg.bus.channel)
+            proc = simdrives.spawn(cfg.path, interface=cfg.bus.interface, channel=channel or cfg.bus.channel)
         return fn(buses)
     finally:
         if sim is not None:
@@ -49,7 +61,54 @@ def _with_simulation(cfg, channel, fn):
             b.shutdown()
 
 
+def _load(args: argparse.Namespace) -> int:
+    from drivers.busload import load_report
+
+    from ..config import load_config
+    from ..errors import HexacncError
+
+    try:
+        cfg = load_config(args.config)
+        period = args.period_s if args.period_s is not None else cfg.cycle.period_s
+        if not 1e-5 <= period <= 1.0:
+            raise HexacncError(f"--period-s {period} must be 1e-05..1")
+        rep = load_report(cfg.bus, period)
+    except HexacncError as exc:
+        print(f"hexacnc bus load: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(rep, indent=1))
+    return 0 if rep["fits"] else 1
+
+
+def _demand(args: argparse.Namespace) -> int:
+    from drivers.busdemand import demand_report
+    from drivers.description import bus_period_s
+
+    from ..config import load_config
+    from ..errors import HexacncError
+
+    if not 0.01 <= args.seconds <= 600:
+        print(f"hexacnc bus demand: --seconds {args.seconds} must be 0.01..600", file=sys.stderr)
+        return 2
+    try:
+        cfg = load_config(args.config)
+        out = demand_report(cfg.bus, bus_period_s(cfg.bus, cfg.cycle.period_s), args.seconds)
+    except HexacncError as exc:
+        print(f"hexacnc bus demand: {exc}", file=sys.stderr)
+        return 2
+    print(json.dumps(out, indent=1))
+    return 0
+
+
 def main(args: argparse.Namespace) -> int:
+    if args.bus_command == "load":
+        return _load(args)
+    if args.bus_command == "demand":
+        return _demand(args)
+    return _scan(args)
+
+
+def _scan(args: argparse.Namespace) -> int:
     from drivers.scan import format_scan, scan
 
     from ..config import load_config

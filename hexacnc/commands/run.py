@@ -16,7 +16,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--socket", metavar="PATH", help="Unix socket path (default: [daemon] socket_path)")
     parser.add_argument("--duration", type=float, metavar="S", help="run S seconds, then stop cleanly (exit 0)")
     parser.add_argument("--io", choices=("auto", "bus", "shm", "pipe", "inproc"), default="auto",
-                        help="drive I/O: bus = [bus] interface (with drivers.simdrive when [bus] simulate); "
+                        help="drive I/O: bus = [bus] interface (with hexacnc.sim.drives when [bus] simulate); "
                              "shm = simulated drives over a shared-memory frame ring; pipe = over a Unix "
                              "socket pair; inproc = model inside the loop; "
                              "auto: shm for interface 'virtual' with simulate, else bus")

@@ -47,7 +47,7 @@ class BusConfig:
     node_identity: tuple = ()                  #: per node: (vendor, product, revision), -1 = from the EDS
     boot_timeout_s: float = 15.0               #: boot-up messages after NMT reset
     #: drives stop on their own (quick stop) when the master is silent this long (configured at boot:
-    #: heartbeat consumer 0x1016, RPDO/SYNC time-outs); the hot loop's master heartbeat comes 4x as often
+    #: RPDO deadline 0x1400:05 and SYNC time-out 0x1006; the heartbeat consumer 0x1016 is heartbeat_timeout_ms)
     comm_loss_timeout_s: float = 0.02
     feed_mm_per_rev: float = 0.0               #: strut travel per driving-shaft revolution (0: units unchecked)
     write_factor_group: bool = False           #: write 0x6092 feed constant from increments_per_mm x feed_mm_per_rev

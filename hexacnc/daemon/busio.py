@@ -4,7 +4,7 @@ Modes (``Daemon(io_mode=...)``; ``auto`` picks from the config):
 
 * ``bus`` - the real path: ``drivers.master`` boots the drives (NMT, SDO PDO mapping, mode 8)
   inside the hot process *before* the loop starts, then ``drivers.cyclic`` does the hot-path
-  frames; the loop walks the drives to Operation Enabled in those frames.  With ``[bus] simulate`` the supervisor starts ``drivers.simdrive`` as a separate
+  frames; the loop walks the drives to Operation Enabled in those frames.  With ``[bus] simulate`` the supervisor starts ``hexacnc.sim.drives`` as a separate
   process on the same bus (``udp_multicast``: only inside a network namespace or on loopback).
 * ``shm`` - the default for ``[bus] simulate`` with ``interface = "virtual"`` (python-can's
   virtual bus does not cross processes): the simulated drives run in their own process
@@ -156,7 +156,7 @@ def start_simulation(cfg, mode: str, period_s: float, faults=(), channel: str | 
         return PipeSim(cfg, faults, transport=mode)
     if mode != "bus" or not cfg.bus.simulate:
         return None
-    from drivers import simdrive
+    from ..sim import drives as simdrive
     if cfg.bus.interface == "virtual":
         raise BusError("[bus] interface 'virtual' cannot reach simulated drives in another process: "
                        "use udp_multicast (inside a network namespace) or socketcan (vcan)")

@@ -1,6 +1,6 @@
 """``python -m hexacnc.daemon.simhost``: the simulated drives process on pipe buses.
 
-Runs :class:`drivers.simdrive.SimDrives` (six CiA 402 nodes from the EDS) on
+Runs :class:`drivers.simdrive.SimDrives` (six CiA 402 nodes from the EDS, built by :mod:`hexacnc.sim.drives`) on
 :class:`~hexacnc.daemon.pipebus.PipeBus` ends inherited from the supervisor, or on side 1 of
 :class:`~hexacnc.daemon.shmbus.ShmBus` frame rings.  Arguments come as one pickle on stdin:
 ``{"cfg": MachineConfig, "fds": [fd per bus] | "shm": [segment name per bus], "faults": [spec, ...]}``.
@@ -120,9 +120,9 @@ def _plant_factory(truth):
     limits), not the controller's description; None: the controller's (no truth)."""
     if truth is None:
         return None
-    from drivers.strutmodel import config_model_factory
+    from ..sim.drives import strut_model_factory
     plant_cfg = truth.plant_config()
-    base = config_model_factory(plant_cfg)
+    base = strut_model_factory(plant_cfg)
     return lambda strut, _controller_cfg: base(strut, plant_cfg)
 
 
@@ -132,7 +132,9 @@ def main() -> int:
     args = pickle.load(sys.stdin.buffer)
     logging.basicConfig(level=args.get("log_level", "WARNING"), stream=sys.stderr,
                         format="simdrive %(levelname)s %(message)s")
-    from drivers.simdrive import FaultSpec, SimDrives
+    from drivers.simdrive import FaultSpec
+
+    from ..sim.drives import sim_drives
     from .pipebus import PipeBus
     cfg = args["cfg"]
     # the simulated drives stand for hardware that keeps time: real-time priority just below the
@@ -152,7 +154,7 @@ def main() -> int:
         buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     truth = _truth(cfg)
-    sim = SimDrives(cfg, buses, faults=faults, model_factory=_plant_factory(truth))
+    sim = sim_drives(cfg, buses, faults=faults, model_factory=_plant_factory(truth))
     if truth is not None:        # touch-probe input from the true machine (hexacnc.sim.probesignal)
         from ..sim.probesignal import attach_probe_signal
         attach_probe_signal(sim, truth)

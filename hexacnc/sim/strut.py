@@ -15,7 +15,7 @@ For :class:`drivers.simdrive.SimDrives`, which steps each drive on its own
 the factory::
 
     from hexacnc.sim.strut import coupled_model_factory
-    SimDrives(cfg, buses, model_factory=coupled_model_factory())
+    sim_drives(cfg, buses, model_factory=coupled_model_factory())   # hexacnc.sim.drives
 
 The six per-strut views share one :class:`CoupledStruts`; it advances one step
 once all six drives have a command for that step (commands queued per drive, so

@@ -1,0 +1,81 @@
+"""Holding brake of the simulated drives (0x2110 release / engage delays): a normal disable per 0x605C
+keeps torque on until the brake is engaged, the cyclic walk (5 then 10) waits for Switched on, and the
+frames on the bus show the order: 0x0007, the statusword staying Operation enabled for the engage delay,
+Switched on, then 0x0000."""
+import time
+
+from drivers import cia402
+from hexacnc.sim.rig import SimRig
+
+from test_drivers_commloss import Recorder, move
+
+ENGAGE_MS, RELEASE_MS = 60, 40
+
+
+def _boot_with_brake(rig):
+    m = rig.master
+    m.boot()
+    m.configure()
+    for nd in m.plan.nodes:
+        m.sdo_write(nd, "test", 0x2110, 1, RELEASE_MS)
+        m.sdo_write(nd, "test", 0x2110, 2, ENGAGE_MS)
+    m.start()
+    m.enable()
+    return m
+
+
+def test_disable_keeps_torque_until_the_brake_is_engaged_and_the_walk_waits():
+    with SimRig() as rig:
+        rec = Recorder(rig.cfg)
+        try:
+            m = _boot_with_brake(rig)
+            start = m.positions_inc()
+            io = rig.cyclic()
+            last = move(io, start, 20, 200)
+            assert rig.sim.states() == [cia402.OPERATION_ENABLED] * 6, [d.react.events[-2:] for d in rig.sim.drives]
+            t_walk = time.monotonic()
+            for _ in range(2000):                       # the loop's walk: 0x0007 until Switched on, then 0x0000
+                if not io.step_towards(cia402.SWITCH_ON_DISABLED):
+                    break
+                io.send(last)
+                time.sleep(0.0005)
+                io.poll()
+            assert rig.sim.states() == [cia402.SWITCH_ON_DISABLED] * 6
+            assert time.monotonic() - t_walk >= ENGAGE_MS * 1e-3
+            time.sleep(0.02)
+            for nd in m.plan.nodes:
+                cw = [(t, int.from_bytes(x[:2], "little")) for t, x in rec.of(nd.rpdo2_cob_id) if t >= t_walk]
+                assert [c for _, c in cw] == [0x0007, 0x0000], cw
+                sw = [(t, cia402.state_from_status(int.from_bytes(x[:2], "little")))
+                      for t, x in rec.of(0x280 + nd.node_id) if t >= t_walk]
+                t_on = next(t for t, s in sw if s == cia402.SWITCHED_ON)
+                # torque kept (Operation enabled) for at least the engage delay after 0x0007
+                assert t_on - cw[0][0] >= ENGAGE_MS * 1e-3 * 0.95, (t_on - cw[0][0])
+                assert all(s == cia402.OPERATION_ENABLED for t, s in sw if t < t_on)
+                assert cw[1][0] >= t_on                 # 0x0000 only once the drive reported Switched on
+                d = rig.sim.drives[nd.index]
+                ev = [(t, e) for t, e in d.react.events]
+                t_eng = next(t for t, e in ev if "holding brake engaged" in e)
+                t_stop = next(t for t, e in ev if e.startswith("stopped at"))
+                assert t_eng >= t_stop - 0.003 and d.react.brake.engaged
+            m.attach()
+            assert [m.sdo_read(nd, "test", 0x2110, 3) for nd in m.plan.nodes] == [1] * 6
+        finally:
+            rec.close()
+
+
+def test_brake_releases_after_its_delay_on_enable():
+    with SimRig() as rig:
+        _boot_with_brake(rig)
+        io = rig.cyclic()
+        start = list(io.pos_inc)
+        t0 = time.monotonic()
+        while time.monotonic() - t0 < 0.2:
+            io.send(start)
+            time.sleep(0.0005)
+            io.poll()
+        for d in rig.sim.drives:
+            ev = d.react.events
+            t_rel0 = next(t for t, e in ev if "holding brake releasing (40 ms" in e)
+            t_rel = next(t for t, e in ev if e == "holding brake released")
+            assert t_rel - t_rel0 >= RELEASE_MS * 1e-3 * 0.95 and not d.react.brake.engaged
