@@ -90,6 +90,12 @@ def _xor(a: float, b: float) -> float:
     return 1.0 if ((a != 0.0) != (b != 0.0)) else 0.0
 
 
+def _exists(v: float) -> float:
+    """EXISTS of a computed parameter number: 1.0 for an integer in 1..MAX_PARAMETER."""
+    n = int(round(v))
+    return 1.0 if abs(v - n) <= 0.0001 and 1 <= n <= MAX_PARAMETER else 0.0
+
+
 def _ix(v: float) -> int:
     n = int(round(v))
     if abs(v - n) > 0.0001:
@@ -131,7 +137,7 @@ _RAD = math.pi / 180.0
 _ENV = {
     "__builtins__": {},
     "_pw": _pw, "_md": _md, "_eq": _eq, "_ne": _ne, "_and": _and, "_or": _or, "_xor": _xor,
-    "_ix": _ix, "_asin": _asin, "_acos": _acos, "_ln": _ln, "_sqrt": _sqrt, "_round": _round,
+    "_ix": _ix, "_exists": _exists, "_asin": _asin, "_acos": _acos, "_ln": _ln, "_sqrt": _sqrt, "_round": _round,
     "_sin": lambda x: math.sin(x * _RAD), "_cos": lambda x: math.cos(x * _RAD),
     "_tan": lambda x: math.tan(x * _RAD), "_atan": lambda y, x: math.degrees(math.atan2(y, x)),
     "_exp": lambda x: math.exp(x), "_abs": lambda x: abs(x),
@@ -286,7 +292,7 @@ def _read_param(c: _Ctx, i: int):
         if s.startswith(".", m.end()):
             raise _Bad(m.end(), "parameter number is not an integer", "parameter")
         return f"P[{n}]", m.end()
-    if ch == "#" or ch == "[":
+    if ch == "#" or ch == "[" or ch.isalpha():    # #[expr], ##n, #ATAN[1]/[1]: a computed number
         c.depth += 1
         if c.depth > _MAX_DEPTH:
             raise _Bad(i, f"parameter reference nested deeper than {_MAX_DEPTH}", "parameter")
@@ -321,8 +327,14 @@ def _read_func(c: _Ctx, name: str, i: int, start: int):
         if m and s.startswith("]", m.end()):     # EXISTS[#n]: numbered parameters 1..5601 exist
             n = _param_number(m.group(), i + 2)
             return (1.0 if 1 <= n <= MAX_PARAMETER else 0.0), m.end() + 1
+        if s.startswith(("##", "#["), i + 1):    # EXISTS[##n], EXISTS[#[expr]]: the computed number
+            v, j = _read_real(c, i + 2)
+            if not s.startswith("]", j):
+                raise _Bad(j, "EXISTS takes one parameter: EXISTS[#...]", "expression")
+            v = c.const(v) if isinstance(v, float) else v
+            return f"_exists({v})", j + 1
         if not s.startswith("#<", i + 1):
-            raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")
+            raise _Bad(i + 1, "EXISTS needs a parameter: EXISTS[#<name>] or EXISTS[#n]", "expression")
         j = s.find(">", i + 3)
         if j < 0 or not s.startswith("]", j + 1):
             raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")

@@ -466,7 +466,7 @@ def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
             raise _Bad(j, f"parameter #{target} is read-only", "parameter")
         kind = "n"
         j = m.end()
-    elif ch == "#" or ch == "[":
+    elif ch == "#" or ch == "[" or ch.isalpha():     # #[expr] = , ##n = , #ATAN[1]/[1] =
         v, j = _read_real(c, j)
         if isinstance(v, float):
             v = c.const(v)

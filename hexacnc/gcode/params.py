@@ -13,7 +13,7 @@ from .expr import PREDEFINED, ExprError, compile_template
 from .lexer import Line
 
 _HOT = re.compile(r"\s*(msg|debug|print|abort|logopen|logappend|logclose|log)\s*,?", re.IGNORECASE)
-_SUBST = re.compile(r"#(\d+)|#<([^>]+)>")
+_SUBST = re.compile(r"#(\d+)|#<([^>]+)>|%(d|f|\.\d+f|\.)?")
 _INI = re.compile(r"#\s*<\s*_ini\s*\[", re.IGNORECASE)
 _RUNTIME = {5061: "G38 probe result", 5062: "G38 probe result", 5063: "G38 probe result",
             5064: "G38 probe result", 5065: "G38 probe result", 5066: "G38 probe result",
@@ -144,6 +144,7 @@ class ParamMixin:
                 if _INI.search(text):
                     raise GcodeError("#<_ini[...]> INI-file parameters are not supported (no INI file here)",
                                      ln.num, 1, "unsupported")
+                self._fmt = "%f"      # LinuxCNC's %lf until a %d / %f / %.Nf in the comment
                 text = _SUBST.sub(self._subst, text)
             if kind == "abort":
                 raise GcodeError(text.strip() or "program aborted", ln.num, 1, "abort")
@@ -154,6 +155,19 @@ class ParamMixin:
                 self.messages.append((ln.num, text.strip()))
 
     def _subst(self, m) -> str:
+        if m.group(0)[0] == "%":       # LinuxCNC's format prefixes: %d, %f (4 decimals), %.Nf (one digit N)
+            f = m.group(3)
+            if f is None:
+                return "%"
+            if f == "d":
+                self._fmt = "%.0f"
+            elif f == "f":
+                self._fmt = "%.4f"
+            elif len(f) == 3:
+                self._fmt = "%" + f
+            else:                       # '%.' not followed by one digit and 'f': the '%' is dropped
+                return f if f == "." else f[:-1] + "f"
+            return ""
         try:
             if m.group(1):
                 n = int(m.group(1))
@@ -161,6 +175,6 @@ class ParamMixin:
             else:
                 name = m.group(2).lower().replace(" ", "")
                 v = self._sys(name) if name in PREDEFINED else (self.G if name[0] == "_" else self.L)[name]
-            return f"{v:.6f}" if abs(v) >= 5e-7 else "0.000000"     # no "-0.000000" from rounding noise
+            return self._fmt % (v if abs(v) >= 1e-6 else 0.0)    # as LinuxCNC: |v| < 1e-6 prints as 0
         except (KeyError, IndexError, ValueError):
             return "######"
