@@ -105,7 +105,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
                  block_delete: bool = True, max_lines: int = 20_000_000,
                  max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None,
                  noop_m_codes=(), initial_state: MachineState | None = None, subroutine_path=(),
-                 require_end: bool = False, lines=None):
+                 require_end: bool = False, lines=None, fanuc_subs: bool = True):
         if lines is None:
             if not isinstance(text, str):
                 raise GcodeError(f"program text must be str, got {type(text).__name__}", None, None, "syntax")
@@ -137,6 +137,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.max_blocks = int(max_blocks)
         self.max_depth = int(max_call_depth)
         self.require_end = bool(require_end)
+        self.fanuc_subs = bool(fanuc_subs)
         self.sub_path = [str(p) for p in subroutine_path]
         self.segments: list[tuple[int, str]] = []   #: (first line index, file) of loaded subroutine files
         self.P = [0.0] * (MAX_PARAMETER + 1)
@@ -440,7 +441,7 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                   block_delete: bool = True, max_lines: int = 20_000_000, g28_pose=None,
                   g30_pose=None, noop_m_codes=(), initial_state: MachineState | None = None,
-                  subroutine_path=(), require_end: bool = False) -> Program:
+                  subroutine_path=(), require_end: bool = False, fanuc_subs: bool = True) -> Program:
     """Interpret a whole RS274NGC program.
 
     ``start_pose``: (6,) tool-tip pose in the machine frame at the start (mm, deg;
@@ -458,13 +459,16 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     accepted as no-ops, each occurrence noted in ``Program.messages``.
     ``subroutine_path``: directories searched for ``<name>.ngc`` on ``o<name> call``.
     ``require_end``: refuse a program that runs off its end without M2/M30/% (LinuxCNC).
+    ``fanuc_subs``: Fanuc-style subprograms (M98 P L, M99, bare O-numbers); False refuses
+    them as LinuxCNC's ``DISABLE_FANUC_STYLE_SUB``.
     Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
                      max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose, noop_m_codes=noop_m_codes,
-                     initial_state=initial_state, subroutine_path=subroutine_path, require_end=require_end)
+                     initial_state=initial_state, subroutine_path=subroutine_path, require_end=require_end,
+                     fanuc_subs=fanuc_subs)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()
