@@ -30,7 +30,8 @@ from pathlib import Path
 
 from ..errors import GcodeError
 from ..gcode import parse_program
-from ..gcode.state import parse_tool_table
+from ..gcode.expr import LENGTH_PARAMETERS
+from ..gcode.state import MachineState, parse_tool_table
 
 TOL = 1e-4
 _CALL = re.compile(r"([A-Z_0-9]+)\((.*)\)\s*$")
@@ -297,6 +298,25 @@ def _ini_flag(ini: Path | None, key: str) -> bool:
     return bool(m and int(m.group(1)))
 
 
+def _var_state(run: dict) -> MachineState | None:
+    """rs274's -v parameter file as a starting state (inch lengths to mm; G92 dropped when the INI
+    sets DISABLE_G92_PERSISTENCE, as LinuxCNC does at start)."""
+    var = run["var"]
+    if var is not None and not var.exists():     # test.sh copies it from its template first
+        var = var.with_name(var.name + ".template")
+    if var is None or not var.exists():
+        return None
+    params = {}
+    for ln in var.read_text(errors="replace").splitlines():
+        parts = ln.split()
+        if len(parts) == 2 and parts[0].isdigit():
+            k, v = int(parts[0]), float(parts[1])
+            params[k] = v * 25.4 if k in LENGTH_PARAMETERS else v
+    if _ini_flag(run["ini"], "DISABLE_G92_PERSISTENCE"):
+        params = {k: v for k, v in params.items() if not 5210 <= k <= 5219}
+    return MachineState(parameters=params)
+
+
 def run_one(run: dict, canon: str, root: Path) -> dict:
     """One rs274 run compared with its canonical output ``canon``."""
     text = run["ngc"].read_text(errors="replace")
@@ -307,7 +327,8 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
         prog = parse_program(text, run["ngc"].name, tool_table=_tools(run, root),
                              tool_axis_platform=(0.0, 0.0, -1.0),
                              subroutine_path=_ini_subpath(run["ini"], run["ngc"].parent),
-                             fanuc_subs=not _ini_flag(run["ini"], "DISABLE_FANUC_STYLE_SUB"))
+                             fanuc_subs=not _ini_flag(run["ini"], "DISABLE_FANUC_STYLE_SUB"),
+                             machine_units="inch", initial_state=_var_state(run))
     except GcodeError as exc:
         where = {"line": exc.line, "column": exc.column, "code": exc.code, "message": exc.bare_message}
         if exc.code == "abort" and not ran_to_end:

@@ -9,6 +9,7 @@ from __future__ import annotations
 from . import blocks as B
 from .blocks import Block
 from .codes import CYCLES, G_GROUP, G_UNSUPPORTED, M_GROUP, M_UNSUPPORTED, PROBES
+from .expr import LENGTH_PARAMETERS
 from .lexer import Line
 
 _AXIS_USERS = (100, 520, 920, 280, 300)
@@ -110,14 +111,14 @@ class ExecuteMixin:
             for kind, target, key in ln.assigns:
                 v = vals[key]
                 if kind == "n":
-                    self.P[target] = v
+                    self.P[target] = v * self.mu if target in LENGTH_PARAMETERS else v
                     if target in self.runtime_pending:     # set by the program: known again
                         self.runtime_pending.discard(target)
                 elif kind == "i":
                     t = int(vals[ln.dyn[target]])
                     if t in self.readonly_numbers:
                         raise ln.error(f"parameter #{t} is read-only", key, "parameter")
-                    self.P[t] = v
+                    self.P[t] = v * self.mu if t in LENGTH_PARAMETERS else v
                 elif kind == "l":
                     self.L[target] = v
                 else:

@@ -105,7 +105,8 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
                  block_delete: bool = True, max_lines: int = 20_000_000,
                  max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None,
                  noop_m_codes=(), initial_state: MachineState | None = None, subroutine_path=(),
-                 require_end: bool = False, lines=None, fanuc_subs: bool = True):
+                 require_end: bool = False, lines=None, fanuc_subs: bool = True,
+                 machine_units: str = "mm"):
         if lines is None:
             if not isinstance(text, str):
                 raise GcodeError(f"program text must be str, got {type(text).__name__}", None, None, "syntax")
@@ -120,6 +121,9 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
             raise GcodeError(f"units_default must be 'mm' or 'inch', got {units_default!r}",
                              None, None, "value")
         self.u = 25.4 if units_default == "inch" else 1.0
+        if machine_units not in ("mm", "inch"):
+            raise GcodeError(f"machine_units must be 'mm' or 'inch', got {machine_units!r}", None, None, "value")
+        self.mu = 25.4 if machine_units == "inch" else 1.0   # unit of stored lengths as a program sees them
         self.scale = [self.u] * 3 + [1.0] * 3
         self.pos = [0.0] * 6 if start_pose is None else _six(start_pose, "start_pose")
         if start_pose is not None and len(list(start_pose)) != 6:
@@ -441,7 +445,8 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                   block_delete: bool = True, max_lines: int = 20_000_000, g28_pose=None,
                   g30_pose=None, noop_m_codes=(), initial_state: MachineState | None = None,
-                  subroutine_path=(), require_end: bool = False, fanuc_subs: bool = True) -> Program:
+                  subroutine_path=(), require_end: bool = False, fanuc_subs: bool = True,
+                  machine_units: str = "mm") -> Program:
     """Interpret a whole RS274NGC program.
 
     ``start_pose``: (6,) tool-tip pose in the machine frame at the start (mm, deg;
@@ -460,7 +465,10 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     ``subroutine_path``: directories searched for ``<name>.ngc`` on ``o<name> call``.
     ``require_end``: refuse a program that runs off its end without M2/M30/% (LinuxCNC).
     ``fanuc_subs``: Fanuc-style subprograms (M98 P L, M99, bare O-numbers); False refuses
-    them as LinuxCNC's ``DISABLE_FANUC_STYLE_SUB``.
+    them as LinuxCNC's ``DISABLE_FANUC_STYLE_SUB``.  ``machine_units``: the unit in which a
+    program reads and sets stored lengths (#5161.., #5181.., #5211.., work offsets #5221..: LinuxCNC's
+    INI units; "mm" for a hexacnc machine, "inch" as LinuxCNC's standalone rs274); the
+    ``initial_state`` and ``final_state`` keep them in mm.
     Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
@@ -468,7 +476,7 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
                      max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose, noop_m_codes=noop_m_codes,
                      initial_state=initial_state, subroutine_path=subroutine_path, require_end=require_end,
-                     fanuc_subs=fanuc_subs)
+                     fanuc_subs=fanuc_subs, machine_units=machine_units)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()

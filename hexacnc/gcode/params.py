@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 
 from ..errors import GcodeError
-from .expr import PREDEFINED, ExprError, compile_template
+from .expr import LENGTH_PARAMETERS, PREDEFINED, ExprError, compile_template
 from .lexer import Line
 
 _HOT = re.compile(r"\s*(msg|debug|print|abort|logopen|logappend|logclose|log)\s*,?", re.IGNORECASE)
@@ -90,6 +90,8 @@ class ParamMixin:
                 return float(self.tool)
             if 5401 <= key <= 5413:
                 return self._tool_param(key)
+            if key in LENGTH_PARAMETERS:
+                return self.P[key] / self.mu
             if key in _RUNTIME:
                 if key in self.runtime_pending:
                     raise GcodeError(f"#{key} ({_RUNTIME[key]}) is only known while the machine runs: "
