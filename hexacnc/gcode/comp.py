@@ -9,8 +9,9 @@ the end point of the queued move back to the intersection.  The entry move
 next move goes from the compensated point to the programmed end.  Gouging is
 refused (code ``comp``) with line and column, as LinuxCNC does.  Work is done in
 program coordinates (mm) of the XY plane; Z and A/B/C move with the moves.
-Not supported (``unsupported``): compensation in G18/G19, an arc as the entry
-move, G93 with compensation.
+In G93 each programmed move's inverse-time F becomes a feed per minute over its
+programmed length (as LinuxCNC), used by the compensated moves it makes.
+Not supported (``unsupported``): compensation in G18/G19, an arc as the entry move.
 """
 from __future__ import annotations
 
@@ -132,7 +133,10 @@ class CompMixin:
     def _enqueue(self, ln: Line, kind, end_prog, center=None, turn=0, orig=0.0, direction=(0.0, 0.0)) -> None:
         fm = inv = None
         if kind != "rapid":
-            fm, inv = self._feed_of(ln, {}, 10 if kind == "line" else 20)
+            if self.inverse_time:
+                fm = self.comp_fm
+            else:
+                fm, inv = self._feed_of(ln, {}, 10 if kind == "line" else 20)
         self.comp_q.append([kind, ln.num, list(end_prog), center, turn, orig, direction, fm, inv])
         self.comp_last6 = list(end_prog)
 
@@ -173,12 +177,24 @@ class CompMixin:
             prog[i] = v if self.absolute else prog[i] + v
         return prog
 
+    def _comp_inverse_feed(self, ln: Line, vals: dict, motion: int, length_mm: float) -> None:
+        """G93 with compensation, as LinuxCNC: the inverse-time F becomes the feed per minute of the
+        programmed (uncompensated) move's length, used by all the compensated moves it makes."""
+        f = vals.get("f")
+        if f is None or f <= 0.0:
+            raise ln.error(f"G93 inverse-time G{motion // 10} move needs a positive F word on its line",
+                           "f" if f is not None else f"g{motion}", "feed")
+        if length_mm <= 0.0:
+            raise ln.error("an inverse-time move without X/Y/Z motion under cutter compensation is not "
+                           "supported", f"g{motion}", "unsupported")
+        self.comp_fm = length_mm * f / 60.0
+
     def _comp_straight(self, ln: Line, vals: dict, motion: int) -> None:
-        if self.inverse_time:
-            raise ln.error("cutter radius compensation with inverse time G93 is not supported", "g930",
-                           "unsupported")
         kind = "rapid" if motion == 0 else "line"
         p = self._comp_target(ln, vals)
+        if self.inverse_time and motion != 0:
+            o = self._prog_pose() if self.comp_first else self.comp_prog
+            self._comp_inverse_feed(ln, vals, motion, math.dist(p[:3], o[:3]))
         r, side = self.comp_r, self.comp_side
         if self.comp_first:
             cur = self._prog_pose()
@@ -265,9 +281,6 @@ class CompMixin:
         if self.comp_first:
             raise ln.error("an arc as the cutter compensation entry move is not supported (enter with a line)",
                            f"g{motion}", "unsupported")
-        if self.inverse_time:
-            raise ln.error("cutter radius compensation with inverse time G93 is not supported", "g930",
-                           "unsupported")
         if "k" in vals:
             raise ln.error("K word with an arc in the G17 plane", "k", "word")
         p = self._comp_target(ln, vals)
@@ -289,6 +302,9 @@ class CompMixin:
         turn = -n if cw else n
         r, side = self.comp_r, self.comp_side
         arc_r = math.hypot(ccx - p[0], ccy - p[1])
+        if self.inverse_time:     # the programmed helix's length (LinuxCNC's find_arc_length)
+            sweep_len = abs(find_turn(opx, opy, ccx, ccy, turn, p[0], p[1])) * math.hypot(opx - ccx, opy - ccy)
+            self._comp_inverse_feed(ln, vals, motion, math.hypot(sweep_len, p[2] - self.comp_prog[2]))
         theta = math.atan2(cy - opy, cx - opx)
         theta = theta - _PI / 2 if side == "L" else theta + _PI / 2
         delta = math.atan2(ccy - opy, ccx - opx)
