@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from . import blocks as B
-from .blocks import Block
+from .blocks import Block, frozen_pose
 from .lexer import Line
 
 SMALL = 0.05          #: LinuxCNC TOLERANCE_CONCAVE_CORNER (rad)
@@ -112,8 +112,7 @@ class CompMixin:
         end = self._to_machine(end_prog)
         if end == self.pos and kind != "arc":      # (an arc back to its start is a full circle)
             return
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         es, bl, tl, tool = self.exact_stop, self.blend, self.tool_len, self.tool
         if kind == "arc":
             c = self._to_machine([center[0], center[1], end_prog[2], 0.0, 0.0, 0.0])[:3]

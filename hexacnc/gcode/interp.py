@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import GcodeError
 from . import blocks as B
-from .blocks import Block
+from .blocks import Block, frozen_pose
 from .comp import CompMixin
 from .cycles import CycleMixin
 from .execute import ExecuteMixin
@@ -409,8 +409,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         start = self.pos_arr
         if start is None:
             start = self._start_arr()
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         if self.motion == 0:
             b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
                       self.tool_len, 0.0, 0.0, "off", self.tool)
