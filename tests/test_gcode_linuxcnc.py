@@ -351,3 +351,26 @@ def test_linuxcnc_harness_on_a_hand_written_canonical_output(tmp_path):
     res = run_all(tmp_path)
     assert res["tests"] == 2 and res["results"]["same"] == {"outcome": "same"}
     assert res["results"]["moved"]["outcome"] == "differ" and "centre" in res["results"]["moved"]["difference"]
+
+
+def test_linuxcnc_harness_splits_runs_and_compares_print_output(tmp_path):
+    from hexacnc.bench.interp_linuxcnc import run_all
+    seg1 = (" N..... SET_FEED_REFERENCE(CANON_XYZ)\n N..... STRAIGHT_TRAVERSE(1.0000, 0.0000, 0.0000, 0.0000, "
+            "0.0000, 0.0000)\n hello there\n N..... PROGRAM_END()\n")
+    seg2 = " N..... SET_FEED_REFERENCE(CANON_XYZ)\nM98 P9: no such subprogram\n"
+    for name, printed in (("same", "hello there"), ("other", "hello world")):
+        d = tmp_path / "tests" / "interp" / name
+        d.mkdir(parents=True)
+        (d / "test.sh").write_text("#!/bin/bash\necho \"first run\"\nrs274 -g a.ngc | awk '{$1=\"\"; print}'\n"
+                                   "! rs274 -g b.ngc\n")
+        (d / "a.ngc").write_text(f"G0 X1\n(PRINT,X {printed})\nM2\n")
+        (d / "b.ngc").write_text("M98 P9\nM2\n")
+        (d / "expected").write_text("first run\n" + seg1 + seg2)
+    (tmp_path / "tests" / "interp" / "other" / "xfail").write_text("")
+    res = run_all(tmp_path)
+    # run 1 is the same (motion and its PRINT line, awk drops the first word); run 2 fails in
+    # LinuxCNC (the test expects it: '!') and is refused here too
+    assert res["results"]["same"] == {"outcome": "same", "runs": ["same", "refused_as_linuxcnc"]}
+    assert res["tests"] == 1 and res["linuxcnc_runs_to_end"] == 1
+    other = res["xfail_not_counted"]["other"]          # an xfail test is reported, not counted
+    assert other["outcome"] == "differ" and "PRINT" in other["difference"]
