@@ -154,3 +154,28 @@ def test_g84_off_g17_is_refused_by_name():
     e = err("G18 M3 S100 F100\nG84 X1 Z1 Y-1 R1\n")
     assert e.code == "unsupported" and "G84" in str(e) and e.line == 2
     assert math.isfinite(parse_program("G17 M3 S100 F100\nG0 Z5\nG84 X1 Y1 Z-1 R1\n").final_pose[0])
+
+
+def test_cutter_compensation_in_g18():
+    text = "G18 G0 X0 Y0 Z0\nG42.1 D4\nG1 Z10 F60\nX10\nG40\nG1 Z20\nM2\n"
+    p = parse_program(text)
+    got = [(b.kind[0].upper(), [round(float(v), 6) for v in b.end[:3]],
+            None if b.center is None else [round(float(v), 6) for v in b.center], b.clockwise,
+            None if b.normal is None else [float(v) for v in b.normal]) for b in p.motion_blocks]
+    # G18 works in (Z, X) with normal +Y (LinuxCNC).  r = 2 on the right of +Z motion is -X: the entry
+    # ends at Z10 X-2; turning to +X is a left turn, a convex corner for right compensation: a G3-sense
+    # arc (positive about +Y) about the programmed corner Z10 X0 to Z12 X0, then X10 at Z12; after
+    # G40 the straight move runs from Z12 X10 to the programmed Z20 X10.
+    assert got == [("L", [-2, 0, 10], None, False, None),
+                   ("A", [0, 0, 12], [0, 0, 10], False, [0.0, 1.0, 0.0]),
+                   ("L", [10, 0, 12], None, False, None),
+                   ("L", [10, 0, 20], None, False, None)]
+    assert err("G19 G41.1 D1\n").code == "comp"                     # LinuxCNC: XY and XZ planes only
+    assert err("G41.1 D1\nG1 X5 F60\nG18\n").code == "comp"         # no plane change while on
+
+
+def test_arc_after_g40_is_checked_behind_a_modal_line():
+    # G40, then a modal G1 line (the interpreter's fast path), then an arc: the line was the move
+    # after G40, so the arc is allowed
+    p = parse_program("G0 X-5 Y0\nG41.1 D2\nG1 X0 F60\nX5\nG40\nG1 X10 Y0\nG2 X12 Y0 I1\nM2\n")
+    assert p.motion_blocks[-1].kind == "arc"

@@ -206,6 +206,8 @@ class ExecuteMixin:
         """Steps 15-22: plane, G43/G49, coordinate system, path control, distance, retract mode."""
         for g in (170, 180, 190):
             if g in gset:
+                if self.comp_side and g != self.plane:
+                    raise ln.error("cannot change planes with cutter radius compensation on", f"g{g}", "comp")
                 self.plane = g
         for g in (400, 410, 411, 420, 421):
             if g in gset:
