@@ -182,7 +182,7 @@ def test_dwell_spindle_cycles_and_refusals():
     assert [b.spindle_rpm for b in p.blocks if b.kind == "spindle"] == [500, 0, 500, -500, 500]
     assert err("G0 Z5\nG81 X1 Z-1 F10\n").code == "word"                     # no R
     assert err("G0 Z5\nG81 X1 Z2 R1 F10\n").code == "cycle"                  # R below Z
-    for text in ("G76 P1 Z-1\n", "G87 X1 Z-1 R1 I1 J1 K1 F10\n", "G88 X1 Z-1 R1 P1 F10\n", "G18 G41.1 D2\n"):
+    for text in ("G76 P1 Z-1\n", "G87 X1 Z-1 R1 I1 J1 K1 F10\n", "G88 X1 Z-1 R1 P1 F10\n"):
         assert err(text).code == "unsupported"
 
 
@@ -285,7 +285,7 @@ def test_cutter_compensation_refusals():
     assert (e.code, e.line) == ("comp", 2)                      # entry move not longer than the radius
     e = err("G41 D1\nG1 X5 F100\nG28\n", tool_table=tools)
     assert (e.code, e.line) == ("comp", 3)
-    assert err("G18 G41 D1\n", tool_table=tools).code == "unsupported"
+    assert err("G19 G41 D1\n", tool_table=tools).code == "comp"      # LinuxCNC: XY and XZ only
     e = err("G41 D1\nG1 X5 F100\nG40\nG2 X6 Y1 I1\n", tool_table=tools)
     assert (e.code, e.line) == ("comp", 4)                      # first move after G40 must be straight
     assert err("G1 X5 D1 F100\n", tool_table=tools).code == "word"
