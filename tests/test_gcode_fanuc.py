@@ -179,3 +179,47 @@ def test_arc_after_g40_is_checked_behind_a_modal_line():
     # after G40, so the arc is allowed
     p = parse_program("G0 X-5 Y0\nG41.1 D2\nG1 X0 F60\nX5\nG40\nG1 X10 Y0\nG2 X12 Y0 I1\nM2\n")
     assert p.motion_blocks[-1].kind == "arc"
+
+
+# -- G5 / G5.1 splines ---------------------------------------------------------------------------
+def _seg_dist(p, a, b) -> float:
+    ax, ay, bx, by = a[0], a[1], b[0], b[1]
+    t = max(0.0, min(1.0, ((p[0] - ax) * (bx - ax) + (p[1] - ay) * (by - ay)) / ((bx - ax) ** 2 + (by - ay) ** 2)))
+    return math.hypot(ax + t * (bx - ax) - p[0], ay + t * (by - ay) - p[1])
+
+
+def test_g5_1_parabola_within_the_chord_tolerance():
+    # LinuxCNC's example: from X-2 Y4, control point at +(2, -8) = (0, -4), to X2 Y4: the parabola y = x^2
+    p = parse_program("G17 F60\nG0 X-2 Y4\nG5.1 X2 I2 J-8\nM2\n")
+    segs = [b for b in p.blocks if b.kind == "line"]
+    pts = [(float(b.start[0]), float(b.start[1])) for b in segs] + [(float(segs[-1].end[0]), float(segs[-1].end[1]))]
+    assert pts[0] == (-2.0, 4.0) and pts[-1] == (2.0, 4.0)
+    assert all(abs(y - x * x) < 1e-12 for x, y in pts)            # every vertex on the parabola
+    # a chord of y = x^2 over dx lies at most dx^2 / 4 above it (at its middle): within 0.5 um
+    assert max((b[0] - a[0]) ** 2 / 4 for a, b in zip(pts, pts[1:])) <= 0.0005
+    assert all(b.feed_mm_s == 1.0 and b.line == 3 for b in segs)
+
+
+def test_g5_cubic_series_continues_tangentially():
+    p = parse_program("G17 F60\nG0 X0 Y0\nG5 I0 J3 P0 Q-3 X1 Y1\nG5 P0 Q-3 X2 Y2\nM2\n")
+    first = [b for b in p.blocks if b.kind == "line" and b.line == 3]
+    second = [b for b in p.blocks if b.kind == "line" and b.line == 4]
+    assert [round(float(v), 9) for v in first[-1].end[:3]] == [1, 1, 0]
+    assert [round(float(v), 9) for v in second[-1].end[:3]] == [2, 2, 0]
+    # the midpoint of the first cubic, (P0 + 3 P1 + 3 P2 + P3) / 8 with P1 = (0, 3), P2 = (1, -2): (0.5, 0.5)
+    poly = [(float(b.start[0]), float(b.start[1])) for b in first] + [(1.0, 1.0)]
+    assert min(_seg_dist((0.5, 0.5), a, b) for a, b in zip(poly, poly[1:])) < 0.0005
+    # the second starts in the direction -(P, Q) of the first = (0, 3): straight up (+Y)
+    d = second[0].end[:2] - second[0].start[:2]
+    assert abs(math.atan2(float(d[1]), float(d[0])) - math.pi / 2) < 0.05
+
+
+def test_spline_refusals():
+    assert err("F60\nG5 I1 J1 X1 Y1\n").code == "word"              # no P, Q
+    assert err("F60\nG5 P1 Q1 X1 Y1\n").code == "word"              # first of a series without I, J
+    assert err("F60\nG5 I1 P1 Q1 X1 Y1\n").code == "word"           # I without J
+    assert err("F60\nG5.1 X1 Y1 Z1 I1\n").code == "word"            # Z moves no spline
+    assert err("F60\nG5.1 X1 Y1 I0 J0\n").code == "word"            # no control point offset
+    assert err("F60\nG18 G5.1 X1 Z1 I1\n").code == "unsupported"    # G17 only
+    assert err("F60\nG5.2 X1 Y1 P1 L3\n").code == "unsupported"     # NURBS
+    assert err("G41.1 D1\nG1 X5 F60\nG5.1 X6 Y1 I1\n").code == "comp"

@@ -85,13 +85,14 @@ class ExecuteMixin:
                            else "axis words with G80", ln.axes[0][1], "word")
         arcw = motion in (20, 30) and axis_user is None and (bool(ln.axes) or motion_g in (20, 30))
         cyc = motion in CYCLES and axis_user is None
+        spl = motion in (50, 51) and axis_user is None
         io = 5 in mgroups
         m66 = mgroups.get(5) == 66
         g10 = g0 == 100
-        for letter, users in (("i", arcw or g10), ("j", arcw or g10), ("k", arcw),
+        for letter, users in (("i", arcw or g10 or spl), ("j", arcw or g10 or spl), ("k", arcw),
                               ("r", arcw or g10 or cyc or 640 in gset),
-                              ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io),
-                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68))
+                              ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io or motion == 50),
+                              ("q", motion == 50 or 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68))
                                or 61 in mgroups.values() or g10 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),
@@ -274,6 +275,8 @@ class ExecuteMixin:
         do_move = motion != 800 and (bool(ln.axes) or motion_g in (20, 30))
         if do_move or motion_g is not None:
             self.cycle["il"] = None      # a non-cycle motion ends a series of canned cycles
+            if motion != 50:
+                self.g5_pq = None        # ... and any other than G5 a series of G5 splines
         if not do_move:
             if g0 == 530:
                 raise ln.error("G53 without a G0/G1 move on the line", "g530", "word")
@@ -288,6 +291,8 @@ class ExecuteMixin:
                 raise ln.error("G53 cannot be used in incremental mode G91", "g530", "modal")
         if motion in (20, 30):
             self._arc(ln, vals, motion)
+        elif motion in (50, 51):
+            self._spline(ln, vals, motion)
         elif motion in PROBES:
             self._probe(ln, vals, motion)
         else:

@@ -23,7 +23,8 @@ Modules: :mod:`.expr` (expressions), :mod:`.lexer` (lines and shapes),
 :mod:`.params` (system parameters, comments), :mod:`.execute` (one general
 line in LinuxCNC's order of execution), :mod:`.tooling` (G10, G43, tool
 table), :mod:`.cycles` (canned cycles), :mod:`.iocmds` (probe, I/O, M70-M73),
-:mod:`.subfiles` (subroutine files), :mod:`.comp` (cutter compensation), :mod:`.stream`
+:mod:`.subfiles` (subroutine files), :mod:`.comp` (cutter compensation), :mod:`.splines`
+(G5/G5.1), :mod:`.stream`
 (``iter_blocks``), :mod:`.state` (parameters and tool table), this one (state and the run loop).
 """
 from __future__ import annotations
@@ -47,6 +48,7 @@ from .lexer import Line, Presplit, parse_line
 from .motion import _LINE, _RAPID, MotionMixin
 from .params import ParamMixin
 from .state import MachineState, ToolEntry, tool_entries
+from .splines import SplineMixin
 from .subfiles import SubfileMixin
 from .tooling import ToolingMixin
 
@@ -94,7 +96,7 @@ def _six(v, what: str) -> list[float]:
 
 
 class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin, CycleMixin, IoMixin,
-                  SubfileMixin, CompMixin):
+                  SubfileMixin, CompMixin, SplineMixin):
     """Interpret one program text; :meth:`run` returns the :class:`Program`."""
 
     system_numbers = SYSTEM_PARAMETERS
@@ -214,6 +216,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.exact_stop = False
         self.blend = None
         self.retract_r = False     # G98 (old Z) by default
+        self.g5_pq = None          # P, Q of the last G5 of a series (mm): the next may omit I, J
         self.cycle = {"il": None, "r": 0.0, "cc": 0.0, "p": 0.0, "q": 0.0}
         self.blocks: list[Block] = []
         self.messages: list[tuple[int, str]] = []
