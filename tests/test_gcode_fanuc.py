@@ -223,3 +223,12 @@ def test_spline_refusals():
     assert err("F60\nG18 G5.1 X1 Z1 I1\n").code == "unsupported"    # G17 only
     assert err("F60\nG5.2 X1 Y1 P1 L3\n").code == "unsupported"     # NURBS
     assert err("G41.1 D1\nG1 X5 F60\nG5.1 X6 Y1 I1\n").code == "comp"
+
+
+def test_g7_lathe_diameter_mode_halves_x_words():
+    p = parse_program("F60\nG7 G0 X10 Z1\nG1 X20\nG91 X4\nG90\n(DEBUG,#<_lathe_diameter_mode>)\n"
+                      "G8 X4\nG7 X4\nG8\nG0 X1\nM2\n")
+    # G7: X words are diameters (X10 -> 5, X20 -> 10, G91 X4 -> +2), also on the G7/G8 line itself
+    assert moves(p) == [("R", [5, 0, 1]), ("L", [10, 0, 1]), ("L", [12, 0, 1]), ("L", [4, 0, 1]),
+                        ("L", [2, 0, 1]), ("R", [1, 0, 1])]
+    assert p.messages[0][1] == "1.000000"

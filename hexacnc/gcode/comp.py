@@ -97,7 +97,7 @@ class CompMixin:
             self.comp_arc_not_allowed = True
         self.comp_side = None
         self.comp_first = True
-        self.slow = self.rot_deg != 0.0 or self.comp_arc_not_allowed   # (the next move clears it)
+        self.slow = self.rot_deg != 0.0 or self.comp_arc_not_allowed or self.diameter  # (next move clears)
 
     # -- the queue -----------------------------------------------------------------------
     def _comp_flush(self) -> None:

@@ -127,7 +127,14 @@ class ExecuteMixin:
         if ln.comments:
             self._comments(ln)
         self._modes_early(ln, vals, gset, mgroups)
+        diameter = self.diameter
         self._modes_late(ln, vals, groups, gset)
+        if 70 in gset or 80 in gset:
+            self.diameter = 70 in gset
+            self._refresh_offsets()
+            if self.diameter != diameter and "x" in vals:    # LinuxCNC: G7/G8 act on their line's X
+                vals = dict(vals)
+                vals["x"] *= 0.5 if self.diameter else 2.0
         # -- G10 / G28 / G30 / G92 family
         if g0 == 100:
             self._g10(ln, vals)

@@ -151,6 +151,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.comp_q = None
         self.comp_first = True
         self.comp_arc_not_allowed = False
+        self.diameter = False          # G7 lathe diameter mode: X words are diameters
         self.G: dict[str, float] = {}
         self.L: dict[str, float] = {}
         self._init_state(initial_state, tool_table, work_offsets, g28_pose, g30_pose)

@@ -40,7 +40,7 @@ class MotionMixin:
         self.o5x = [P[base + i] for i in range(6)]
         self.off = [self.o5x[i] + self.g92[i] for i in range(6)]
         self.rot_deg = P[base + 9]
-        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed
+        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed or self.diameter
         r = math.radians(self.rot_deg)
         self.rot_cs = (math.cos(r), math.sin(r))
 

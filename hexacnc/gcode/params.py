@@ -37,6 +37,9 @@ class ParamMixin:
                 if not -1e300 < v < 1e300:
                     raise ln.error(f"value {v!r} is not a finite number", key, "expression")
                 vals[key] = v
+        if self.diameter and "x" in vals:      # G7: X words are diameters (LinuxCNC halves them when read)
+            vals = dict(vals)
+            vals["x"] *= 0.5
         return vals
 
     def _expr_error(self, ln: Line, exc: Exception) -> GcodeError:
@@ -121,8 +124,8 @@ class ParamMixin:
             "_coord_system": [0, 540, 550, 560, 570, 580, 590, 591, 592, 593][self.cs],
             "_tool_offset": self.tool_len != 0.0, "_retract_r_plane": self.retract_r,
             "_retract_old_z": not self.retract_r, "_control_mode": 0 if self.exact_stop else 2,
-            "_spindle_rpm_mode": 1, "_spindle_css_mode": 0, "_lathe_diameter_mode": 0,
-            "_lathe_radius_mode": 1, "_spindle_on": self.spindle_dir != 0,
+            "_spindle_rpm_mode": 1, "_spindle_css_mode": 0, "_lathe_diameter_mode": self.diameter,
+            "_lathe_radius_mode": not self.diameter, "_spindle_on": self.spindle_dir != 0,
             "_spindle_cw": self.spindle_dir > 0, "_flood": self.flood, "_mist": self.mist,
             "_speed_override": 1, "_feed_override": 1, "_adaptive_feed": 0, "_feed_hold": 0,
             "_task": 0, "_call_level": len(self.frames), "_remap_level": 0,
