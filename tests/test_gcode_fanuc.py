@@ -232,3 +232,15 @@ def test_g7_lathe_diameter_mode_halves_x_words():
     assert moves(p) == [("R", [5, 0, 1]), ("L", [10, 0, 1]), ("L", [12, 0, 1]), ("L", [4, 0, 1]),
                         ("L", [2, 0, 1]), ("R", [1, 0, 1])]
     assert p.messages[0][1] == "1.000000"
+
+
+def test_streaming_fanuc_subprograms_and_splines(tmp_path):
+    from hexacnc.gcode import iter_blocks
+    # the subprogram lies windows behind its call (150 comment lines, 64-line windows)
+    text = FANUC.replace("M30\n", "G5.1 X40 Y10 I5 J5\nM30\n" + "(pad)\n" * 150)
+    f = tmp_path / "f.ngc"
+    f.write_text(text)
+    whole = parse_program(text)
+    streamed = list(iter_blocks(str(f), window_lines=64))
+    assert [(b.kind, b.line, [float(v) for v in b.end]) for b in streamed if b.kind in B.MOTION_KINDS] == \
+        [(b.kind, b.line, [float(v) for v in b.end]) for b in whole.motion_blocks]
