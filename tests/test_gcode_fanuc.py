@@ -244,3 +244,14 @@ def test_streaming_fanuc_subprograms_and_splines(tmp_path):
     streamed = list(iter_blocks(str(f), window_lines=64))
     assert [(b.kind, b.line, [float(v) for v in b.end]) for b in streamed if b.kind in B.MOTION_KINDS] == \
         [(b.kind, b.line, [float(v) for v in b.end]) for b in whole.motion_blocks]
+
+
+def test_zero_length_probes_as_linuxcnc():
+    # G38.3/G38.5 may start at their target (LinuxCNC checks only G38.2/G38.4); no motion is made
+    p = parse_program("G0 Z5\nF60\nG38.3 Z5\nM2\n")
+    assert [b.kind for b in p.motion_blocks] == ["rapid"] and not any(b.kind == "probe" for b in p.blocks)
+    assert err("G0 Z5\nF60\nG38.2 Z5\n").code == "word"
+    # after a probe the start is wherever it tripped (run time): a second probe to the same
+    # target is not known to be zero-length here
+    e = err("G0 Z5\nF60\nG38.2 Z0\nG38.2 Z0\n")
+    assert (e.code, e.line) == ("unsupported", 4)

@@ -76,6 +76,7 @@ def _run_of(line: str, d: Path) -> dict | None:
     return {"ngc": d / ngc, "tbl": d / opts["-t"] if "-t" in opts else None,
             "ini": d / opts["-i"] if "-i" in opts else None, "var": d / opts["-v"] if "-v" in opts else None,
             "fails": "!" in line[:m.start()],          # the test expects rs274 to fail on it
+            "continue_on_error": opts.get("-n") == "0",  # rs274 -n 0: go on after an error
             "messages_only": "/MESSAGE/" in line,       # the test keeps only the MESSAGE lines
             "awk_first": "$1=\"\"" in line}             # awk '{$1=""; print}' drops each first word
 
@@ -338,7 +339,10 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
             return {"outcome": "differ", "difference": f"abort text {exc.bare_message!r} not LinuxCNC's"}
         if not ran_to_end:
             return {"outcome": "refused_as_linuxcnc", "error": where}   # LinuxCNC stopped with an error too
-        return {"outcome": "unsupported" if exc.code == "unsupported" else "refused", "error": where}
+        out = {"outcome": "unsupported" if exc.code == "unsupported" else "refused", "error": where}
+        if run.get("continue_on_error") and exc.code != "unsupported":
+            out["note"] = "LinuxCNC ran this with -n 0 (continue after errors): its output does not show errors"
+        return out
     if not ran_to_end:
         return {"outcome": "accepted", "difference": "LinuxCNC stops with an error, hexacnc runs it to its end"}
     msgs = [text for kind, _ln, text in prog.notes if kind in ("msg", "debug")]
@@ -377,6 +381,29 @@ def run_test(t: dict, root: Path) -> dict:
     return r
 
 
+def run_examples(root: Path) -> dict:
+    """LinuxCNC's example programs (``nc_files``, no canonical output to compare): interpreted with
+    rs274's default tool table and every example directory on the subroutine path; counts of
+    ``ok`` / ``unsupported`` and each other refusal (to read: a wrong reason would show here)."""
+    base = root / "nc_files"
+    files = sorted(base.rglob("*.ngc")) if base.is_dir() else []
+    path = sorted({str(f.parent) for f in files})
+    tools = _tools({"tbl": None}, root)
+    counts = {"ok": 0, "unsupported": 0, "refused": 0}
+    refused = {}
+    for f in files:
+        try:
+            parse_program(f.read_text(errors="replace"), f.name, tool_table=tools, tool_axis_platform=(0.0, 0.0, -1.0),
+                          subroutine_path=[str(f.parent)] + path, max_lines=2_000_000, machine_units="inch")
+            counts["ok"] += 1
+        except GcodeError as exc:
+            key = "unsupported" if exc.code == "unsupported" else "refused"
+            counts[key] += 1
+            if key == "refused":
+                refused[str(f.relative_to(base))] = f"{exc.code}: {exc}"
+    return {"programs": len(files), "counts": counts, "refused": refused}
+
+
 def run_all(root: Path) -> dict:
     """Every test compared; counts over the tests LinuxCNC runs to their end (xfail ones apart)."""
     tests, left = find_tests(root)
@@ -400,6 +427,7 @@ def run_all(root: Path) -> dict:
             "same_fraction_of_runs_to_end": round(counts["same"] / to_end, 3) if to_end else None,
             "target_same_fraction": 0.75,
             "tolerance_program_units": TOL, "results": res, "xfail_not_counted": xfail,
+            "examples": run_examples(root),
             "left_out": left,
             "rules": "counts: tests LinuxCNC runs to its end (PROGRAM_END/FINISH, not expected to fail) "
                      "are same / differ / unsupported / refused; tests where LinuxCNC stops with an error "
