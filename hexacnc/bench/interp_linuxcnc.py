@@ -8,18 +8,31 @@ compared:
 
 * ``STRAIGHT_TRAVERSE`` / ``STRAIGHT_FEED`` end points, ``ARC_FEED`` end points,
   centres and turns within 1e-4 program units (the canonical output prints
-  4 decimals), feeds of feed moves (``SET_FEED_RATE`` in force, G94 only),
+  4 decimals), feeds of feed moves (``SET_FEED_RATE`` in force; G93 straight moves as
+  length / time, as LinuxCNC prints them; G93 arcs are not compared),
   ``DWELL`` seconds and ``MESSAGE`` texts (blanks collapsed);
-* outcome per test: ``same``, ``unsupported`` (refused with code
-  ``unsupported``: the feature is named), ``refused`` (any other refusal),
-  ``differ`` (the first difference is reported); ``refused_as_linuxcnc``: refused
-  (not ``unsupported``) where LinuxCNC's output also stops without PROGRAM_END.
+* each ``rs274`` command of a test.sh is one run, compared with its part of
+  ``expected`` (the parts start at SET_FEED_REFERENCE); PRINT lines too (the
+  output's lines that are no canonical call; a test's ``awk '{$1=""}'`` applied);
+* outcome per run: where LinuxCNC runs to its end (PROGRAM_END or FINISH, and
+  test.sh does not expect a failure with ``!``): ``same``, ``differ`` (the first
+  difference is reported), ``unsupported`` (refused with code ``unsupported``:
+  the feature is named), ``refused`` (any other refusal); where LinuxCNC stops
+  with an error: ``refused_as_linuxcnc``, ``unsupported_where_linuxcnc_stops``
+  or ``accepted``; a test is ``same``
+  when each of its runs is same or refused as LinuxCNC, else its worst run;
+* left out, with the reason: tests without ``expected``, interpreter plug-ins
+  (``-p``), embedded Python (``[PYTHON]`` in the INI), program names computed by
+  the shell; tests with an ``xfail`` file are reported apart, not counted.
 
-A test's program runs from pose zero with zero offsets and its ``-t`` tool
-table (in inches: the unit of the standalone ``rs274``'s tool table); the
-``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH`` is searched
-for subroutine files.  The tool axis is -Z (a tool hangs below the spindle,
-as LinuxCNC's tool length offsets assume).
+A run's program starts at pose zero with zero offsets, its ``-t`` tool table
+(else rs274's default ``configs/sim/sim.tbl``; in inches, as rs274 reads it),
+its ``-v`` parameter file and ``machine_units="inch"`` (the standalone rs274
+is an inch machine); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH``,
+``DISABLE_FANUC_STYLE_SUB`` and ``DISABLE_G92_PERSISTENCE`` are honoured.  The
+tool axis is -Z (a tool hangs below the spindle, as LinuxCNC's tool length
+offsets assume).  :func:`run_examples` interprets the example programs
+(``nc_files``) and lists every refusal that is not ``unsupported``.
 """
 from __future__ import annotations
 
@@ -211,8 +224,11 @@ def program_events(prog) -> list[tuple]:
     ev: list[tuple] = []
     for b in prog.blocks:
         if b.kind in ("rapid", "line", "probe"):
-            ev.append(("T" if b.kind == "rapid" else "F", [float(x) for x in b.end], None,
-                       b.feed_mm_s if b.inverse_time_s is None and b.feed_deg_s is None else None))
+            feed = b.feed_mm_s if b.inverse_time_s is None and b.feed_deg_s is None else None
+            if b.inverse_time_s is not None and b.start is not None:    # G93: LinuxCNC prints length / time
+                d = math.dist(b.start[:3], b.end[:3])
+                feed = d / b.inverse_time_s if d > 0 else None
+            ev.append(("T" if b.kind == "rapid" else "F", [float(x) for x in b.end], None, feed))
         elif b.kind == "arc":
             n = [float(x) for x in b.normal]
             w = max(range(3), key=lambda i: abs(n[i]))
@@ -337,8 +353,9 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
             if _norm(exc.bare_message) in _norm(canon) or _norm(exc.bare_message) in msgs:
                 return {"outcome": "refused_as_linuxcnc", "aborted": where}
             return {"outcome": "differ", "difference": f"abort text {exc.bare_message!r} not LinuxCNC's"}
-        if not ran_to_end:
-            return {"outcome": "refused_as_linuxcnc", "error": where}   # LinuxCNC stopped with an error too
+        if not ran_to_end:      # LinuxCNC stopped with an error too
+            return {"outcome": "unsupported_where_linuxcnc_stops" if exc.code == "unsupported"
+                    else "refused_as_linuxcnc", "error": where}
         out = {"outcome": "unsupported" if exc.code == "unsupported" else "refused", "error": where}
         if run.get("continue_on_error") and exc.code != "unsupported":
             out["note"] = "LinuxCNC ran this with -n 0 (continue after errors): its output does not show errors"
@@ -359,7 +376,9 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
     return {"outcome": "same"} if diff is None else {"outcome": "differ", "difference": diff}
 
 
-_RANK = ("differ", "accepted", "refused", "unsupported", "refused_as_linuxcnc", "same")
+_RANK = ("differ", "accepted", "refused", "unsupported", "unsupported_where_linuxcnc_stops",
+         "refused_as_linuxcnc", "same")
+_STOPS = ("refused_as_linuxcnc", "unsupported_where_linuxcnc_stops")
 
 
 def run_test(t: dict, root: Path) -> dict:
@@ -368,9 +387,9 @@ def run_test(t: dict, root: Path) -> dict:
         return {"outcome": "not_compared", "reason": "expected output does not split into the test's runs"}
     res = [run_one(r, c, root) for r, c in zip(t["runs"], canons)]
     outs = [r["outcome"] for r in res]
-    if all(o == "refused_as_linuxcnc" for o in outs):
-        out = "refused_as_linuxcnc"
-    elif all(o in ("same", "refused_as_linuxcnc") for o in outs):
+    if all(o in _STOPS for o in outs):
+        out = min(outs, key=_RANK.index)
+    elif all(o == "same" or o in _STOPS for o in outs):
         out = "same"
     else:
         out = min(outs, key=_RANK.index)
@@ -408,7 +427,8 @@ def run_all(root: Path) -> dict:
     """Every test compared; counts over the tests LinuxCNC runs to their end (xfail ones apart)."""
     tests, left = find_tests(root)
     res = {}
-    keys = ("same", "differ", "unsupported", "refused", "refused_as_linuxcnc", "accepted")
+    keys = ("same", "differ", "unsupported", "refused", "refused_as_linuxcnc", "unsupported_where_linuxcnc_stops",
+            "accepted")
     counts = dict.fromkeys(keys, 0)
     xfail = {}
     for t in tests:
@@ -431,5 +451,6 @@ def run_all(root: Path) -> dict:
             "left_out": left,
             "rules": "counts: tests LinuxCNC runs to its end (PROGRAM_END/FINISH, not expected to fail) "
                      "are same / differ / unsupported / refused; tests where LinuxCNC stops with an error "
-                     "are refused_as_linuxcnc (hexacnc refuses too) or accepted (hexacnc runs them); a test "
+                     "are refused_as_linuxcnc (hexacnc refuses too), unsupported_where_linuxcnc_stops or accepted "
+                     "(hexacnc runs them); a test "
                      "of several rs274 runs is same when each run is same or refused as LinuxCNC"}
