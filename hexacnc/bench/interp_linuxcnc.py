@@ -28,7 +28,7 @@ compared:
 A run's program starts at pose zero with zero offsets, its ``-t`` tool table
 (else rs274's default ``configs/sim/sim.tbl``; in inches, as rs274 reads it),
 its ``-v`` parameter file and ``machine_units="inch"`` (the standalone rs274
-is an inch machine); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH``,
+is an inch machine unless the INI's ``[TRAJ] LINEAR_UNITS`` is mm); the ``-i`` INI file's ``[RS274NGC] SUBROUTINE_PATH``,
 ``DISABLE_FANUC_STYLE_SUB`` and ``DISABLE_G92_PERSISTENCE`` are honoured.  The
 tool axis is -Z (a tool hangs below the spindle, as LinuxCNC's tool length
 offsets assume).  :func:`run_examples` interprets the example programs
@@ -296,15 +296,26 @@ def expected_prints(text: str, echoed=()) -> list[str]:
             and _norm(ln) not in echoed]
 
 
+def _machine_units(run: dict) -> str:
+    """rs274's machine (external) length unit: inch unless the INI's [TRAJ] LINEAR_UNITS is mm."""
+    ini = run.get("ini")
+    if ini is not None and ini.exists():
+        m = re.search(r"(?im)^\s*LINEAR_UNITS\s*=\s*(\S+)", ini.read_text(errors="replace"))
+        if m and m.group(1).lower() in ("mm", "metric", "millimeter"):
+            return "mm"
+    return "inch"
+
+
 def _tools(run: dict, root: Path):
-    """The run's tool table (rs274's -t, else its default sim.tbl), in inches as rs274 reads it."""
+    """The run's tool table (rs274's -t, else its default sim.tbl), in the machine unit as rs274 reads it."""
     tbl = run["tbl"] or root / "configs" / "sim" / "sim.tbl"
     if not tbl.exists():
         return None
     tools = parse_tool_table(tbl.read_text(errors="replace"))
+    k = 25.4 if _machine_units(run) == "inch" else 1.0
     for e in tools.values():
-        e.z_offset_mm, e.x_offset_mm, e.y_offset_mm = e.z_offset_mm * 25.4, e.x_offset_mm * 25.4, e.y_offset_mm * 25.4
-        e.diameter_mm *= 25.4
+        e.z_offset_mm, e.x_offset_mm, e.y_offset_mm = e.z_offset_mm * k, e.x_offset_mm * k, e.y_offset_mm * k
+        e.diameter_mm *= k
     return tools
 
 
@@ -328,7 +339,7 @@ def _var_state(run: dict) -> MachineState | None:
         parts = ln.split()
         if len(parts) == 2 and parts[0].isdigit():
             k, v = int(parts[0]), float(parts[1])
-            params[k] = v * 25.4 if k in LENGTH_PARAMETERS else v
+            params[k] = v * 25.4 if k in LENGTH_PARAMETERS and _machine_units(run) == "inch" else v
     if _ini_flag(run["ini"], "DISABLE_G92_PERSISTENCE"):
         params = {k: v for k, v in params.items() if not 5210 <= k <= 5219}
     return MachineState(parameters=params)
@@ -345,7 +356,7 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
                              tool_axis_platform=(0.0, 0.0, -1.0),
                              subroutine_path=_ini_subpath(run["ini"], run["ngc"].parent),
                              fanuc_subs=not _ini_flag(run["ini"], "DISABLE_FANUC_STYLE_SUB"),
-                             machine_units="inch", initial_state=_var_state(run))
+                             machine_units=_machine_units(run), initial_state=_var_state(run))
     except GcodeError as exc:
         where = {"line": exc.line, "column": exc.column, "code": exc.code, "message": exc.bare_message}
         if exc.code == "abort" and not ran_to_end:
@@ -407,7 +418,7 @@ def run_examples(root: Path) -> dict:
     base = root / "nc_files"
     files = sorted(base.rglob("*.ngc")) if base.is_dir() else []
     path = sorted({str(f.parent) for f in files})
-    tools = _tools({"tbl": None}, root)
+    tools = _tools({"tbl": None, "ini": None}, root)
     counts = {"ok": 0, "unsupported": 0, "refused": 0}
     refused = {}
     for f in files:
