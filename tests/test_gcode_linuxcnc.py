@@ -374,3 +374,19 @@ def test_linuxcnc_harness_splits_runs_and_compares_print_output(tmp_path):
     assert res["tests"] == 1 and res["linuxcnc_runs_to_end"] == 1
     other = res["xfail_not_counted"]["other"]          # an xfail test is reported, not counted
     assert other["outcome"] == "differ" and "PRINT" in other["difference"]
+
+
+def test_linuxcnc_harness_unrolls_shell_loops(tmp_path):
+    from hexacnc.bench.interp_linuxcnc import run_all
+    d = tmp_path / "tests" / "interp" / "loop"
+    d.mkdir(parents=True)
+    (d / "test.sh").write_text('OK="a"\nBAD="b"\nfor t in $OK; do\n    rs274 -g "ok-${t}.ngc"\ndone\n'
+                               'for t in $BAD; do\n    rs274 -g "bad-${t}.ngc"\n    res=$?\n'
+                               '    if test "$res" = 0; then\n\techo "Error: accepted" >&2\n    fi\ndone\n')
+    (d / "ok-a.ngc").write_text("G0 X1\nM2\n")
+    (d / "bad-b.ngc").write_text("G0 X1\n")                       # no program end: rs274 refuses it
+    (d / "expected").write_text(" N..... SET_FEED_REFERENCE(CANON_XYZ)\n N..... STRAIGHT_TRAVERSE(1.0000, 0.0000, "
+                                "0.0000, 0.0000, 0.0000, 0.0000)\n N..... PROGRAM_END()\n"
+                                " N..... SET_FEED_REFERENCE(CANON_XYZ)\n")
+    res = run_all(tmp_path)
+    assert res["results"]["loop"] == {"outcome": "same", "runs": ["same", "refused_as_linuxcnc"]}

@@ -94,6 +94,25 @@ def _run_of(line: str, d: Path) -> dict | None:
             "awk_first": "$1=\"\"" in line}             # awk '{$1=""; print}' drops each first word
 
 
+_LOOP = re.compile(r"(?ms)^[ \t]*for\s+(\w+)\s+in\s+\$(\w+)\s*;\s*do[ \t]*\n(.*?)^[ \t]*done[ \t]*$")
+#: a loop body that calls a zero exit status of rs274 an error: its programs must fail
+_EXPECTS_FAILURE = re.compile(r'test\s+"\$res"\s*=\s*0\s*;\s*then\s*\n[^\n]*Error')
+
+
+def _expand_loops(text: str) -> str:
+    """``for t in $LIST; do ... done`` over a ``LIST="..."`` of the script, unrolled; a body that
+    expects rs274 to fail gets a '!' before each rs274."""
+    lists = dict(re.findall(r'(?m)^\s*(\w+)="([^"]*)"', text))
+
+    def unroll(m):
+        var, body = m.group(1), m.group(3)
+        if _EXPECTS_FAILURE.search(body):
+            body = _RS274.sub("! rs274", body)
+        return "\n".join(body.replace("${%s}" % var, v).replace("$%s" % var, v)
+                         for v in lists.get(m.group(2), "").split())
+    return _LOOP.sub(unroll, text)
+
+
 def find_tests(root: Path) -> tuple[list[dict], dict]:
     """Tests with an ``expected`` canonical output, and the tests left out with the reason.
 
@@ -111,7 +130,7 @@ def find_tests(root: Path) -> tuple[list[dict], dict]:
         if not exp.exists():
             left[name] = "no expected output"
             continue
-        text = sh.read_text(errors="replace").replace("\\\n", " ")
+        text = _expand_loops(sh.read_text(errors="replace").replace("\\\n", " "))
         runs = [_run_of(ln, d) for ln in text.splitlines()
                 if not ln.lstrip().startswith(("#", "echo"))]
         runs = [r for r in runs if r is not None]
@@ -356,7 +375,8 @@ def run_one(run: dict, canon: str, root: Path) -> dict:
                              tool_axis_platform=(0.0, 0.0, -1.0),
                              subroutine_path=_ini_subpath(run["ini"], run["ngc"].parent),
                              fanuc_subs=not _ini_flag(run["ini"], "DISABLE_FANUC_STYLE_SUB"),
-                             machine_units=_machine_units(run), initial_state=_var_state(run))
+                             machine_units=_machine_units(run), initial_state=_var_state(run),
+                             require_end=True)     # rs274 refuses a file without M2/M30/%
     except GcodeError as exc:
         where = {"line": exc.line, "column": exc.column, "code": exc.code, "message": exc.bare_message}
         if exc.code == "abort" and not ran_to_end:
