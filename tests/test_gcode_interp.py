@@ -282,7 +282,7 @@ def test_endless_loop_is_stopped():
 
 # -- refused input ---------------------------------------------------------------------------
 @pytest.mark.parametrize("text, line, col, code", [
-    ("G0 X1\n  G5 X2\n", 2, 3, "unsupported"),
+    ("G0 X1\n  G5.2 X2 P1 L3\n", 2, 3, "unsupported"),      # NURBS (G5, G5.1 are supported)
     ("G0 X1\nM428\n", 2, 1, "unsupported"),
     ("G33 Z-1 K1\n", 1, 1, "unsupported"),
     ("G76 P1 Z-1 R1\n", 1, 1, "unsupported"),

@@ -7,9 +7,18 @@ converts tool-tip poses to platform poses with it.
 """
 from __future__ import annotations
 
+import struct
 from dataclasses import dataclass, field
 
 import numpy as np
+
+_PACK6 = struct.Struct("6d").pack
+_FROMBUFFER = np.frombuffer
+
+
+def frozen_pose(pose) -> np.ndarray:
+    """A read-only (6,) float array of a 6-sequence (the cheapest way numpy makes one)."""
+    return _FROMBUFFER(_PACK6(*pose))
 
 #: block kinds
 RAPID = "rapid"            #: G0

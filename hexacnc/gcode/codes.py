@@ -6,7 +6,7 @@ refused with ``unsupported`` naming it (LinuxCNC's name for the feature).
 from __future__ import annotations
 
 #: modal group of each supported G code (0: non-modal)
-G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 382: 1, 383: 1, 384: 1, 385: 1, 730: 1, 800: 1, 810: 1, 820: 1,
+G_GROUP = {0: 1, 10: 1, 20: 1, 30: 1, 50: 1, 51: 1, 70: 15, 382: 1, 383: 1, 384: 1, 385: 1, 730: 1, 800: 1, 810: 1, 820: 1,
            830: 1, 840: 1, 850: 1, 860: 1, 890: 1,
            170: 2, 180: 2, 190: 2,
            900: 3, 910: 3, 901: 4, 911: 4, 930: 5, 940: 5, 200: 6, 210: 6, 400: 7, 410: 7, 411: 7, 420: 7, 421: 7,
@@ -20,8 +20,8 @@ CYCLES = frozenset({730, 810, 820, 830, 840, 850, 860, 890})
 #: straight probes
 PROBES = frozenset({382, 383, 384, 385})
 G_UNSUPPORTED = {
-    50: "G5 cubic spline", 51: "G5.1 quadratic spline", 52: "G5.2 NURBS", 53: "G5.3 NURBS end",
-    70: "G7 lathe diameter mode", 330: "G33 spindle-synchronised motion",
+    52: "G5.2 NURBS", 53: "G5.3 NURBS end",
+    330: "G33 spindle-synchronised motion",
     331: "G33.1 rigid tapping (needs spindle-synchronised motion)",
     760: "G76 lathe threading cycle (a lathe cycle: no spindle-synchronised motion on a hexapod)",
     870: "G87 back boring cycle (needs spindle orientation M19)",

@@ -1,4 +1,4 @@
-"""Cutter radius compensation G41/G42/G41.1/G42.1/G40 in the G17 plane (LinuxCNC's algorithm).
+"""Cutter radius compensation G41/G42/G41.1/G42.1/G40 in the G17 and G18 planes (LinuxCNC's algorithm).
 
 As LinuxCNC (``convert_straight_comp1/2``, ``convert_arc_comp2``,
 ``move_endpoint_and_flush``): the compensated moves are held in a short queue
@@ -8,9 +8,11 @@ the end point of the queued move back to the intersection.  The entry move
 (first move after G41/G42) goes to the offset point of its end; after G40 the
 next move goes from the compensated point to the programmed end.  Gouging is
 refused (code ``comp``) with line and column, as LinuxCNC does.  Work is done in
-program coordinates (mm) of the XY plane; Z and A/B/C move with the moves.
-Not supported (``unsupported``): compensation in G18/G19, an arc as the entry
-move, G93 with compensation.
+program coordinates (mm) of the plane: (X, Y) in G17, (Z, X) in G18 (LinuxCNC's order, normal +Y);
+the third axis and A/B/C move with the moves.  G19 is refused as by LinuxCNC.
+In G93 each programmed move's inverse-time F becomes a feed per minute over its
+programmed length (as LinuxCNC), used by the compensated moves it makes.
+Not supported (``unsupported``): an arc as the entry move.
 """
 from __future__ import annotations
 
@@ -19,7 +21,7 @@ import math
 import numpy as np
 
 from . import blocks as B
-from .blocks import Block
+from .blocks import Block, frozen_pose
 from .lexer import Line
 
 SMALL = 0.05          #: LinuxCNC TOLERANCE_CONCAVE_CORNER (rad)
@@ -53,9 +55,8 @@ class CompMixin:
         if g == 400:
             self._comp_off(ln)
             return
-        if self.plane != 170:
-            raise ln.error("cutter radius compensation is supported in the G17 plane only", f"g{g}",
-                           "unsupported")
+        if self.plane == 190:      # LinuxCNC: "allowed only in XY, XZ planes"
+            raise ln.error("cutter radius compensation works in the G17 and G18 planes only", f"g{g}", "comp")
         if self.comp_side:
             raise ln.error("cutter radius compensation is already on (G40 first)", f"g{g}", "comp")
         if g in (411, 421):
@@ -83,7 +84,9 @@ class CompMixin:
             return
         self.comp_side, self.comp_r, self.comp_first = side, r, True
         self.comp_q = []
-        cur = self._prog_pose()
+        # the plane's axes (first, second, normal): X Y Z in G17; Z X Y in G18 (LinuxCNC's comp_get_current)
+        self.comp_perm = (0, 1, 2) if self.plane == 170 else (2, 0, 1)
+        cur = self._cperm(self._prog_pose())
         self.comp_last6, self.comp_cur, self.comp_prog = cur, cur[:3], cur[:3]
         self.slow = True
 
@@ -94,7 +97,7 @@ class CompMixin:
             self.comp_arc_not_allowed = True
         self.comp_side = None
         self.comp_first = True
-        self.slow = self.rot_deg != 0.0
+        self.slow = self.rot_deg != 0.0 or self.comp_arc_not_allowed or self.diameter  # (next move clears)
 
     # -- the queue -----------------------------------------------------------------------
     def _comp_flush(self) -> None:
@@ -107,17 +110,30 @@ class CompMixin:
         self.comp_q = [] if self.comp_side else None
         self.comp_endpoint = None
 
+    def _cperm(self, p: list[float]) -> list[float]:
+        """Program pose -> the compensation plane's coordinates (first, second, normal, A, B, C)."""
+        a, b, c = self.comp_perm
+        return [p[a], p[b], p[c]] + list(p[3:])
+
+    def _cunperm(self, q: list[float]) -> list[float]:
+        p = list(q)
+        for k, i in enumerate(self.comp_perm):
+            p[i] = q[k]
+        return p
+
     def _comp_out(self, kind, line, end_prog, center, turn, _orig, _dir, fm, inv) -> None:
-        end = self._to_machine(end_prog)
+        end = self._to_machine(self._cunperm(end_prog))
         if end == self.pos and kind != "arc":      # (an arc back to its start is a full circle)
             return
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         es, bl, tl, tool = self.exact_stop, self.blend, self.tool_len, self.tool
         if kind == "arc":
-            c = self._to_machine([center[0], center[1], end_prog[2], 0.0, 0.0, 0.0])[:3]
-            c[2] = self.pos[2]
-            b = Block(B.ARC, line, self._start_arr(), e, fm, inv, np.array(c), np.array([0.0, 0.0, 1.0]),
+            c = self._to_machine(self._cunperm([center[0], center[1], end_prog[2], 0.0, 0.0, 0.0]))[:3]
+            w = self.comp_perm[2]
+            c[w] = self.pos[w]
+            normal = [0.0, 0.0, 0.0]
+            normal[w] = 1.0
+            b = Block(B.ARC, line, self._start_arr(), e, fm, inv, np.array(c), np.array(normal),
                       abs(turn) - 1, turn < 0, es, bl, tl, 0.0, 0.0, "off", tool)
         elif kind == "rapid":
             b = Block(B.RAPID, line, self._start_arr(), e, None, None, None, None, 0, False, es, bl, tl,
@@ -132,7 +148,10 @@ class CompMixin:
     def _enqueue(self, ln: Line, kind, end_prog, center=None, turn=0, orig=0.0, direction=(0.0, 0.0)) -> None:
         fm = inv = None
         if kind != "rapid":
-            fm, inv = self._feed_of(ln, {}, 10 if kind == "line" else 20)
+            if self.inverse_time:
+                fm = self.comp_fm
+            else:
+                fm, inv = self._feed_of(ln, {}, 10 if kind == "line" else 20)
         self.comp_q.append([kind, ln.num, list(end_prog), center, turn, orig, direction, fm, inv])
         self.comp_last6 = list(end_prog)
 
@@ -168,20 +187,34 @@ class CompMixin:
         """Programmed end (program coordinates, mm/deg): missing X/Y from the programmed point."""
         prog = list(self.comp_last6)
         prog[0], prog[1] = self.comp_prog[0], self.comp_prog[1]
+        perm = self.comp_perm
         for i, letter in ln.axes:
             v = vals[letter] * self.u if i < 3 else vals[letter]
-            prog[i] = v if self.absolute else prog[i] + v
+            k = perm.index(i) if i < 3 else i
+            prog[k] = v if self.absolute else prog[k] + v
         return prog
 
+    def _comp_inverse_feed(self, ln: Line, vals: dict, motion: int, length_mm: float) -> None:
+        """G93 with compensation, as LinuxCNC: the inverse-time F becomes the feed per minute of the
+        programmed (uncompensated) move's length, used by all the compensated moves it makes."""
+        f = vals.get("f")
+        if f is None or f <= 0.0:
+            raise ln.error(f"G93 inverse-time G{motion // 10} move needs a positive F word on its line",
+                           "f" if f is not None else f"g{motion}", "feed")
+        if length_mm <= 0.0:
+            raise ln.error("an inverse-time move without X/Y/Z motion under cutter compensation is not "
+                           "supported", f"g{motion}", "unsupported")
+        self.comp_fm = length_mm * f / 60.0
+
     def _comp_straight(self, ln: Line, vals: dict, motion: int) -> None:
-        if self.inverse_time:
-            raise ln.error("cutter radius compensation with inverse time G93 is not supported", "g930",
-                           "unsupported")
         kind = "rapid" if motion == 0 else "line"
         p = self._comp_target(ln, vals)
+        if self.inverse_time and motion != 0:
+            o = self._cperm(self._prog_pose()) if self.comp_first else self.comp_prog
+            self._comp_inverse_feed(ln, vals, motion, math.dist(p[:3], o[:3]))
         r, side = self.comp_r, self.comp_side
         if self.comp_first:
-            cur = self._prog_pose()
+            cur = self._cperm(self._prog_pose())
             cx, cy = cur[0], cur[1]
             if math.hypot(p[0] - cx, p[1] - cy) <= r:
                 raise ln.error("cutter compensation entry move is not longer than the tool radius",
@@ -265,11 +298,9 @@ class CompMixin:
         if self.comp_first:
             raise ln.error("an arc as the cutter compensation entry move is not supported (enter with a line)",
                            f"g{motion}", "unsupported")
-        if self.inverse_time:
-            raise ln.error("cutter radius compensation with inverse time G93 is not supported", "g930",
-                           "unsupported")
-        if "k" in vals:
-            raise ln.error("K word with an arc in the G17 plane", "k", "word")
+        lu, lv, lw = ("i", "j", "k") if self.comp_perm[0] == 0 else ("k", "i", "j")
+        if lw in vals:
+            raise ln.error(f"{lw.upper()} word with an arc in the G{self.plane // 10} plane", lw, "word")
         p = self._comp_target(ln, vals)
         opx, opy = self.comp_prog[0], self.comp_prog[1]
         cx, cy = self.comp_cur[0], self.comp_cur[1]
@@ -285,10 +316,13 @@ class CompMixin:
                 raise ln.error("arc with both R and I/J/K words", "r", "arc")
             ccx, ccy = self._r_centre(ln, vals["r"] * self.u, opx, opy, p[0], p[1], cw)
         else:
-            ccx, ccy = self._ijk_centre(ln, vals, "i", "j", opx, opy, p[0], p[1])
+            ccx, ccy = self._ijk_centre(ln, vals, lu, lv, opx, opy, p[0], p[1])
         turn = -n if cw else n
         r, side = self.comp_r, self.comp_side
         arc_r = math.hypot(ccx - p[0], ccy - p[1])
+        if self.inverse_time:     # the programmed helix's length (LinuxCNC's find_arc_length)
+            sweep_len = abs(find_turn(opx, opy, ccx, ccy, turn, p[0], p[1])) * math.hypot(opx - ccx, opy - ccy)
+            self._comp_inverse_feed(ln, vals, motion, math.hypot(sweep_len, p[2] - self.comp_prog[2]))
         theta = math.atan2(cy - opy, cx - opx)
         theta = theta - _PI / 2 if side == "L" else theta + _PI / 2
         delta = math.atan2(ccy - opy, ccx - opx)

@@ -54,6 +54,11 @@ class CycleMixin:
         q = self._cycle_word(ln, vals, "q", motion, prev, (730, 830), None)
         if motion in (730, 830) and q <= 0.0:
             raise ln.error(f"{gname} Q{q / self.u:g}: the peck depth must be positive", "q", "cycle")
+        if motion == 840 and self.plane != 170:
+            # LinuxCNC's G84 in G18/G19 swaps the cycle's arguments and taps along the wrong axis
+            # (interp_cycles.cc convert_cycle_g74_g84, XZ/YZ cases): neither reproduced nor guessed
+            raise ln.error(f"G84 tapping in the G{self.plane // 10} plane is not supported (G17 only)",
+                           f"g{motion}", "unsupported")
         if motion == 840 and self.spindle_dir <= 0:
             raise ln.error("G84 tapping needs the spindle turning clockwise (M3)", f"g{motion}", "cycle")
         if motion == 860 and self.spindle_dir == 0:

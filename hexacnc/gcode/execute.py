@@ -9,6 +9,7 @@ from __future__ import annotations
 from . import blocks as B
 from .blocks import Block
 from .codes import CYCLES, G_GROUP, G_UNSUPPORTED, M_GROUP, M_UNSUPPORTED, PROBES
+from .expr import LENGTH_PARAMETERS
 from .lexer import Line
 
 _AXIS_USERS = (100, 520, 920, 280, 300)
@@ -84,13 +85,14 @@ class ExecuteMixin:
                            else "axis words with G80", ln.axes[0][1], "word")
         arcw = motion in (20, 30) and axis_user is None and (bool(ln.axes) or motion_g in (20, 30))
         cyc = motion in CYCLES and axis_user is None
+        spl = motion in (50, 51) and axis_user is None
         io = 5 in mgroups
         m66 = mgroups.get(5) == 66
         g10 = g0 == 100
-        for letter, users in (("i", arcw or g10), ("j", arcw or g10), ("k", arcw),
+        for letter, users in (("i", arcw or g10 or spl), ("j", arcw or g10 or spl), ("k", arcw),
                               ("r", arcw or g10 or cyc or 640 in gset),
-                              ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io),
-                              ("q", 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68))
+                              ("p", arcw or g0 in (40, 100) or 640 in gset or cyc or io or motion == 50),
+                              ("q", motion == 50 or 640 in gset or cyc or (io and mgroups.get(5) in (66, 67, 68))
                                or 61 in mgroups.values() or g10 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),
@@ -110,14 +112,14 @@ class ExecuteMixin:
             for kind, target, key in ln.assigns:
                 v = vals[key]
                 if kind == "n":
-                    self.P[target] = v
+                    self.P[target] = v * self.mu if target in LENGTH_PARAMETERS else v
                     if target in self.runtime_pending:     # set by the program: known again
                         self.runtime_pending.discard(target)
                 elif kind == "i":
                     t = int(vals[ln.dyn[target]])
                     if t in self.readonly_numbers:
                         raise ln.error(f"parameter #{t} is read-only", key, "parameter")
-                    self.P[t] = v
+                    self.P[t] = v * self.mu if t in LENGTH_PARAMETERS else v
                 elif kind == "l":
                     self.L[target] = v
                 else:
@@ -125,7 +127,14 @@ class ExecuteMixin:
         if ln.comments:
             self._comments(ln)
         self._modes_early(ln, vals, gset, mgroups)
+        diameter = self.diameter
         self._modes_late(ln, vals, groups, gset)
+        if 70 in gset or 80 in gset:
+            self.diameter = 70 in gset
+            self._refresh_offsets()
+            if self.diameter != diameter and "x" in vals:    # LinuxCNC: G7/G8 act on their line's X
+                vals = dict(vals)
+                vals["x"] *= 0.5 if self.diameter else 2.0
         # -- G10 / G28 / G30 / G92 family
         if g0 == 100:
             self._g10(ln, vals)
@@ -205,6 +214,8 @@ class ExecuteMixin:
         """Steps 15-22: plane, G43/G49, coordinate system, path control, distance, retract mode."""
         for g in (170, 180, 190):
             if g in gset:
+                if self.comp_side and g != self.plane:
+                    raise ln.error("cannot change planes with cutter radius compensation on", f"g{g}", "comp")
                 self.plane = g
         for g in (400, 410, 411, 420, 421):
             if g in gset:
@@ -271,6 +282,8 @@ class ExecuteMixin:
         do_move = motion != 800 and (bool(ln.axes) or motion_g in (20, 30))
         if do_move or motion_g is not None:
             self.cycle["il"] = None      # a non-cycle motion ends a series of canned cycles
+            if motion != 50:
+                self.g5_pq = None        # ... and any other than G5 a series of G5 splines
         if not do_move:
             if g0 == 530:
                 raise ln.error("G53 without a G0/G1 move on the line", "g530", "word")
@@ -285,6 +298,8 @@ class ExecuteMixin:
                 raise ln.error("G53 cannot be used in incremental mode G91", "g530", "modal")
         if motion in (20, 30):
             self._arc(ln, vals, motion)
+        elif motion in (50, 51):
+            self._spline(ln, vals, motion)
         elif motion in PROBES:
             self._probe(ln, vals, motion)
         else:

@@ -19,9 +19,14 @@ import re
 
 #: numbered parameters #1 .. #5601 (LinuxCNC's RS274NGC_MAX_PARAMETERS - 1)
 MAX_PARAMETER = 5601
-#: numbered parameters computed from the interpreter state (read-only)
+#: stored lengths (G28/G30 positions, G92 and work offsets X Y Z): kept in mm, read and set by a
+#: program in the machine's length unit (LinuxCNC: the INI file's; see Interpreter machine_units)
+LENGTH_PARAMETERS = frozenset({5161, 5162, 5163, 5181, 5182, 5183, 5211, 5212, 5213}
+                              | {5201 + 20 * k + i for k in range(1, 10) for i in range(3)})
+#: numbered parameters read through the interpreter (computed from its state, or converted)
 SYSTEM_PARAMETERS = frozenset({5061, 5062, 5063, 5064, 5065, 5066, 5067, 5068, 5069, 5070, 5399}
-                              | set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
+                              | set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429))
+                              | LENGTH_PARAMETERS)
 #: parameters a program may not set (LinuxCNC's readonly_parameters)
 READONLY_PARAMETERS = frozenset(set(range(5021, 5030)) | set(range(5400, 5414)) | set(range(5420, 5429)))
 #: read-only predefined named parameters (LinuxCNC names)
@@ -90,6 +95,18 @@ def _xor(a: float, b: float) -> float:
     return 1.0 if ((a != 0.0) != (b != 0.0)) else 0.0
 
 
+def _pix(P, D, v: float) -> float:
+    """The parameter of a computed number (read through the interpreter where it must be)."""
+    n = _ix(v)
+    return D(n) if n in SYSTEM_PARAMETERS else P[n]
+
+
+def _exists(v: float) -> float:
+    """EXISTS of a computed parameter number: 1.0 for an integer in 1..MAX_PARAMETER."""
+    n = int(round(v))
+    return 1.0 if abs(v - n) <= 0.0001 and 1 <= n <= MAX_PARAMETER else 0.0
+
+
 def _ix(v: float) -> int:
     n = int(round(v))
     if abs(v - n) > 0.0001:
@@ -131,7 +148,7 @@ _RAD = math.pi / 180.0
 _ENV = {
     "__builtins__": {},
     "_pw": _pw, "_md": _md, "_eq": _eq, "_ne": _ne, "_and": _and, "_or": _or, "_xor": _xor,
-    "_ix": _ix, "_asin": _asin, "_acos": _acos, "_ln": _ln, "_sqrt": _sqrt, "_round": _round,
+    "_ix": _ix, "_exists": _exists, "_pix": _pix, "_asin": _asin, "_acos": _acos, "_ln": _ln, "_sqrt": _sqrt, "_round": _round,
     "_sin": lambda x: math.sin(x * _RAD), "_cos": lambda x: math.cos(x * _RAD),
     "_tan": lambda x: math.tan(x * _RAD), "_atan": lambda y, x: math.degrees(math.atan2(y, x)),
     "_exp": lambda x: math.exp(x), "_abs": lambda x: abs(x),
@@ -286,7 +303,7 @@ def _read_param(c: _Ctx, i: int):
         if s.startswith(".", m.end()):
             raise _Bad(m.end(), "parameter number is not an integer", "parameter")
         return f"P[{n}]", m.end()
-    if ch == "#" or ch == "[":
+    if ch == "#" or ch == "[" or ch.isalpha():    # #[expr], ##n, #ATAN[1]/[1]: a computed number
         c.depth += 1
         if c.depth > _MAX_DEPTH:
             raise _Bad(i, f"parameter reference nested deeper than {_MAX_DEPTH}", "parameter")
@@ -299,8 +316,8 @@ def _read_param(c: _Ctx, i: int):
             if n != v or n < 1 or n > MAX_PARAMETER:
                 raise _Bad(i, f"parameter number {v:g} is not an integer in 1..{MAX_PARAMETER}",
                            "parameter")
-            return f"P[{n}]", j
-        return f"P[_ix({v})]", j
+            return (f"D({n})" if n in SYSTEM_PARAMETERS else f"P[{n}]"), j
+        return f"_pix(P,D,{v})", j
     raise _Bad(i, f"bad parameter reference '#{ch}'", "parameter")
 
 
@@ -321,8 +338,14 @@ def _read_func(c: _Ctx, name: str, i: int, start: int):
         if m and s.startswith("]", m.end()):     # EXISTS[#n]: numbered parameters 1..5601 exist
             n = _param_number(m.group(), i + 2)
             return (1.0 if 1 <= n <= MAX_PARAMETER else 0.0), m.end() + 1
+        if s.startswith(("##", "#["), i + 1):    # EXISTS[##n], EXISTS[#[expr]]: the computed number
+            v, j = _read_real(c, i + 2)
+            if not s.startswith("]", j):
+                raise _Bad(j, "EXISTS takes one parameter: EXISTS[#...]", "expression")
+            v = c.const(v) if isinstance(v, float) else v
+            return f"_exists({v})", j + 1
         if not s.startswith("#<", i + 1):
-            raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")
+            raise _Bad(i + 1, "EXISTS needs a parameter: EXISTS[#<name>] or EXISTS[#n]", "expression")
         j = s.find(">", i + 3)
         if j < 0 or not s.startswith("]", j + 1):
             raise _Bad(i + 1, "EXISTS needs a named parameter: EXISTS[#<name>]", "expression")

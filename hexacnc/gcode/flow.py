@@ -31,16 +31,26 @@ def oword_indices(text: str, first: int = 0) -> list[int]:
 
 
 class _Frame:
-    __slots__ = ("ret", "L", "saved", "label", "repeat", "line", "autorestore")
+    __slots__ = ("ret", "L", "saved", "label", "repeat", "line", "autorestore", "loops", "start")
 
-    def __init__(self, ret, L, saved, label, line):
+    def __init__(self, ret, L, saved, label, line, loops=None, start=0):
         self.ret = ret
         self.L = L
-        self.saved = saved
+        self.saved = saved           #: #1..#30 of the caller (None for M98: Fanuc parameters are global)
         self.label = label
         self.repeat: dict[int, int] = {}
         self.line = line
         self.autorestore = None
+        self.loops = loops           #: M98 L: passes left (None: an o-word call)
+        self.start = start           #: index of the subprogram's O line (M98)
+
+
+def _label(ln: Line, v: float, letter: str = "o") -> str:
+    """A computed subprogram number (o[...] call, M98 P): an integer, as LinuxCNC reads it."""
+    n = int(round(v))
+    if abs(v - n) > 0.0001 or n < 0:
+        raise ln.error(f"subprogram number {v:g} is not a whole number", letter, "word")
+    return str(n)
 
 
 class FlowMixin:
@@ -50,6 +60,7 @@ class FlowMixin:
         """Match O-word structures (if/while/do/repeat/sub) before running."""
         self.jump: dict[int, object] = {}
         self.subs: dict[str, tuple[int, int]] = {}
+        self.fsubs: dict[str, int] = {}     #: Fanuc-style subprograms: number -> index of its bare O line
         self.do_end: set[int] = set()
         idxs = pre.oword_lines(_O_LINE_ONE) if pre is not None else None
         if idxs is None:
@@ -76,7 +87,9 @@ class FlowMixin:
                     raise err(f"o{label} {kw} does not close {what}")
                 return stack.pop()
 
-            if kw == "sub":
+            if kw == "fanuc":     # the first O-number of a name is the one M98 finds (as LinuxCNC)
+                self.fsubs.setdefault(label, idx)
+            elif kw == "sub":
                 if any(s[0] == "sub" for s in stack):
                     raise err(f"o{label} sub defined inside another subroutine")
                 if label in self.subs:
@@ -136,6 +149,51 @@ class FlowMixin:
             ln = self._line(s[2])
             raise GcodeError(f"o{s[1]} {s[0]} is never closed", s[2] + 1, ln.column("o"), "flow")
 
+    # -- Fanuc-style subprograms: M98 P L, M99 ---------------------------------------------
+    def _return(self, ln: Line) -> int:
+        fr = self.frames[-1]
+        if fr.autorestore is not None:
+            self._restore(ln, fr.autorestore)
+        self.saved_modal.pop(len(self.frames), None)
+        self.frames.pop()
+        self.L = fr.L
+        if fr.saved is not None:
+            self.P[1:31] = fr.saved
+        return fr.ret
+
+    def _fanuc(self, ln: Line, pc: int, kw: str) -> int:
+        """M98 P<number> [L<passes>] calls subprogram O<number> (#1..#30 stay global); M99 returns."""
+        if kw == "m99":
+            if not self.frames:
+                raise ln.error("M99 in the main program (LinuxCNC restarts the program endlessly) is not "
+                               "supported", "m99", "unsupported")
+            fr = self.frames[-1]
+            if fr.loops is None:
+                raise ln.error(f"subroutine o{fr.label} sub must end with o{fr.label} endsub or return, not M99",
+                               "m99", "flow")
+            if fr.loops > 1:
+                fr.loops -= 1
+                fr.repeat.clear()
+                return fr.start + 1
+            return self._return(ln)
+        vals = self._eval(ln)
+        label = _label(ln, vals["p"], "p")
+        loops = vals.get("l", 1.0)
+        if loops != int(loops) or loops < 0:
+            raise ln.error(f"M98 L{loops:g}: the number of passes must be a whole number >= 0", "l", "word")
+        start = self.fsubs.get(label)
+        if start is None:
+            what = (f"O{label} is an o-word subroutine (o{label} sub): call it with o{label} call"
+                    if label in self.subs else f"M98 P{label}: subprogram O{label} is not defined in this program")
+            raise ln.error(what, "p", "flow")
+        if loops == 0:
+            return pc + 1
+        if len(self.frames) >= self.max_depth:
+            raise ln.error(f"subroutine calls nested deeper than {self.max_depth}", "m98", "runaway")
+        self.frames.append(_Frame(pc + 1, self.L, None, label, ln.num, int(loops), start))
+        self.L = {}
+        return start + 1
+
     # -- O-words --------------------------------------------------------------------
     def _ovals(self, ln: Line) -> tuple:
         if ln.fn is None:
@@ -163,18 +221,27 @@ class FlowMixin:
             vals = self._ovals(ln)
             if not self.frames:
                 raise ln.error(f"o{label} {kw} reached outside a subroutine call", "o", "flow")
+            if self.frames[-1].loops is not None:
+                raise ln.error(f"Fanuc-style subprogram O{self.frames[-1].label} (called by M98) must end "
+                               f"with M99, not o{label} {kw}", "o", "flow")
             self.ret_value, self.ret_flag = (vals[0], 1.0) if vals else (0.0, 0.0)
-            fr = self.frames[-1]
-            if fr.autorestore is not None:
-                self._restore(ln, fr.autorestore)
-            self.saved_modal.pop(len(self.frames), None)
-            self.frames.pop()
-            self.L = fr.L
-            self.P[1:31] = fr.saved
-            return fr.ret
+            return self._return(ln)
+        if kw in ("fanuc", "m98", "m99"):
+            if not self.fanuc_subs:
+                what = "a bare O-number" if kw == "fanuc" else kw.upper()
+                raise ln.error(f"Fanuc-style subprograms are disabled (fanuc_subs off), but found {what}",
+                               "o" if kw == "fanuc" else kw, "flow")
+            if kw == "fanuc":    # a bare O-number run into: LinuxCNC goes on into it
+                return pc + 1
+            return self._fanuc(ln, pc, kw)
         if kw == "call":
             vals = self._ovals(ln)
+            if label is None:
+                label, vals = _label(ln, vals[0]), vals[1:]
             sub = self.subs.get(label)
+            if sub is None and label in self.fsubs:
+                raise ln.error(f"O{label} is a Fanuc-style subprogram (ended by M99): call it with M98 P{label}",
+                               "o", "flow")
             if sub is None:
                 sub = self._load_sub_file(ln, label)
             if len(self.frames) >= self.max_depth:

@@ -23,7 +23,8 @@ Modules: :mod:`.expr` (expressions), :mod:`.lexer` (lines and shapes),
 :mod:`.params` (system parameters, comments), :mod:`.execute` (one general
 line in LinuxCNC's order of execution), :mod:`.tooling` (G10, G43, tool
 table), :mod:`.cycles` (canned cycles), :mod:`.iocmds` (probe, I/O, M70-M73),
-:mod:`.subfiles` (subroutine files), :mod:`.comp` (cutter compensation), :mod:`.stream`
+:mod:`.subfiles` (subroutine files), :mod:`.comp` (cutter compensation), :mod:`.splines`
+(G5/G5.1), :mod:`.stream`
 (``iter_blocks``), :mod:`.state` (parameters and tool table), this one (state and the run loop).
 """
 from __future__ import annotations
@@ -36,7 +37,7 @@ import numpy as np
 
 from ..errors import GcodeError
 from . import blocks as B
-from .blocks import Block
+from .blocks import Block, frozen_pose
 from .comp import CompMixin
 from .cycles import CycleMixin
 from .execute import ExecuteMixin
@@ -47,6 +48,7 @@ from .lexer import Line, Presplit, parse_line
 from .motion import _LINE, _RAPID, MotionMixin
 from .params import ParamMixin
 from .state import MachineState, ToolEntry, tool_entries
+from .splines import SplineMixin
 from .subfiles import SubfileMixin
 from .tooling import ToolingMixin
 
@@ -94,7 +96,7 @@ def _six(v, what: str) -> list[float]:
 
 
 class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin, CycleMixin, IoMixin,
-                  SubfileMixin, CompMixin):
+                  SubfileMixin, CompMixin, SplineMixin):
     """Interpret one program text; :meth:`run` returns the :class:`Program`."""
 
     system_numbers = SYSTEM_PARAMETERS
@@ -105,7 +107,8 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
                  block_delete: bool = True, max_lines: int = 20_000_000,
                  max_blocks: int = 20_000_000, max_call_depth: int = 64, g28_pose=None, g30_pose=None,
                  noop_m_codes=(), initial_state: MachineState | None = None, subroutine_path=(),
-                 require_end: bool = False, lines=None):
+                 require_end: bool = False, lines=None, fanuc_subs: bool = True,
+                 machine_units: str = "mm"):
         if lines is None:
             if not isinstance(text, str):
                 raise GcodeError(f"program text must be str, got {type(text).__name__}", None, None, "syntax")
@@ -120,6 +123,9 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
             raise GcodeError(f"units_default must be 'mm' or 'inch', got {units_default!r}",
                              None, None, "value")
         self.u = 25.4 if units_default == "inch" else 1.0
+        if machine_units not in ("mm", "inch"):
+            raise GcodeError(f"machine_units must be 'mm' or 'inch', got {machine_units!r}", None, None, "value")
+        self.mu = 25.4 if machine_units == "inch" else 1.0   # unit of stored lengths as a program sees them
         self.scale = [self.u] * 3 + [1.0] * 3
         self.pos = [0.0] * 6 if start_pose is None else _six(start_pose, "start_pose")
         if start_pose is not None and len(list(start_pose)) != 6:
@@ -137,6 +143,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.max_blocks = int(max_blocks)
         self.max_depth = int(max_call_depth)
         self.require_end = bool(require_end)
+        self.fanuc_subs = bool(fanuc_subs)
         self.sub_path = [str(p) for p in subroutine_path]
         self.segments: list[tuple[int, str]] = []   #: (first line index, file) of loaded subroutine files
         self.P = [0.0] * (MAX_PARAMETER + 1)
@@ -144,6 +151,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.comp_q = None
         self.comp_first = True
         self.comp_arc_not_allowed = False
+        self.diameter = False          # G7 lathe diameter mode: X words are diameters
         self.G: dict[str, float] = {}
         self.L: dict[str, float] = {}
         self._init_state(initial_state, tool_table, work_offsets, g28_pose, g30_pose)
@@ -209,6 +217,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         self.exact_stop = False
         self.blend = None
         self.retract_r = False     # G98 (old Z) by default
+        self.g5_pq = None          # P, Q of the last G5 of a series (mm): the next may omit I, J
         self.cycle = {"il": None, "r": 0.0, "cc": 0.0, "p": 0.0, "q": 0.0}
         self.blocks: list[Block] = []
         self.messages: list[tuple[int, str]] = []
@@ -404,8 +413,7 @@ class Interpreter(FlowMixin, MotionMixin, ParamMixin, ExecuteMixin, ToolingMixin
         start = self.pos_arr
         if start is None:
             start = self._start_arr()
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         if self.motion == 0:
             b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
                       self.tool_len, 0.0, 0.0, "off", self.tool)
@@ -440,7 +448,8 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
                   tool_table=None, units_default: str = "mm", tool_axis_platform=(0.0, 0.0, 1.0),
                   block_delete: bool = True, max_lines: int = 20_000_000, g28_pose=None,
                   g30_pose=None, noop_m_codes=(), initial_state: MachineState | None = None,
-                  subroutine_path=(), require_end: bool = False) -> Program:
+                  subroutine_path=(), require_end: bool = False, fanuc_subs: bool = True,
+                  machine_units: str = "mm") -> Program:
     """Interpret a whole RS274NGC program.
 
     ``start_pose``: (6,) tool-tip pose in the machine frame at the start (mm, deg;
@@ -458,13 +467,19 @@ def parse_program(text: str, name: str = "<program>", *, start_pose=None, work_o
     accepted as no-ops, each occurrence noted in ``Program.messages``.
     ``subroutine_path``: directories searched for ``<name>.ngc`` on ``o<name> call``.
     ``require_end``: refuse a program that runs off its end without M2/M30/% (LinuxCNC).
+    ``fanuc_subs``: Fanuc-style subprograms (M98 P L, M99, bare O-numbers); False refuses
+    them as LinuxCNC's ``DISABLE_FANUC_STYLE_SUB``.  ``machine_units``: the unit in which a
+    program reads and sets stored lengths (#5161.., #5181.., #5211.., work offsets #5221..: LinuxCNC's
+    INI units; "mm" for a hexacnc machine, "inch" as LinuxCNC's standalone rs274); the
+    ``initial_state`` and ``final_state`` keep them in mm.
     Raises GcodeError.
     """
     it = Interpreter(text, name, start_pose=start_pose, work_offsets=work_offsets,
                      tool_table=tool_table, units_default=units_default,
                      tool_axis_platform=tool_axis_platform, block_delete=block_delete,
                      max_lines=max_lines, g28_pose=g28_pose, g30_pose=g30_pose, noop_m_codes=noop_m_codes,
-                     initial_state=initial_state, subroutine_path=subroutine_path, require_end=require_end)
+                     initial_state=initial_state, subroutine_path=subroutine_path, require_end=require_end,
+                     fanuc_subs=fanuc_subs, machine_units=machine_units)
     # the interpreter builds no reference cycles: keep the cyclic collector out of the loop
     was_enabled = gc.isenabled()
     gc.disable()

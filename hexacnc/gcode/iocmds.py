@@ -34,6 +34,13 @@ class IoMixin:
         if end[3:] != self.pos[3:]:
             raise ln.error(f"{code}: rotary axes cannot move during probing", ln.axes[-1][1], "word")
         if end == self.pos:
+            if 5061 in self.runtime_pending:     # the start is where an earlier probe tripped: run time only
+                raise ln.error(f"{code} from the end of an earlier probe: where that probe stops is only "
+                               "known while the machine runs (hexacnc interprets before any motion)",
+                               f"g{motion}", "unsupported")
+            if motion in (383, 385):     # LinuxCNC: G38.3/G38.5 may start at their target (no move)
+                self.runtime_pending.update(range(5061, 5071))
+                return
             raise ln.error(f"{code}: the probe target is the current point (zero-length probe move)",
                            f"g{motion}", "word")
         b = Block(B.PROBE, ln.num, self._start_arr(), None, self.feed * self.u / 60.0,

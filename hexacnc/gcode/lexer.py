@@ -331,7 +331,7 @@ def _make_shape(shape: str, nnum: int):
     # a Line subclass whose class attributes hold what all lines of the shape share
     shared = {"gs": tpl.gs, "ms": tpl.ms, "dyn": tpl.dyn, "fn": staticmethod(tpl.fn) if tpl.fn else None,
               "assigns": tpl.assigns,
-              "oword": None, "cols": None, "axes": tpl.axes, "empty": False, "gmot": tpl.gmot,
+              "oword": tpl.oword, "cols": None, "axes": tpl.axes, "empty": False, "gmot": tpl.gmot,
               "srcs": tpl.srcs, "arcok": tpl.arcok, "__slots__": ()}
     shared["plain"] = tpl.plain
     shared["delete"] = tpl.delete
@@ -426,6 +426,8 @@ def _parse(ln: Line, s: str) -> None:
         ln.k = tuple(c.k)
         ln.fn = compile_template("(" + ",".join(srcs) + ",)")
         ln.srcs = tuple(srcs)
+    if ln.ms and (98 in ln.ms or 99 in ln.ms):
+        _fanuc_m(ln, seen)
     ln.axes = tuple((_AXIS_INDEX[a], a) for a in "xyzabc" if a in seen)
     simple = (not ln.ms and not ln.assigns and not ln.delete
               and all(a in "xyzabcf" for a in seen) and all(len(d) == 1 for d in ln.dyn))
@@ -435,6 +437,18 @@ def _parse(ln: Line, s: str) -> None:
     if simple and len(ln.gs) == 1 and ln.gs[0] in (0, 10):
         ln.gmot = ln.gs[0]
     return c
+
+
+def _fanuc_m(ln: Line, seen: set) -> None:
+    """M98 P<sub> [L<count>] / M99: Fanuc-style subprogram call and return, alone on their line."""
+    m = 98 if 98 in ln.ms else 99
+    allowed = {"p", "l"} if m == 98 else set()
+    if len(ln.ms) != 1 or ln.gs or ln.assigns or (seen - allowed):
+        raise _Bad(ln.cols.get(f"m{m}", 0), f"M{m} must stand alone on its line"
+                   + (" (with its P and L words)" if m == 98 else ""), "word")
+    if m == 98 and "p" not in seen:
+        raise _Bad(ln.cols.get("m98", 0), "M98 needs a P word (the subprogram number)", "word")
+    ln.oword = (f"m{m}", "", 0)
 
 
 def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
@@ -466,7 +480,7 @@ def _parse_assign(ln: Line, c: _Ctx, i: int, srcs: list[str]) -> int:
             raise _Bad(j, f"parameter #{target} is read-only", "parameter")
         kind = "n"
         j = m.end()
-    elif ch == "#" or ch == "[":
+    elif ch == "#" or ch == "[" or ch.isalpha():     # #[expr] = , ##n = , #ATAN[1]/[1] =
         v, j = _read_real(c, j)
         if isinstance(v, float):
             v = c.const(v)
@@ -499,19 +513,31 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         j = k + 1
     else:
         m = _DIGITS.match(s, j)
-        if not m and j < len(s) and s[j] in "#[":
-            raise _Bad(j, "computed O-word labels (o#<name>, o[...]) are not supported", "unsupported")
-        if not m:
+        c = _Ctx(s)
+        srcs: list[str] = []
+        if not m and j < len(s) and s[j] in "#[":     # o#<name> call, o[expr] call: the label computed
+            v, j = _read_real(c, j)
+            if not s.startswith("call", j):
+                raise _Bad(j, "computed O-word labels are supported with 'call' only", "unsupported")
+            srcs.append(c.const(v) if isinstance(v, float) else v)
+            label = None
+        elif not m:
             raise _Bad(j, "O word needs a number or <name>")
-        label = m.group().lstrip("0") or "0"
-        j = m.end()
+        else:
+            label = m.group().lstrip("0") or "0"
+            j = m.end()
+    if j == len(s):      # a bare O-number: Fanuc-style program number / subprogram start (M98 ... M99)
+        ln.oword = ("fanuc", label, 0)
+        ln.cols["o"] = i
+        return
     m = _OWORD.match(s, j)
     if not m:
         raise _Bad(j, f"unknown O-word keyword at {s[j:j + 10]!r}", "unsupported")
     kw = m.group()
     j = m.end()
-    c = _Ctx(s)
-    srcs: list[str] = []
+    if label is not None:
+        c = _Ctx(s)
+        srcs = []
     while j < len(s):
         if kw not in ("if", "elseif", "while", "repeat", "return", "endsub", "call"):
             raise _Bad(j, f"nothing may follow O-word {kw!r}", "syntax")
@@ -521,7 +547,7 @@ def _parse_oword(ln: Line, s: str, i: int) -> None:
         srcs.append(c.const(v) if isinstance(v, float) else v)
     if kw in ("if", "elseif", "while", "repeat") and not srcs:
         raise _Bad(j, f"O-word {kw!r} needs a condition value", "syntax")
-    if kw == "call" and len(srcs) > 30:
+    if kw == "call" and len(srcs) > 30 + (label is None):
         raise _Bad(j, "at most 30 call arguments (#1..#30)", "syntax")
     if srcs:
         ln.k = tuple(c.k)

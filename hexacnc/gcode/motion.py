@@ -13,7 +13,7 @@ import numpy as np
 
 from ..pose import rotation_elements
 from . import blocks as B
-from .blocks import Block
+from .blocks import Block, frozen_pose
 from .lexer import Line
 
 #: LinuxCNC CENTER_ARC_RADIUS_TOLERANCE (inch, mm) in mm
@@ -40,7 +40,7 @@ class MotionMixin:
         self.o5x = [P[base + i] for i in range(6)]
         self.off = [self.o5x[i] + self.g92[i] for i in range(6)]
         self.rot_deg = P[base + 9]
-        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed
+        self.slow = self.rot_deg != 0.0 or bool(self.comp_side) or self.comp_arc_not_allowed or self.diameter
         r = math.radians(self.rot_deg)
         self.rot_cs = (math.cos(r), math.sin(r))
 
@@ -112,8 +112,7 @@ class MotionMixin:
     def _rapid_to(self, ln: Line, end: list[float]) -> None:
         if end == self.pos:
             return
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         self.blocks.append(Block(_RAPID, ln.num, self._start_arr(), e, None, None, None, None, 0, False,
                                  self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool))
         self.pos = list(end)
@@ -124,8 +123,7 @@ class MotionMixin:
         if end == self.pos:
             return
         fm, inv = self._feed_of(ln, {}, 10)
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         self.blocks.append(Block(_LINE, ln.num, self._start_arr(), e, fm, inv, None, None, 0, False,
                                  self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool))
         self.pos = list(end)
@@ -163,8 +161,7 @@ class MotionMixin:
     def _start_arr(self) -> np.ndarray:
         a = self.pos_arr
         if a is None:
-            a = np.array(self.pos)
-            a.flags.writeable = False
+            a = frozen_pose(self.pos)
             self.pos_arr = a
         return a
 
@@ -198,8 +195,7 @@ class MotionMixin:
         if end == pos:
             return
         start = self._start_arr()
-        e = np.array(end)
-        e.flags.writeable = False
+        e = frozen_pose(end)
         if motion == 0:
             b = Block(_RAPID, ln.num, start, e, None, None, None, None, 0, False, self.exact_stop, self.blend,
                       self.tool_len, 0.0, 0.0, "off", self.tool)
@@ -261,8 +257,7 @@ class MotionMixin:
         end_m = self._to_machine(end)
         if turns == 0 and end_m == self.pos and "r" in vals:
             raise ln.error("R-format arc with start equal to end (use I/J/K for full circles)", "r", "arc")
-        e = np.array(end_m)
-        e.flags.writeable = False
+        e = frozen_pose(end_m)
         b = Block(_ARC, ln.num, self._start_arr(), e, fm, inv, np.array(center), np.array(normal),
                   turns, cw, self.exact_stop, self.blend, self.tool_len, 0.0, 0.0, "off", self.tool)
         self.blocks.append(b)

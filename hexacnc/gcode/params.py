@@ -9,11 +9,11 @@ from __future__ import annotations
 import re
 
 from ..errors import GcodeError
-from .expr import PREDEFINED, ExprError, compile_template
+from .expr import LENGTH_PARAMETERS, PREDEFINED, ExprError, compile_template
 from .lexer import Line
 
 _HOT = re.compile(r"\s*(msg|debug|print|abort|logopen|logappend|logclose|log)\s*,?", re.IGNORECASE)
-_SUBST = re.compile(r"#(\d+)|#<([^>]+)>")
+_SUBST = re.compile(r"#(\d+)|#<([^>]+)>|%(d|f|\.\d+f|\.)?")
 _INI = re.compile(r"#\s*<\s*_ini\s*\[", re.IGNORECASE)
 _RUNTIME = {5061: "G38 probe result", 5062: "G38 probe result", 5063: "G38 probe result",
             5064: "G38 probe result", 5065: "G38 probe result", 5066: "G38 probe result",
@@ -37,6 +37,9 @@ class ParamMixin:
                 if not -1e300 < v < 1e300:
                     raise ln.error(f"value {v!r} is not a finite number", key, "expression")
                 vals[key] = v
+        if self.diameter and "x" in vals:      # G7: X words are diameters (LinuxCNC halves them when read)
+            vals = dict(vals)
+            vals["x"] *= 0.5
         return vals
 
     def _expr_error(self, ln: Line, exc: Exception) -> GcodeError:
@@ -90,6 +93,8 @@ class ParamMixin:
                 return float(self.tool)
             if 5401 <= key <= 5413:
                 return self._tool_param(key)
+            if key in LENGTH_PARAMETERS:
+                return self.P[key] / self.mu
             if key in _RUNTIME:
                 if key in self.runtime_pending:
                     raise GcodeError(f"#{key} ({_RUNTIME[key]}) is only known while the machine runs: "
@@ -119,8 +124,8 @@ class ParamMixin:
             "_coord_system": [0, 540, 550, 560, 570, 580, 590, 591, 592, 593][self.cs],
             "_tool_offset": self.tool_len != 0.0, "_retract_r_plane": self.retract_r,
             "_retract_old_z": not self.retract_r, "_control_mode": 0 if self.exact_stop else 2,
-            "_spindle_rpm_mode": 1, "_spindle_css_mode": 0, "_lathe_diameter_mode": 0,
-            "_lathe_radius_mode": 1, "_spindle_on": self.spindle_dir != 0,
+            "_spindle_rpm_mode": 1, "_spindle_css_mode": 0, "_lathe_diameter_mode": self.diameter,
+            "_lathe_radius_mode": not self.diameter, "_spindle_on": self.spindle_dir != 0,
             "_spindle_cw": self.spindle_dir > 0, "_flood": self.flood, "_mist": self.mist,
             "_speed_override": 1, "_feed_override": 1, "_adaptive_feed": 0, "_feed_hold": 0,
             "_task": 0, "_call_level": len(self.frames), "_remap_level": 0,
@@ -144,6 +149,7 @@ class ParamMixin:
                 if _INI.search(text):
                     raise GcodeError("#<_ini[...]> INI-file parameters are not supported (no INI file here)",
                                      ln.num, 1, "unsupported")
+                self._fmt = "%f"      # LinuxCNC's %lf until a %d / %f / %.Nf in the comment
                 text = _SUBST.sub(self._subst, text)
             if kind == "abort":
                 raise GcodeError(text.strip() or "program aborted", ln.num, 1, "abort")
@@ -154,6 +160,19 @@ class ParamMixin:
                 self.messages.append((ln.num, text.strip()))
 
     def _subst(self, m) -> str:
+        if m.group(0)[0] == "%":       # LinuxCNC's format prefixes: %d, %f (4 decimals), %.Nf (one digit N)
+            f = m.group(3)
+            if f is None:
+                return "%"
+            if f == "d":
+                self._fmt = "%.0f"
+            elif f == "f":
+                self._fmt = "%.4f"
+            elif len(f) == 3:
+                self._fmt = "%" + f
+            else:                       # '%.' not followed by one digit and 'f': the '%' is dropped
+                return f if f == "." else f[:-1] + "f"
+            return ""
         try:
             if m.group(1):
                 n = int(m.group(1))
@@ -161,6 +180,6 @@ class ParamMixin:
             else:
                 name = m.group(2).lower().replace(" ", "")
                 v = self._sys(name) if name in PREDEFINED else (self.G if name[0] == "_" else self.L)[name]
-            return f"{v:.6f}" if abs(v) >= 5e-7 else "0.000000"     # no "-0.000000" from rounding noise
+            return self._fmt % (v if abs(v) >= 1e-6 else 0.0)    # as LinuxCNC: |v| < 1e-6 prints as 0
         except (KeyError, IndexError, ValueError):
             return "######"

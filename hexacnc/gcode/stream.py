@@ -173,7 +173,7 @@ class BlockStream:
         try:
             it.percent_start = None
             it.stop_at = it._find_end()
-            it.jump, it.subs, it.do_end = {}, {}, set()
+            it.jump, it.subs, it.do_end, it.fsubs = {}, {}, set(), {}
             it._match(sorted(it.lines.owords), it.main_n if it.stop_at is None else it.stop_at)
             reason, end_line, executed = it._loop(it.lines.parsed_line,
                                                   lambda blocks: self._put(list(blocks)))

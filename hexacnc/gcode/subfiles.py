@@ -56,11 +56,14 @@ class SubfileMixin:
         self.segments.append((start, str(f)))
         self.lines.extend(lines)
         self.parsed.extend([None] * len(lines))
+        before = set(self.subs)
         try:
             self._match(oword_indices(text, start), start + len(lines))
         except GcodeError as exc:
             raise self._in_file(exc, None, str(f)) from None
         sub = self.subs.get(label)
+        for other in set(self.subs) - before - {label}:   # as LinuxCNC: only the named subroutine of a
+            del self.subs[other]                          # file is known (its other subs are not)
         if sub is None:
             raise ln.error(f"subroutine file {f} does not define o<{label}> sub", "o", "flow")
         return sub
