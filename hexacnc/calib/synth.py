@@ -109,11 +109,11 @@ def _readings(effects, params, ctx_fn, X, base, plat, off, session, n_iter: int 
         dl = sum((_effect_lengths(e, p, ctx, X, base, plat) for e, p in smooth), np.zeros_like(q))
         q = L - off - dl
         if half is not None:
-            q = _backlash_readings(q, half, session)
+            q = backlash_readings(q, half, session)
     return q
 
 
-def _backlash_readings(p: np.ndarray, half: np.ndarray, session) -> np.ndarray:
+def backlash_readings(p: np.ndarray, half: np.ndarray, session) -> np.ndarray:
     """Motor readings q (N,6) that put the struts at the lengths whose backlash-free readings are ``p``.
 
     ``L = o + q + h * dir`` with ``h <= 0`` (the output lags the motor by the
