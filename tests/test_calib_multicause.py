@@ -73,7 +73,9 @@ def test_per_strut_compliance_is_chosen_over_the_common_one(cfg):
     fit = np.array([c["parameters"][f"compliance{i}_mm_per_kN"] for i in range(1, 7)])
     sd = np.array([c["parameter_std"][f"compliance{i}_mm_per_kN"] for i in range(1, 7)])
     z = (fit - true) / sd
-    assert float(np.sqrt(np.mean(z ** 2))) < 3.0, (msg, z)        # errors consistent with the std errors
+    # errors consistent with the standard errors: RMS z of the 6 compliances below the chi^2(6) 99.9 % point
+    # (1.93; issue 17's 1.5 is exceeded by chance in 3.6 % of runs; sweep of 30 seeds: 29 within 1.5, worst 1.83)
+    assert float(np.sqrt(np.mean(z ** 2))) < 2.0, (msg, z)
     assert int(np.argmax(np.abs(true - np.median(true)))) == int(np.argmax(np.abs(fit - np.median(fit)))), msg
     assert r["extended"]["rms_holdout"]["position_mm"] <= 1.5 * floor_mm(s, "xyzabc"), msg
 
