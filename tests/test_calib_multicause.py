@@ -40,12 +40,6 @@ def run(cfg, effects, seed, measured="xyzabc", n_fit=100, n_hold=50):
     return s, d.result
 
 
-#: pairs whose held-out RMS the bench measured above 1.5 x the noise floor (named exactly all the same):
-#: backlash with session offsets (the held-out rows change session every row, each restarting the
-#: approach direction) and joint offsets with per-strut thermal growth; see docs/calibration.md
-SHORTFALL = {("backlash", "session_offset"): 2.5, ("joint_offset", "thermal_expansion_per_strut"): 2.5}
-
-
 def test_a_pair_of_causes_is_named_with_own_gains(cfg):
     import itertools
 
@@ -59,10 +53,7 @@ def test_a_pair_of_causes_is_named_with_own_gains(cfg):
     msg = f"hidden {effects} ({measured}) seed {seed}: verdict {r['verdict']}"
     assert labels(r) == sorted(effects), msg
     assert "none" not in r["verdict"] and not r["inseparable_causes"], msg
-    limit = SHORTFALL.get(tuple(sorted(effects)), 1.5)
-    if "backlash" in effects:   # seed-dependent shortfall: a fit row whose generated approach direction is
-        limit = max(limit, 4.0)  # inconsistent (reported in suspicious_rows) biases the fit (seed 1130407775: 3.4)
-    assert r["extended"]["rms_holdout"]["position_mm"] <= limit * floor_mm(s, measured), msg
+    assert r["extended"]["rms_holdout"]["position_mm"] <= 1.5 * floor_mm(s, measured), msg
     for c in r["causes"]:   # each cause earns its place next to the other, on the held-out set too
         ev = c["evidence"]
         assert ev["cv_gain_in_presence_of_others"] > 1.03 and ev["holdout_gain"] > 1.1, (msg, c["name"], ev)
@@ -82,7 +73,9 @@ def test_per_strut_compliance_is_chosen_over_the_common_one(cfg):
     fit = np.array([c["parameters"][f"compliance{i}_mm_per_kN"] for i in range(1, 7)])
     sd = np.array([c["parameter_std"][f"compliance{i}_mm_per_kN"] for i in range(1, 7)])
     z = (fit - true) / sd
-    assert float(np.sqrt(np.mean(z ** 2))) < 3.0, (msg, z)        # errors consistent with the std errors
+    # errors consistent with the standard errors: RMS z of the 6 compliances below the chi^2(6) 99.9 % point
+    # (1.93; issue 17's 1.5 is exceeded by chance in 3.6 % of runs; sweep of 30 seeds: 29 within 1.5, worst 1.83)
+    assert float(np.sqrt(np.mean(z ** 2))) < 2.0, (msg, z)
     assert int(np.argmax(np.abs(true - np.median(true)))) == int(np.argmax(np.abs(fit - np.median(fit)))), msg
     assert r["extended"]["rms_holdout"]["position_mm"] <= 1.5 * floor_mm(s, "xyzabc"), msg
 
@@ -102,10 +95,7 @@ def test_positions_only_names_a_separable_cause(cfg):
     msg = f"hidden {effect} seed {seed}: verdict {r['verdict']}"
     assert labels(r) == [effect] and not r["inseparable_causes"], msg
     assert r["extended"]["rms_holdout"]["orientation_deg"] is None
-    # issue 17 asks <= 1.5x the floor; with positions only it is not met for every seed (seed 1851698811,
-    # joint_offset: 1.60x; hexacnc bench diagnose --data xyz: 42 of 44 scenarios within 1.5x, worst 2.27x),
-    # so this test holds what is achieved and the bench reports the target
-    assert r["extended"]["rms_holdout"]["position_mm"] <= 2.5 * floor_mm(s, "xyz"), msg
+    assert r["extended"]["rms_holdout"]["position_mm"] <= 1.5 * floor_mm(s, "xyz"), msg
 
 
 def test_an_inseparable_cause_is_not_named(cfg):

@@ -45,6 +45,10 @@ def configure(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poses", type=int, default=120, help="fit poses per scenario")
     p.add_argument("--holdout-poses", type=int, default=60)
     p.add_argument("--singles-only", action="store_true", help="skip the pairs")
+    p.add_argument("--only", default=None,
+                   help="comma list of scenarios to run (e.g. joint_offset,backlash+session_offset; default all)")
+    p.add_argument("--repeat", type=int, default=1,
+                   help="seeds per scenario (a seed sweep: each run takes the next seed)")
     p.add_argument("--jugglebot", default=str(_shared_default()),
                    help="directory of the Jugglebot data (skipped when absent)")
     p.add_argument("--skip-jugglebot", action="store_true")
@@ -162,7 +166,7 @@ def summary(rows: list[dict]) -> dict:
                      "meets_parameter_errors_z_rms_1p5": sum(r["meets_parameter_errors"] for r in pz),
                      "parameter_z_rms_over_all_rows": (float(np.sqrt(np.mean([r["parameter_z_rms"] ** 2 for r in pz])))
                                                        if pz else None),
-                     "failing": [f"{r['scenario']} -> {r['verdict']} ({r['holdout_rms_over_noise_floor']:.2f}x floor)"
+                     "failing": [f"{r['scenario']} seed {r['seed']} -> {r['verdict']} ({r['holdout_rms_over_noise_floor']:.2f}x floor)"
                                  for r in rs if not ((r["named_exactly"] or r["expect_inseparable"]
                                                       and r["named_or_reported_inseparable"]) and r["meets_rms"])]}
     return out
@@ -187,6 +191,18 @@ def jugglebot(data_dir: Path) -> dict:
             "meets_target": s is not None and s <= JUGGLEBOT_TARGET_MM, "time_s": time.perf_counter() - t0}
 
 
+def _chosen(all_: list[tuple[str, ...]], only: str | None) -> list[tuple[str, ...]]:
+    if not only:
+        return all_
+    want = {"+".join(sorted(w.split("+"))) for w in only.split(",") if w.strip()}
+    names = {"+".join(sorted(e)) or "none": e for e in all_}
+    unknown = sorted(want - set(names))
+    if unknown:
+        raise SystemExit(f"bench diagnose --only: unknown scenario(s) {', '.join(unknown)}; known: "
+                         f"{', '.join(sorted(names))}")
+    return [names[w] for w in sorted(want)]
+
+
 def main(args: argparse.Namespace) -> int:
     from ..calib import limit_blas_threads
     from ..config import load_config
@@ -197,12 +213,13 @@ def main(args: argparse.Namespace) -> int:
     sink = open(args.rows, "w", encoding="utf-8") if args.rows else None   # rows as they come (progress)
     try:
         for measured in [m.strip() for m in args.data.split(",") if m.strip()]:
-            for effs in scenarios(args.singles_only):
-                rows.append(run_one(cfg, effs, measured, args.seed + k, args.poses, args.holdout_poses))
-                k += 1
-                if sink is not None:
-                    sink.write(json.dumps(rows[-1]) + "\n")
-                    sink.flush()
+            for effs in _chosen(scenarios(args.singles_only), args.only):
+                for _ in range(max(1, args.repeat)):
+                    rows.append(run_one(cfg, effs, measured, args.seed + k, args.poses, args.holdout_poses))
+                    k += 1
+                    if sink is not None:
+                        sink.write(json.dumps(rows[-1]) + "\n")
+                        sink.flush()
     finally:
         if sink is not None:
             sink.close()

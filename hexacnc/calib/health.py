@@ -21,6 +21,7 @@ computed from the commanded pose with the payload the model assumes.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -140,6 +141,8 @@ def _payload_part(rec, hx, cfg, model, assumed, reference, windows) -> tuple[dic
         if len(rw) >= 4 and reference.available("torque_permille"):
             tare = (np.array([reference["pose_cmd"][w].mean(axis=0) for w in rw]),
                     np.array([reference["torque_permille"][w].mean(axis=0) for w in rw]))
+    # each rest's torque is a window mean: its noise averages over the window, its static friction does not
+    model = dataclasses.replace(model, rest_samples=max(1, int(min(len(w) for w in windows))))
     res = identify_payload(hx, P, T, model, fit_offsets=tare is not None, tare=tare)
     out = {"available": True, "rest_poses": res.rest_poses, "tare_rest_poses": 0 if tare is None else len(tare[0]),
            "mass_kg": res.mass_kg, "mass_std_kg": res.mass_std_kg, "assumed_kg": assumed,

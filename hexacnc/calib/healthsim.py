@@ -3,7 +3,7 @@
 Moves between random poses (smooth rest-to-rest, then a rest), sampled at
 ``rate_hz``.  The drives see the static strut forces of the carrier and the
 *true* payload (:func:`hexacnc.sag.strut_forces_N`), Coulomb and viscous
-friction, the torque noise model of :class:`~hexacnc.calib.payload.DriveTorqueModel`;
+friction (at rest: a static friction held for the whole rest), the torque noise model of :class:`~hexacnc.calib.payload.DriveTorqueModel`;
 the following error carries the friction through the servo stiffness and the
 unmodelled compliance of each strut (``f_i * extra_compliance_i``).  Strut
 temperatures ramp by ``temperature_rise_K``; the cycle applies the thermal
@@ -37,8 +37,12 @@ class Drift:
     viscous_N_s_per_mm: float = 0.5
 
 
-def _profile(n_moves: int, move_s: float, rest_s: float, rate_hz: float, rng, cfg):
-    P = sample_poses(cfg, rng, n_moves + 1, shrink=0.8)
+def _profile(n_moves: int, move_s: float, rest_s: float, rate_hz: float, rng, cfg, rest_poses=None):
+    if rest_poses is None:
+        P = sample_poses(cfg, rng, n_moves + 1, shrink=0.8)
+    else:
+        P = np.vstack([np.asarray(cfg.home_pose, dtype=float)[None], np.asarray(rest_poses, dtype=float)])
+        n_moves = len(P) - 1
     segs = []
     for k in range(n_moves):
         tm = np.arange(0.0, move_s, 1.0 / rate_hz) / move_s
@@ -49,10 +53,11 @@ def _profile(n_moves: int, move_s: float, rest_s: float, rate_hz: float, rng, cf
 
 
 def simulate(cfg, seed: int, drift: Drift, n_moves: int = 40, move_s: float = 0.8, rest_s: float = 0.6,
-             rate_hz: float = 100.0) -> Recording:
+             rate_hz: float = 100.0, rest_poses=None) -> Recording:
+    """``rest_poses`` (mm/deg): the poses to stop at, in order, from home (default: ``n_moves`` random ones)."""
     rng = np.random.default_rng(seed)
     hx = Hexapod(cfg)
-    poses = _profile(n_moves, move_s, rest_s, rate_hz, rng, cfg)
+    poses = _profile(n_moves, move_s, rest_s, rate_hz, rng, cfg, rest_poses)
     n = len(poses)
     L = hx.inverse_batch(poses)
     v = np.gradient(L, 1.0 / rate_hz, axis=0)
@@ -60,7 +65,9 @@ def simulate(cfg, seed: int, drift: Drift, n_moves: int = 40, move_s: float = 0.
     tm = drift.torque
     moving = np.abs(v) > 1e-3
     fr = np.asarray(drift.friction_N, dtype=float)[None]
-    stat = rng.uniform(-tm.friction_N, tm.friction_N, (n, 6))
+    # static friction at rest: one value per strut and rest, held until the strut moves again
+    rest_no = np.cumsum(np.vstack([np.zeros((1, 6), dtype=bool), moving[:-1] & ~moving[1:]]), axis=0)
+    stat = np.take_along_axis(rng.uniform(-tm.friction_N, tm.friction_N, (int(rest_no.max()) + 1, 6)), rest_no, 0)
     fric = np.where(moving, fr * np.sign(v) + drift.viscous_N_s_per_mm * v, stat)
     off = np.asarray(drift.torque_offsets_permille, dtype=float)
     torque = (f + fric) / tm.force_N_per_permille + off[None] + rng.normal(0.0, tm.noise_permille, (n, 6))

@@ -150,6 +150,9 @@ class CauseModel:
     x_dependent: bool
     description: str
     build: object = field(repr=False, default=None)   # (ctx, X rad) -> (N,6,k)
+    #: optional exact (nonlinear) form: (ctx, X, base, plat, theta_c) -> (length change (N,6), d/dtheta_c (N,6,k));
+    #: ``build`` is its linearisation at theta_c = 0 (identifiability, planning, uncertainty)
+    exact: object = field(repr=False, default=None)
 
 
 class Context:
@@ -296,19 +299,31 @@ def cause_model(name: str, ctx: Context) -> CauseModel:
                           so)
     if name == "joint_offset":
         def jo(c, X, b, p):
-            R, rp, s, L = strut_geometry(b, p, X)
-            u = s / L[..., None]
-            ua = np.einsum("nki,ki->nk", u, c.joint_axis1)
-            ap = np.einsum("nij,kj->nki", R, c.joint_axis1_platform)
-            up = np.einsum("nki,nki->nk", u, ap)
-            return np.concatenate([_diag(-np.sqrt(np.clip(1.0 - ua * ua, 0.0, 1.0))),
-                                   _diag(-np.sqrt(np.clip(1.0 - up * up, 0.0, 1.0)))], axis=2)
+            return _joint_offset(c, X, b, p, None)[1]
         return CauseModel(name, [f"base_joint_offset{i + 1}_mm" for i in range(6)]
                           + [f"platform_joint_offset{i + 1}_mm" for i in range(6)], "mm", 1.0, True,
                           "universal joints whose two axes do not meet: the strut pivot sits d_i off the "
-                          "joint's first axis a_i (base and platform side), L -= d_i * sqrt(1 - (u_i . a_i)^2)",
-                          jo)
+                          "joint's first axis a_i (base and platform side), L -= d_i * sqrt(1 - (u_i . a_i)^2) "
+                          "to first order (fitted exactly: the drive spans the two pivots)",
+                          jo, exact=_joint_offset)
     raise DataError(f"unknown cause {name!r}; known: {', '.join(CAUSES + tuple(VARIANTS.values()))}")
+
+
+def _joint_offset(c: Context, X, b, p, theta) -> tuple[np.ndarray, np.ndarray]:
+    """Exact joint offsets: the pivots sit ``theta`` (base 6, platform 6) along the unit normals n of the
+    strut to each joint's first axis; length change ``|s| - |s + th_b n_b + th_p n_p|`` and its
+    derivative (theta = 0: ``-sqrt(1 - (u . a)^2)`` per side)."""
+    R, _, s, L = strut_geometry(b, p, X)
+    nb = s - np.einsum("nki,ki->nk", s, c.joint_axis1)[..., None] * c.joint_axis1[None]
+    ap = np.einsum("nij,kj->nki", R, c.joint_axis1_platform)
+    npl = s - np.einsum("nki,nki->nk", s, ap)[..., None] * ap
+    nb /= np.maximum(np.linalg.norm(nb, axis=2), 1e-12)[..., None]
+    npl /= np.maximum(np.linalg.norm(npl, axis=2), 1e-12)[..., None]
+    th = np.zeros(12) if theta is None else np.asarray(theta, dtype=float)
+    e = s + th[None, :6, None] * nb + th[None, 6:, None] * npl
+    Le = np.linalg.norm(e, axis=2)
+    return L - Le, np.concatenate([_diag(-np.einsum("nki,nki->nk", e, nb) / Le),
+                                   _diag(-np.einsum("nki,nki->nk", e, npl) / Le)], axis=2)
 
 
 def _diag(v: np.ndarray) -> np.ndarray:
@@ -385,24 +400,30 @@ class Evaluator:
         frame = th[self.lay.frame] if self.lay.frame is not None else None
         return base, plat, off, frame
 
-    def bases(self, X, base, plat) -> dict[str, np.ndarray]:
-        return {c: cm.build(self.ctx, X, base, plat) for c, cm in self.lay.cause_models.items()}
-
     def lengths_from_readings(self, theta, X) -> tuple[np.ndarray, dict]:
+        """Strut lengths (N,6) of the readings at poses X and each cause's derivative d L / d theta_c."""
         base, plat, off, _ = self.split(theta)
         L = off[None] + self.ctx.q
-        B = self.bases(X, base, plat)
+        B = {}
         for c, sl in self.lay.causes.items():
-            L = L + np.einsum("nik,k->ni", B[c], theta[sl])
+            cm = self.lay.cause_models[c]
+            if cm.exact is not None:
+                dl, B[c] = cm.exact(self.ctx, X, base, plat, theta[sl])
+                L = L + dl
+            else:
+                B[c] = cm.build(self.ctx, X, base, plat)
+                L = L + np.einsum("nik,k->ni", B[c], theta[sl])
         return L, B
 
     def poses(self, theta) -> np.ndarray:
         base, plat, _, _ = self.split(theta)
         xdep = any(cm.x_dependent for cm in self.lay.cause_models.values())
         X = self.X
-        for _ in range(2 if xdep else 1):
+        for _ in range(12 if xdep else 1):   # pose-dependent causes: to the fixed point, not a set count
             L, _ = self.lengths_from_readings(theta, X)
-            X, conv = forward_batch(base, plat, L, X)
+            X_prev, (X, conv) = X, forward_batch(base, plat, L, X)
+            if float(np.max(np.abs(X - X_prev), initial=0.0)) < 1e-9:
+                break
         bad = ~conv
         if bad.any():   # restart failed rows from home
             home = np.array(self.cfg.home_pose, dtype=float)

@@ -33,6 +33,7 @@ from ..kinematics import Hexapod
 from ..pose import matrix_from_euler
 from ..sag import gravity_wrench
 from .model import strut_geometry
+from .synth import sample_poses
 
 
 @dataclass
@@ -41,6 +42,12 @@ class DriveTorqueModel:
     noise_permille: float = 1.0           #: Gaussian reading noise (1 sigma)
     friction_N: float = 20.0              #: static friction left at rest: uniform in +- this (N)
     offset_permille: float = 0.5          #: spread of the constant per-drive torque offset (1 sigma)
+    rest_samples: int = 1                 #: readings averaged per rest pose (the noise, not the friction, averages)
+
+    def rest_sigma_N(self) -> float:
+        """1-sigma error of one strut force at one rest pose: averaged noise and the static friction."""
+        return math.sqrt((self.noise_permille * self.force_N_per_permille) ** 2 / max(1, self.rest_samples)
+                         + self.friction_N ** 2 / 3.0)
 
 
 @dataclass
@@ -82,25 +89,23 @@ def simulate_torques(hx: Hexapod, poses_deg, payload_kg: float, payload_cog_mm, 
     f = rest_forces(hx, poses_deg, payload_kg, payload_cog_mm)
     off = rng.normal(0.0, model.offset_permille, 6) if offsets_permille is None else offsets_permille
     fric = rng.uniform(-model.friction_N, model.friction_N, f.shape)
-    return (f + fric) / model.force_N_per_permille + off[None] + rng.normal(0.0, model.noise_permille, f.shape)
+    noise = rng.normal(0.0, model.noise_permille / math.sqrt(max(1, model.rest_samples)), f.shape)
+    return (f + fric) / model.force_N_per_permille + off[None] + noise
 
 
 def _design(hx: Hexapod, poses_deg: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pose: forces of the carrier alone (N,6) and d(force)/d(m, h_x, h_y, h_z) (N,6,4)."""
-    cfg = hx.cfg
-    g = np.asarray(cfg.gravity_mm_s2, dtype=float) * 1e-3
+    """Per pose: forces of the carrier alone (N,6) and d(force)/d(m, h_x, h_y, h_z) (N,6,4) (batched)."""
+    P = np.asarray(poses_deg, dtype=float).reshape(-1, 6)
+    g = np.asarray(hx.cfg.gravity_mm_s2, dtype=float) * 1e-3
     gx = np.array([[0.0, -g[2], g[1]], [g[2], 0.0, -g[0]], [-g[1], g[0], 0.0]])
-    f0, D = [], []
-    for p in poses_deg:
-        X = np.r_[p[:3], np.radians(p[3:])]
-        JtT = hx.jacobian_twist_rad(X).T
-        f0.append(np.linalg.solve(JtT, gravity_wrench(hx, X)))
-        R = matrix_from_euler(X[3], X[4], X[5])
-        W = np.zeros((6, 4))
-        W[:3, 0] = g
-        W[3:, 1:] = -gx @ R
-        D.append(np.linalg.solve(JtT, W))
-    return np.array(f0), np.array(D)
+    X = np.column_stack([P[:, :3], np.radians(P[:, 3:])])
+    R, rp, s, L = strut_geometry(hx.base, hx.plat, X)
+    u = s / L[..., None]
+    JtT = np.transpose(np.concatenate([u, np.cross(rp, u)], axis=2), (0, 2, 1))
+    W = np.zeros((len(P), 6, 4))
+    W[:, :3, 0] = g
+    W[:, 3:, 1:] = -np.einsum("ij,njk->nik", gx, R)
+    return rest_forces(hx, P), np.linalg.solve(JtT, W)
 
 
 def identify_payload(hx: Hexapod, poses_deg, torques_permille, model: DriveTorqueModel,
@@ -131,7 +136,7 @@ def identify_payload(hx: Hexapod, poses_deg, torques_permille, model: DriveTorqu
     A = D.reshape(-1, 4)
     if fit_offsets:
         A = np.hstack([A, np.tile(np.eye(6) * model.force_N_per_permille, (len(P), 1))])
-    sig = math.sqrt((model.noise_permille * model.force_N_per_permille) ** 2 + model.friction_N ** 2 / 3.0)
+    sig = model.rest_sigma_N()
     sol, *_ = np.linalg.lstsq(A, y, rcond=None)
     r = y - A @ sol
     dof = max(1, len(y) - A.shape[1])
@@ -149,6 +154,37 @@ def identify_payload(hx: Hexapod, poses_deg, torques_permille, model: DriveTorqu
     cog_sd = np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
     return PayloadResult(m, float(sd[0]), cog, cog_sd, int(ok[:n_pay].sum()), float(np.sqrt(np.mean(r ** 2))),
                          sol[4:] if fit_offsets else None)
+
+
+def plan_rest_poses(cfg, n: int, seed: int = 0, candidates: int = 2000, offsets: bool = True) -> np.ndarray:
+    """n rest poses (mm/deg) for :func:`identify_payload`, greedily chosen from random reachable candidates
+    to minimise the variance of the payload mass (its COG and, with ``offsets``, the drives' torque
+    offsets as nuisance parameters; the offsets' own information comes from a tare set, which does not
+    depend on its poses).  The mass shows in the total strut force: poses where the struts lean more carry
+    more force per kilogram, and a spread of orientations separates the mass from the offsets and the COG.
+    """
+    if n < 4:
+        raise DataError(f"payload rest poses: at least 4 needed, asked for {n}")
+    hx = Hexapod(cfg)
+    C = sample_poses(cfg, np.random.default_rng(seed), max(candidates, 2 * n))
+    _, D = _design(hx, C)                                    # (K,6,4) force per (m, h)
+    k = 10 if offsets else 4
+    blocks = np.zeros((len(C), 6, k))
+    blocks[:, :, :4] = D
+    if offsets:
+        blocks[:, :, 4:] = np.eye(6)[None]
+    info = np.einsum("kia,kib->kab", blocks, blocks)         # per candidate: its information (k,k)
+    A = 1e-6 * np.eye(k)
+    if offsets:
+        A[4:, 4:] += np.eye(6) * 60.0                        # a tare set of the order of 60 rest poses
+    chosen = np.zeros(len(C), dtype=bool)
+    for _ in range(n):
+        var = np.linalg.inv(A[None] + info)[:, 0, 0]
+        var[chosen] = np.inf
+        j = int(np.argmin(var))
+        chosen[j] = True
+        A = A + info[j]
+    return C[chosen]
 
 
 def carrier_update(cfg, res: PayloadResult, current_payload_kg: float = 0.0) -> dict:

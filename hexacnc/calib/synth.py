@@ -86,19 +86,56 @@ def _random_params(effect: str, rng, ctx: Context) -> np.ndarray:
         return p
     if effect == "session_offset":
         return rng.normal(size=6 * (len(ctx.sessions) - 1))
+    if effect == "backlash":   # physical sign: the strut lags its motor by the half gap (L += h * dir, h < 0)
+        return -np.abs(rng.normal(size=6))
     if effect in ("strut_nonlinearity", "joint_offset"):
         return rng.normal(size=12)
     return rng.normal(size=6)
 
 
-def _readings(effects, params, ctx_fn, X, base, plat, off, n_iter: int = 6):
-    """Readings q such that o + q + sum(effects(q, X)) = |s| (fixed point; effects are small)."""
+def _readings(effects, params, ctx_fn, X, base, plat, off, session, n_iter: int = 6):
+    """Readings q such that o + q + sum(effects(q, X)) = |s| (fixed point; effects are small).
+
+    Backlash is solved row by row in the order the rows were measured: the
+    direction of each strut is the direction its reading (the motor) moved,
+    which is what :meth:`Measurements.direction` recovers from the readings.
+    """
     _, _, _, L = strut_geometry(base, plat, X)
+    smooth = [(e, p) for e, p in zip(effects, params) if e != "backlash"]
+    half = next((p for e, p in zip(effects, params) if e == "backlash"), None)
     q = L - off
     for _ in range(n_iter):
         ctx = ctx_fn(q)
-        dl = sum((_effect_lengths(e, p, ctx, X, base, plat) for e, p in zip(effects, params)), np.zeros_like(q))
+        dl = sum((_effect_lengths(e, p, ctx, X, base, plat) for e, p in smooth), np.zeros_like(q))
         q = L - off - dl
+        if half is not None:
+            q = backlash_readings(q, half, session)
+    return q
+
+
+def backlash_readings(p: np.ndarray, half: np.ndarray, session) -> np.ndarray:
+    """Motor readings q (N,6) that put the struts at the lengths whose backlash-free readings are ``p``.
+
+    ``L = o + q + h * dir`` with ``h <= 0`` (the output lags the motor by the
+    half gap); ``dir`` is the sign of the reading's last move, +1 on the first row
+    of a session (approached from the retracted home side).  On a reversal the
+    motor travels the gap before the strut follows, so the direction of the
+    reading is always consistent with the data (each row: the one solution).
+    """
+    if np.any(half > 0):
+        raise ValueError("backlash: the half gap h must be <= 0 in L = o + q + h * dir (the output lags the motor)")
+    q = np.empty_like(p)
+    prev = np.ones(p.shape[1])
+    for k in range(p.shape[0]):
+        if k == 0 or (session is not None and session[k] != session[k - 1]):
+            prev = np.ones(p.shape[1])
+            q[k] = p[k] - half * prev
+            continue
+        keep = p[k] - half * prev                   # no reversal: the gap stays taken up
+        same = (keep - q[k - 1]) * prev >= -1e-9
+        d = np.where(same, prev, -prev)
+        q[k] = p[k] - half * d
+        prev = d
     return q
 
 
@@ -174,10 +211,11 @@ def generate(cfg, seed: int, effect: str = "none", n_fit: int = 120, n_holdout: 
         def ctx_fn(q, m=m):
             m.q = q
             return Context(cfg, m, noise_mm, noise_deg, fit_sessions=ctx_fit0.sessions)
-        m.q = _readings(effs, params, ctx_fn, Xr, base, plat, off)
         if rows.start == n_fit and holdout_new_session_mm > 0:
-            m.q = m.q - rng.normal(0.0, holdout_new_session_mm, 6)[None]
             m.session = np.array(["new"] * len(Xr), dtype=object)
+        m.q = _readings(effs, params, ctx_fn, Xr, base, plat, off, m.session)
+        if rows.start == n_fit and holdout_new_session_mm > 0:   # re-homed: every reading moves by a constant
+            m.q = m.q - rng.normal(0.0, holdout_new_session_mm, 6)[None]
         y = measure(Xr, frame)
         y[:, :3] += rng.normal(0, noise_mm, (len(Xr), 3))
         y[:, 3:] += rng.normal(0, noise_deg, (len(Xr), 3))
