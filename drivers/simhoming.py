@@ -19,6 +19,9 @@ Statusword in mode 6: bit 12 homing attained, bit 13 homing error, bit 10 target
 not homing: not started, interrupted or done). Any other method is a homing error. Clearing bit 4
 during homing stops it (interrupted: bits 12/13 clear, bit 10 set once stopped). In homing mode the
 drive ignores 0x607A (the target position of the cyclic frames).
+
+NMT reset node (0x81, the simulated power cycle) drops the home shift: the position value restarts
+from the raw encoder count (the power-up position scale) and the drive is no longer referenced.
 """
 from __future__ import annotations
 
@@ -139,6 +142,20 @@ class SimHoming:
         self.x += delta
         self.referenced = True
 
+    def power_cycle(self, drive) -> None:
+        """NMT reset node (a power cycle): the position counter restarts from the raw encoder count
+        (the home shift is gone), not referenced."""
+        delta = -self.shift_inc
+        self.shift_inc = 0
+        self.referenced = False
+        self.phase = _IDLE
+        self.v = 0.0
+        self.dir = 0
+        if delta:
+            drive.pos_inc += delta
+            drive.demand_inc = drive.target_inc = drive.pos_inc
+            drive.model.reset(drive.pos_inc / drive.k)
+
     def on_sync(self, drive, now_s: float) -> None:
         if drive.mode != MODE_HOMING or drive.state != cia402.OPERATION_ENABLED:
             if self.phase in (_SEARCH, _BACKOFF, _STOP):
@@ -195,6 +212,13 @@ def attach(drive) -> None:
     drive.hooks.on_controlword(h.on_controlword)
     drive.hooks.on_write(0x6060, h.on_mode)
     drive.hooks.on_sync(h.on_sync)
+    on_nmt = drive.on_nmt
+
+    def nmt_with_power_cycle(cmd: int) -> None:
+        if cmd == 0x81:
+            h.power_cycle(drive)
+        on_nmt(cmd)
+    drive.on_nmt = nmt_with_power_cycle
 
 
 if attach not in EXTENSIONS:

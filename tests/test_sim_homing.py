@@ -134,3 +134,23 @@ def test_switch_search_gives_up_after_the_travel_limit():
             assert cycle_until(io, list(start), lambda: all(s & simhoming.SW_HOMING_ERROR for s in io.status), 4.0)
         finally:
             simhoming.MAX_SEARCH_MM = old
+
+
+def test_a_power_cycle_drops_the_home_shift_and_the_reference():
+    """NMT reset node: the position counter restarts from the raw encoder count (the power-up scale)."""
+    with SimRig() as rig:
+        rig.master.bring_up()
+        start = rig.master.positions_inc()
+        offsets = [start[i] + 500 * (i + 1) for i in range(6)]
+        setup_homing(rig, 35, offsets)
+        io = rig.cyclic(controlword=cia402.CW_ENABLE_OPERATION)
+        io.set_all_controlwords(CW_HOME)
+        assert cycle_until(io, list(start), lambda: all(s & simhoming.SW_HOMING_ATTAINED for s in io.status), 2.0)
+        d = rig.sim.drives[2]
+        assert d.homing.referenced and d.pos_inc == offsets[2]
+        with rig.sim.lock:
+            d.on_nmt(0x81)
+        assert not d.homing.referenced and d.homing.shift_inc == 0
+        assert abs(d.pos_inc - start[2]) <= 2            # the raw count again: the shift of 1500 is gone
+        assert abs(d.model.x - d.pos_inc / d.k) < 1e-9
+        assert rig.sim.drives[1].pos_inc == offsets[1]   # the others keep theirs

@@ -233,6 +233,8 @@ class CyclicAdapter:
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
         self._emcy_last = [None] * 6
+        self.bootups = 0                #: boot-up messages seen (a drive was reset or power-cycled)
+        self.encoder_errors = 0         #: EMCYs 0x73xx (sensor / encoder)
         self.bus_load = bus_load
         self.info = info
         self._EV_EMCY = cyclic.EV_EMCY
@@ -263,6 +265,10 @@ class CyclicAdapter:
                 self.emcy_code[i] = code
                 self._emcy_last[i] = (code, reg, bytes(extra))
                 self.emcy_count[i] += 1
+                if code & 0xFF00 == 0x7300:     # sensor / encoder error: the position cannot be trusted
+                    self.encoder_errors += 1
+        if ev & self._EV_BOOTUP:
+            self.bootups = cio.bootups
         return ev
 
     def send(self) -> int:

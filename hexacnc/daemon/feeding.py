@@ -74,6 +74,8 @@ class FeedMixin:
 
     def _feed_once(self, sh: S.Shared, ahead: int) -> None:
         with self.lock:
+            if self.ref_watch is not None:      # every latched fault, boot-up or encoder error seen
+                self.ref_watch.poll(sh.h)
             hstate = sh.h[S.H_STATE]
             if hstate == S.ST_FAULT or hstate == S.ST_DISABLED:
                 if self.current is not None or self.queue:

@@ -28,6 +28,7 @@ from ..state import MachineState, StateStore, ToolEntry, interpret
 from . import shm as S
 from .jog import JogLimitError, JogSource, plan_jog, tip_poses, tool_point_platform
 from .opstatus import OperatorStatus
+from .reference import ReferenceWatch
 
 log = logging.getLogger("hexacnc.daemon.operator")
 
@@ -55,7 +56,10 @@ class Operator:
         self.rapid = 1.0
         self.max_feed = float(self.cfg.operator.max_feed_override)
         hm = self.cfg.operator.homing
-        self.referenced = hm.method == "absolute"
+        self.ref = ReferenceWatch(hm.method, hm.method == "absolute")
+        if daemon.sh is not None:
+            self.ref.baseline(daemon.sh.h)
+        daemon.ref_watch = self.ref       # polled by the feeder thread and before a reset
         self.pivot_mm = (None if self.cfg.operator.pivot_mm is None
                          else np.asarray(self.cfg.operator.pivot_mm, dtype=float))
         self.lock = threading.RLock()
@@ -78,8 +82,16 @@ class Operator:
         if st == S.ST_DISABLED:
             raise OperatorError(f"{what} refused: the drives are disabled (hexacnc enable)", "invalid_state")
         if cartesian and self.cfg.operator.homing.required and not self.referenced:
-            raise OperatorError(f"{what} refused: the machine is not referenced ([homing] required; "
+            lost = self.ref.lost
+            why = f": {lost['reason']}" if lost else ""
+            raise OperatorError(f"{what} refused: the machine is not referenced{why} ([homing] required; "
                                 f"hexacnc home)", "invalid_state")
+
+    @property
+    def referenced(self) -> bool:
+        """The struts' reference can be trusted (:mod:`.reference`)."""
+        sh = self.daemon.sh
+        return self.ref.poll(sh.h) if sh is not None else self.ref.referenced
 
     def _idle_checks(self, what: str) -> None:
         d = self.daemon
@@ -245,7 +257,7 @@ class Operator:
         self._motion_checks("home", cartesian=False)
         self._idle_checks("home")
         if hm.method == "absolute":
-            self.referenced = True
+            self.ref.mark(self.daemon.sh.h)
             return {"referenced": True, "method": "absolute",
                     "message": "absolute encoders: the struts are referenced from their readings"}
         return self._home_cia402(hm)
@@ -260,7 +272,7 @@ class Operator:
             if sh.h[S.H_STATE] != S.ST_IDLE:
                 raise OperatorError(f"home refused: the loop is {S.STATE_NAMES.get(sh.h[S.H_STATE], '?')}, "
                                     f"not idle", "invalid_state")
-            self.referenced = False
+            self.ref.unmark("homing started and did not finish")
             sh.h[S.H_HOME_RESULT] = RUNNING
             seq = sh.command(S.CMD_HOME)
         t_end = time.monotonic() + HOME_TIMEOUT_S + 5.0
@@ -273,8 +285,9 @@ class Operator:
         if r != DONE:
             where = f" (strut {strut})" if strut else ""
             why = ERROR_TEXT.get(r, "no answer from the hot loop" if r == RUNNING else f"code {r}")
+            self.ref.unmark(f"home failed{where}: {why}")
             raise OperatorError(f"home failed{where}: {why}", "unsupported" if r == E_UNSUPPORTED else "fault")
-        self.referenced = True
+        self.ref.mark(sh.h)
         st = d.status()
         return {"referenced": True, "method": "cia402", "homing_method": int(hm.homing_method),
                 "offset_mm": [float(v) for v in hm.offset_mm], "struts_act_mm": st.get("struts_act_mm"),
