@@ -10,7 +10,8 @@ With mode 6 selected (0x6060 = 6, also while Operation enabled: the drive switch
 
 * 35 / 37: the current position is home: the position value becomes the home offset at once;
 * 17 / 18: search the negative / positive limit switch at the search speed, back off it at the
-  zero speed; the switch's releasing edge is home (position value := home offset there), then stop.
+  zero speed; the switch's releasing edge is home (position value := home offset there, the edge
+  latched at the cycle that sees it: at most one cycle of travel at the zero speed past it), then stop.
   The simulated switches stand ``SWITCH_FROM_START_MM`` below / above the strut's power-up position
   (``drive.home_switch_mm`` = (negative, positive) in the drive's physical mm, settable per drive);
   no switch within ``MAX_SEARCH_MM`` of travel is a homing error.
@@ -189,7 +190,9 @@ class SimHoming:
                 self.v = 0.0
                 drive.target_inc = drive.pos_inc
         elif ph == _BACKOFF and not on_switch and self.v * self.dir < 0:
-            self.edge_phys = (neg if self.dir < 0 else pos) * drive.k     # the releasing edge: home
+            # the releasing edge is home, latched at the cycle that sees it (like a drive sampling its
+            # switch input at its servo cycle): up to one cycle of travel at the zero speed past it
+            self.edge_phys = phys * drive.k
             self.phase = _STOP
         elif ph == _STOP and self.v == 0.0 and abs(drive.pos_inc - drive.target_inc) <= 1 \
                 and abs(getattr(drive.model, "velocity_mm_s", 0.0)) < 1e-3:

@@ -121,3 +121,21 @@ def test_absolute_encoders_keep_the_reference_through_faults_but_not_an_encoder_
         assert status(sock)["referenced"] is True
     finally:
         next(gen, None)
+
+
+def test_bench_homing_finds_the_switch_edge_within_a_cycle_of_travel(cfg, capsys):  # noqa: F811
+    """``hexacnc bench homing`` against the simulated drives: method 18 references all six struts and
+    their position values match the drives' true switch edge within one servo cycle at the zero speed."""
+    import json
+
+    from hexacnc.cli import main as cli
+    rc = cli(["bench", "homing", "--methods", "18", "--repeats", "1", "--no-realtime"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    res = json.loads(out)["methods"]["18"]
+    assert res["runs"][0]["referenced_drives"] == 6
+    bound_um = 1e3 * 2.0 * cfg.cycle.period_s + res["resolution_um"]      # speed_zero 2 mm/s, one cycle
+    assert res["accuracy_um"] <= bound_um, res
+    assert 0.0 < res["time_s"]["max"] < 30.0
+    rc = cli(["bench", "homing", "--methods", "35,99"])
+    assert rc == 2

@@ -125,6 +125,24 @@ class PipeSim:
         if not self._line(f"inject {kind} {int(node)} {value}"):
             raise BusError("the simulated drives process is not running")
 
+    def truth(self, path: str, timeout_s: float = 5.0) -> dict:
+        """The drives' physical state (:func:`hexacnc.daemon.simhost.write_truth`), for benchmarks."""
+        import json
+        import time
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        if not self._line(f"truth {path}"):
+            raise BusError("the simulated drives process is not running")
+        t_end = time.monotonic() + timeout_s
+        while not os.path.exists(path):
+            if time.monotonic() > t_end:
+                raise BusError(f"the simulated drives wrote no state within {timeout_s:g} s")
+            time.sleep(0.005)
+        with open(path) as f:
+            return {int(k): v for k, v in json.load(f).items()}
+
     def terminate(self) -> None:
         """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:

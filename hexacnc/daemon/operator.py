@@ -272,7 +272,7 @@ class Operator:
             if sh.h[S.H_STATE] != S.ST_IDLE:
                 raise OperatorError(f"home refused: the loop is {S.STATE_NAMES.get(sh.h[S.H_STATE], '?')}, "
                                     f"not idle", "invalid_state")
-            self.ref.unmark("homing started and did not finish")
+            self.ref.unmark("homing started and did not finish", quiet=True)
             sh.h[S.H_HOME_RESULT] = RUNNING
             seq = sh.command(S.CMD_HOME)
         t_end = time.monotonic() + HOME_TIMEOUT_S + 5.0

@@ -57,8 +57,8 @@ class ReferenceWatch:
         self.referenced = True
         self.lost = None
 
-    def unmark(self, reason: str) -> None:
-        if self.referenced:
+    def unmark(self, reason: str, quiet: bool = False) -> None:
+        if self.referenced and not quiet:
             log.warning("reference lost: %s", reason)
         self.referenced = False
         self.lost = {"reason": reason, "at_unix_s": round(time.time(), 3)}
