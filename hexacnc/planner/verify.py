@@ -6,10 +6,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from .profile import ETA
+
 #: s step of the central differences (mm or deg)
 FD_STEP = 0.01
 #: samples per chunk of the exact measurement (bounds its memory)
 EXACT_CHUNK = 50_000
+#: model utilisations (v, a, j) above which a model pass measures the sample exactly: the plan's
+#: violation thresholds (velocity 0.9995, acceleration and jerk ETA), 1e-9 lower
+CONFIRM = (0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
 
 
 def _path_rates(s_f: np.ndarray, dt: float):
@@ -178,7 +183,7 @@ def _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds: "_Bounds", s_f, dt, vmax,
         # the model only screens: a sample it puts over a threshold is measured exactly before it slows
         # the plan down (the model overestimates on corner blends: 0.975 jerk where the table has 0.74,
         # and the tightening that followed made twelve 0.85 mm moves slower than twelve 0.88 mm ones)
-        over = (res[0][idx] > screen[0]) | (res[1][idx] > screen[1]) | (res[2][idx] > screen[2])
+        over = (res[0][idx] > CONFIRM[0]) | (res[1][idx] > CONFIRM[1]) | (res[2][idx] > CONFIRM[2])
         idx = idx[over]
         if idx.size == 0:
             return (*res, n_model)
