@@ -28,6 +28,7 @@ Usage::
 from __future__ import annotations
 
 import logging
+import os
 import queue
 import selectors
 import socket
@@ -52,6 +53,18 @@ log = logging.getLogger("hexacnc.daemon.server")
 
 #: a TCP client must authenticate within this time
 _AUTH_TIMEOUT_S = tcpauth.AUTH_TIMEOUT_S
+
+
+def _control_priority(daemon) -> None:
+    """The control worker (stop, pause, override, ...) runs SCHED_FIFO just below the feeder thread when
+    the daemon is real-time (permitted): a loaded machine must not delay a stop behind normal work."""
+    cfg = getattr(daemon, "cfg", None)
+    if not getattr(daemon, "realtime", False) or cfg is None:
+        return
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, cfg.cycle.realtime_priority - 31)))
+    except (OSError, AttributeError):
+        pass
 
 
 class SocketServer(ConnectionIO, StatusStreams, MotionOps, UploadOps, Admission):
@@ -128,7 +141,8 @@ class SocketServer(ConnectionIO, StatusStreams, MotionOps, UploadOps, Admission)
             raise
         self._motion_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-motion")
         # stop/pause/resume/reset never wait behind a program being interpreted and planned
-        self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control")
+        self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control",
+                                                initializer=_control_priority, initargs=(self.daemon,))
         self._wait_pool = ThreadPoolExecutor(self.max_clients * _MAX_WAITS_PER_CLIENT,
                                              thread_name_prefix="hexacnc-wait")
         self._thread = threading.Thread(target=self._run, name="hexacnc-socket", daemon=True)
