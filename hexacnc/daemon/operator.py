@@ -378,6 +378,10 @@ class Operator:
         self._watch.start()
 
     def _watchdog(self) -> None:
+        d = self.daemon
+        if getattr(d, "realtime", False):       # a stop must not wait behind normal work on a loaded machine
+            from .rt import sched_fifo
+            sched_fifo(max(1, self.cfg.cycle.realtime_priority - 31))
         while not self._closed:
             with self.lock:
                 src, deadline = self.active_jog(), self._deadline

@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import logging
-import os
 import queue
 import selectors
 import socket
@@ -59,12 +58,9 @@ def _control_priority(daemon) -> None:
     """The control worker (stop, pause, override, ...) runs SCHED_FIFO just below the feeder thread when
     the daemon is real-time (permitted): a loaded machine must not delay a stop behind normal work."""
     cfg = getattr(daemon, "cfg", None)
-    if not getattr(daemon, "realtime", False) or cfg is None:
-        return
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, cfg.cycle.realtime_priority - 31)))
-    except (OSError, AttributeError):
-        pass
+    if getattr(daemon, "realtime", False) and cfg is not None:
+        from .rt import sched_fifo
+        sched_fifo(max(1, cfg.cycle.realtime_priority - 31))
 
 
 class SocketServer(ConnectionIO, StatusStreams, MotionOps, UploadOps, Admission):
