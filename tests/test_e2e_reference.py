@@ -75,6 +75,22 @@ def test_incremental_reference_is_lost_on_a_fault_and_motion_refused_until_homed
         next(gen, None)
 
 
+def test_a_homing_error_leaves_it_unreferenced_naming_the_drive(cfg, capsys):  # noqa: F811
+    mc = homing_machine(cfg, 99, start_positions_mm(cfg))                 # a method the drives do not have
+    gen = running_machine(mc, name="rfh")
+    daemon, srv = next(gen)
+    try:
+        sock = srv.socket_path
+        rc, out, err = run(capsys, "home", "--socket", sock)
+        assert rc != 0 and "homing error" in err and len(err.strip().splitlines()) == 1, err
+        st = status(sock)
+        assert st["referenced"] is False and "homing error" in st["reference_lost"]["reason"]
+        rc, out, err = run(capsys, "mdi", "G91 G1 Z-0.2 F300", "--socket", sock)
+        assert rc != 0
+    finally:
+        next(gen, None)
+
+
 def test_a_drive_power_cycle_restarts_its_counter_and_drops_the_reference(cfg, capsys):  # noqa: F811
     start = start_positions_mm(cfg)
     delta = np.full(6, 0.25)

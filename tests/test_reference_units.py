@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from hexacnc.daemon import shm as S
-from hexacnc.daemon.faults import F_EMCY, F_FOLLOWING, F_NMT
+from hexacnc.daemon.faults import F_EMCY, F_FOLLOWING, F_HOMING, F_NMT
+from hexacnc.daemon.homecodes import E_HOMING_ERROR
 from hexacnc.daemon.reference import ReferenceWatch
 
 
@@ -29,7 +30,7 @@ def clear(h):
 @pytest.mark.parametrize("method,code,arg,lost", [
     ("cia402", F_FOLLOWING, 3000, True), ("cia402", F_EMCY, 0x2310, True), ("cia402", F_NMT, 0, True),
     ("absolute", F_FOLLOWING, 3000, False), ("absolute", F_EMCY, 0x2310, False), ("absolute", F_NMT, 0, False),
-    ("absolute", F_EMCY, 0x7305, True), ("cia402", F_EMCY, 0x7320, True)])
+    ("absolute", F_EMCY, 0x7305, True), ("cia402", F_EMCY, 0x7320, True), ("cia402", F_HOMING, E_HOMING_ERROR, True)])
 def test_faults(method, code, arg, lost):
     h = header()
     w = ReferenceWatch(method, False)
