@@ -75,7 +75,8 @@ def format_csv(header: list[str], rows) -> str:
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, make_parents: bool = False) -> None:
-    """Write ``data`` to ``path`` through a temp file in the same directory and ``os.replace``."""
+    """Write ``data`` to ``path`` through a temp file in the same directory, fsync and ``os.replace``
+    (then fsync of the directory): a reader or a crash sees the old file or the new one, never half."""
     p = Path(path)
     d = p.parent if str(p.parent) else Path(".")
     try:
@@ -87,6 +88,8 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, make_parents: bool 
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
         os.replace(tmp, p)
     except BaseException:
         try:
@@ -94,6 +97,14 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, make_parents: bool 
         except OSError:
             pass
         raise
+    try:
+        dfd = os.open(str(d), os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    except OSError:
+        pass
 
 
 def write_text_atomic(path: str | os.PathLike | None, text: str) -> None:

@@ -19,6 +19,7 @@ import logging
 import math
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -426,12 +427,13 @@ class Operator:
                 self.store.delete_tool(int(tool))
             else:
                 old = self.store.snapshot().tools.get(int(tool), ToolEntry(int(tool), int(tool)))
-                e = ToolEntry(int(tool), int(fields.get("pocket", old.pocket)),
-                              float(fields.get("z_mm", old.z_mm)), float(fields.get("diameter_mm", old.diameter_mm)),
-                              str(fields.get("comment", old.comment)))
+                e = replace(old, tool=int(tool), pocket=int(fields.get("pocket", old.pocket)),
+                            z_offset_mm=float(fields.get("z_mm", old.z_offset_mm)),
+                            diameter_mm=float(fields.get("diameter_mm", old.diameter_mm)),
+                            comment=str(fields.get("comment", old.comment)))
                 self.store.set_tool(e)
         st: MachineState = self.store.snapshot()
-        return {"tools": [{"tool": e.tool, "pocket": e.pocket, "z_mm": e.z_mm, "diameter_mm": e.diameter_mm,
+        return {"tools": [{"tool": e.tool, "pocket": e.pocket, "z_mm": e.z_offset_mm, "diameter_mm": e.diameter_mm,
                            "comment": e.comment} for e in (st.tools[t] for t in sorted(st.tools))],
                 "tool_in_spindle": st.tool, "file": str(self.store.tool_path)}
 

@@ -61,8 +61,11 @@ _PERSISTENT_SET = frozenset(PERSISTENT)
 _TBL_WORD = re.compile(r"([tpxyzabcuvwdijq])\s*([-+]?(?:\d+\.?\d*|\.\d+)(?:[eE][-+]?\d+)?)", re.IGNORECASE)
 
 
-def parse_tool_table(text: str, name: str = "tool.tbl") -> dict[int, ToolEntry]:
-    """Read a LinuxCNC tool table (``T1 P1 Z0.5 D3 ;comment`` per line; mm)."""
+def parse_tool_table(text: str, name: str = "tool.tbl", check=None) -> dict[int, ToolEntry]:
+    """Read a LinuxCNC tool table (``T1 P1 Z0.5 D3 ;comment`` per line; mm).
+
+    ``check(entry, line)``, when given, is called for each entry in file order (range checks and
+    duplicate refusal of the operator's persistent table); it raises to refuse the line."""
     out: dict[int, ToolEntry] = {}
     for num, raw in enumerate(text.splitlines(), 1):
         body, _sep, comment = raw.partition(";")
@@ -88,19 +91,25 @@ def parse_tool_table(text: str, name: str = "tool.tbl") -> dict[int, ToolEntry]:
                                 x_offset_mm=vals.get("x", 0.0), y_offset_mm=vals.get("y", 0.0),
                                 front_angle_deg=vals.get("i", 0.0), back_angle_deg=vals.get("j", 0.0),
                                 orientation=int(vals.get("q", 0)))
+        if check is not None:
+            check(out[int(t)], num)
     return out
 
 
 def format_tool_table(tools: dict[int, ToolEntry]) -> str:
-    """The inverse of :func:`parse_tool_table` (one line per tool, sorted by T)."""
+    """The inverse of :func:`parse_tool_table`: one line per tool, sorted by T, ``T P Z D`` always
+    (6 decimals: nm), LinuxCNC's X Y I J Q only where set, then the comment."""
     lines = []
     for t in sorted(tools):
         e = tools[t]
         s = f"T{e.tool} P{e.pocket}"
-        for letter, v in (("X", e.x_offset_mm), ("Y", e.y_offset_mm), ("Z", e.z_offset_mm),
-                          ("D", e.diameter_mm), ("I", e.front_angle_deg), ("J", e.back_angle_deg)):
+        for letter, v in (("X", e.x_offset_mm), ("Y", e.y_offset_mm)):
             if v:
-                s += f" {letter}{v:.6g}"
+                s += f" {letter}{v:.6f}"
+        s += f" Z{e.z_offset_mm:.6f} D{e.diameter_mm:.6f}"
+        for letter, v in (("I", e.front_angle_deg), ("J", e.back_angle_deg)):
+            if v:
+                s += f" {letter}{v:.6f}"
         if e.orientation:
             s += f" Q{e.orientation}"
         lines.append(s + (f" ;{e.comment}" if e.comment else ""))

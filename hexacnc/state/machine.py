@@ -47,7 +47,8 @@ class MachineState:
     modal: dict = field(default_factory=dict)
 
     def copy(self) -> "MachineState":
-        return MachineState(dict(self.params), dict(self.tools), copy.deepcopy(self.modal))
+        return MachineState(dict(self.params), {t: replace(e) for t, e in self.tools.items()},
+                            copy.deepcopy(self.modal))
 
     # -- views -----------------------------------------------------------------------------
     @property
@@ -100,59 +101,18 @@ def default_state(cfg) -> MachineState:
     return MachineState(P, tools, {})
 
 
-def _new_api(Interpreter) -> bool:
-    """Does the interpreter take ``initial_state`` (LinuxCNC-style state in and out)?"""
-    import inspect
-    return "initial_state" in inspect.signature(Interpreter.__init__).parameters
-
-
 def _to_interp_state(state: MachineState):
     from ..gcode.state import MachineState as GState
-    from ..gcode.state import ToolEntry as GTool
     params = {k: v for k, v in state.params.items() if k not in (5400, 5403)}
-    tools = {t: GTool(tool=t, pocket=e.pocket, z_offset_mm=e.z_mm, diameter_mm=e.diameter_mm, comment=e.comment)
-             for t, e in state.tools.items()}
+    tools = {t: replace(e) for t, e in state.tools.items()}
     return GState(parameters=params, tools=tools, current_tool=state.tool, tool_length_mm=state.tool_length_mm)
 
 
-def _from_interp_state(fs, old: MachineState) -> tuple[dict, dict]:
+def _from_interp_state(fs) -> tuple[dict, dict]:
     params = {k: float(fs.parameters.get(k, 0.0)) for k in PERSISTENT if k not in (5400, 5403)}
     params[5400] = float(fs.current_tool)
     params[5403] = float(fs.tool_length_mm)
-    tools = {}
-    for t, e in fs.tools.items():
-        o = old.tools.get(int(t))
-        tools[int(t)] = ToolEntry(int(t), int(e.pocket), float(e.z_offset_mm), float(e.diameter_mm),
-                                  str(e.comment if e.comment or o is None else o.comment))
-    return params, tools
-
-
-def _set_state_attributes(it, state: MachineState) -> None:
-    """Today's interpreter: load the persistent parameters into its state attributes."""
-    P = state.params
-    for k in range(5210, 5220):
-        it.P[k] = P.get(k, 0.0)
-    it.cs = state.system
-    it.P[5220] = float(it.cs)
-    it.g92 = state.g92()
-    it.off = [it.P[5201 + 20 * it.cs + i] + it.g92[i] for i in range(6)]
-    it.tool = state.tool
-    it.tool_len = state.tool_length_mm
-    it.selected = state.tool
-
-
-def _read_state_attributes(it, old: MachineState) -> tuple[dict, dict]:
-    newp = {k: float(it.P[k]) for k in PERSISTENT if k not in (5400, 5403)}
-    newp[5400] = float(it.tool)
-    newp[5403] = float(it.tool_len)
-    tools = dict(old.tools)
-    for t, z in (it.tools or {}).items():
-        o = tools.get(int(t))
-        if o is None:
-            tools[int(t)] = ToolEntry(int(t), int(t), float(z))
-        elif o.z_mm != float(z):
-            tools[int(t)] = replace(o, z_mm=float(z))
-    return newp, tools
+    return params, {int(t): replace(e) for t, e in fs.tools.items()}
 
 
 def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
@@ -160,32 +120,20 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
     the tool tip of the current tool).  Returns ``(Program, MachineState after it)``; ``state`` is
     not changed.  Raises GcodeError.
 
-    With an interpreter that takes ``initial_state`` and reports ``Program.final_state`` (the
-    contract with hexacnc.gcode) the state goes through that; with today's interpreter the
-    persistent parameters are loaded into and read from its state attributes.  The modal state
-    (MDI) is carried through the interpreter's modal attributes either way."""
+    The persistent state goes in as the interpreter's ``initial_state`` and comes back as
+    ``Program.final_state`` (the contract with hexacnc.gcode); the modal state (MDI) is carried
+    through the interpreter's modal attributes."""
     import gc
 
     from ..gcode.factory import machine_defaults
     from ..gcode.interp import Interpreter
-    P = state.params
     kw = machine_defaults(cfg)
     kw["start_pose"] = [float(v) for v in start_tip_deg]
-    new_api = _new_api(Interpreter)
-    if new_api:
-        for k in ("work_offsets", "g28_pose", "g30_pose", "tool_table"):
-            kw.pop(k, None)
-        if not state.tools and cfg.tools.length_mm:
-            kw["tool_table"] = dict(cfg.tools.length_mm)
-        it = Interpreter(text, name, initial_state=_to_interp_state(state), **kw)
-    else:
-        if state.tools:
-            kw["tool_table"] = {t: e.z_mm for t, e in state.tools.items()}
-        kw["work_offsets"] = {k: state.offset(k) for k in range(1, 10)}
-        kw["g28_pose"] = [P.get(5161 + i, 0.0) for i in range(6)]
-        kw["g30_pose"] = [P.get(5181 + i, 0.0) for i in range(6)]
-        it = Interpreter(text, name, **kw)
-        _set_state_attributes(it, state)
+    for k in ("work_offsets", "g28_pose", "g30_pose", "tool_table"):
+        kw.pop(k, None)
+    if not state.tools and cfg.tools.length_mm:
+        kw["tool_table"] = dict(cfg.tools.length_mm)
+    it = Interpreter(text, name, initial_state=_to_interp_state(state), **kw)
     for a in MODAL_ATTRS:
         if a in state.modal and hasattr(it, a):
             setattr(it, a, copy.deepcopy(state.modal[a]))
@@ -196,11 +144,7 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState):
     finally:
         if was:
             gc.enable()
-    fs = getattr(prog, "final_state", None)
-    if new_api and fs is not None:
-        newp, tools = _from_interp_state(fs, state)
-    else:
-        newp, tools = _read_state_attributes(it, state)
+    newp, tools = _from_interp_state(prog.final_state)
     modal = {a: copy.deepcopy(getattr(it, a)) for a in MODAL_ATTRS if hasattr(it, a)}
     return prog, MachineState(newp, tools, modal)
 
@@ -304,7 +248,7 @@ class StateStore:
         new = self.snapshot()
         new.tools[entry.tool] = entry
         if new.tool == entry.tool:
-            new.params[5403] = entry.z_mm if new.params.get(5403) else new.params.get(5403, 0.0)
+            new.params[5403] = entry.z_offset_mm if new.params.get(5403) else new.params.get(5403, 0.0)
         self.commit(new)
         return new
 
