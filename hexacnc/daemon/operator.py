@@ -11,7 +11,8 @@ referencing, jog, MDI, the persistent interpreter state and the operator's statu
   written to the files at once, so the next program and a restarted daemon start from them.
 * Overrides persist: a new program starts at the feed and rapid overrides in force.
 * ``[homing] required``: programs, MDI and Cartesian jogs are refused until the machine is
-  referenced (absolute encoders: at start; ``cia402``: by ``home``).
+  referenced (absolute encoders: at start; ``cia402``: by ``home``), and again once the reference
+  is lost (:mod:`.reference`: a fault, a drive's boot-up, an encoder error, a failed homing run).
 """
 from __future__ import annotations
 
