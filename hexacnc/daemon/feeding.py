@@ -33,9 +33,9 @@ REWIND_LEAD_S = 0.005
 FEED_CHUNK_ROWS = 32
 #: leads tried (each twice the last) before a command falls back to acting at the end of the queue
 REWIND_ATTEMPTS = 5
-#: replacement rows generated before the ring's write index is lowered (the feeder adds the rest on
-#: its next tick): the time the hot loop may not overtake is the generation of these (~20 us a row
-#: in a transition, 1.3 ms), not of the whole queue (~12 ms); the ring then holds lead + 32 ms
+#: replacement rows generated before the ring's write index is lowered (the rest of the queue right
+#: after): the time the hot loop may not overtake is the generation of these (~20 us a row in a
+#: transition, 1.3 ms), not of the whole queue (~12 ms)
 REWIND_BATCH_ROWS = 2 * FEED_CHUNK_ROWS
 #: feeder thread period
 FEED_PERIOD_S = 0.002
@@ -159,8 +159,7 @@ class FeedMixin:
         first mark past it is used), the command is applied there and a first batch of replacement
         rows (``REWIND_BATCH_ROWS``) is generated; only then is the ring's write index lowered to
         the lead point (``Shared.retract``: single producer, checked against the hot loop's read
-        index afterwards) and the rows written; the feeder thread refills the rest of the queue
-        on its next tick.  Rows before
+        index afterwards) and the rows written; then the rest of the queue is generated.  Rows before
         the lead point are untouched, so the command path is continuous (the source continues from
         the state it was in when it produced that row).  If the hot loop got past the point
         meanwhile (a descheduled supervisor), the source returns to where it was and a lead twice
@@ -197,9 +196,10 @@ class FeedMixin:
                 while len(job.marks) > i:
                     job.marks.pop()
                 job.marks.extend(marks)
-                # the rest of the queue: the feeder thread's next tick (FEED_PERIOD_S, SCHED_FIFO when
-                # granted), not this request's thread, which a loaded machine may deschedule
                 job.end_index = sh.h[S.H_RING_W] if src.finished else -1
+                # the rest of the queue at once (the reaction is already fixed: the hot loop reads the
+                # new rows), so the ring holds FEED_AHEAD_S again, not only lead + batch
+                self._push(job, sh, self._ahead_rows - sh.ring_fill())
                 self.rewinds[0] += 1
                 return True
             src.restore(end_snap)           # the hot loop got there first: a longer lead
