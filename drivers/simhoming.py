@@ -10,7 +10,8 @@ With mode 6 selected (0x6060 = 6, also while Operation enabled: the drive switch
 
 * 35 / 37: the current position is home: the position value becomes the home offset at once;
 * 17 / 18: search the negative / positive limit switch at the search speed, back off it at the
-  zero speed; the switch's releasing edge is home (position value := home offset there), then stop.
+  zero speed; the switch's releasing edge is home (position value := home offset there, the edge
+  latched at the cycle that sees it: at most one cycle of travel at the zero speed past it), then stop.
   The simulated switches stand ``SWITCH_FROM_START_MM`` below / above the strut's power-up position
   (``drive.home_switch_mm`` = (negative, positive) in the drive's physical mm, settable per drive);
   no switch within ``MAX_SEARCH_MM`` of travel is a homing error.
@@ -19,6 +20,9 @@ Statusword in mode 6: bit 12 homing attained, bit 13 homing error, bit 10 target
 not homing: not started, interrupted or done). Any other method is a homing error. Clearing bit 4
 during homing stops it (interrupted: bits 12/13 clear, bit 10 set once stopped). In homing mode the
 drive ignores 0x607A (the target position of the cyclic frames).
+
+NMT reset node (0x81, the simulated power cycle) drops the home shift: the position value restarts
+from the raw encoder count (the power-up position scale) and the drive is no longer referenced.
 """
 from __future__ import annotations
 
@@ -139,6 +143,20 @@ class SimHoming:
         self.x += delta
         self.referenced = True
 
+    def power_cycle(self, drive) -> None:
+        """NMT reset node (a power cycle): the position counter restarts from the raw encoder count
+        (the home shift is gone), not referenced."""
+        delta = -self.shift_inc
+        self.shift_inc = 0
+        self.referenced = False
+        self.phase = _IDLE
+        self.v = 0.0
+        self.dir = 0
+        if delta:
+            drive.pos_inc += delta
+            drive.demand_inc = drive.target_inc = drive.pos_inc
+            drive.model.reset(drive.pos_inc / drive.k)
+
     def on_sync(self, drive, now_s: float) -> None:
         if drive.mode != MODE_HOMING or drive.state != cia402.OPERATION_ENABLED:
             if self.phase in (_SEARCH, _BACKOFF, _STOP):
@@ -172,7 +190,9 @@ class SimHoming:
                 self.v = 0.0
                 drive.target_inc = drive.pos_inc
         elif ph == _BACKOFF and not on_switch and self.v * self.dir < 0:
-            self.edge_phys = (neg if self.dir < 0 else pos) * drive.k     # the releasing edge: home
+            # the releasing edge is home, latched at the cycle that sees it (like a drive sampling its
+            # switch input at its servo cycle): up to one cycle of travel at the zero speed past it
+            self.edge_phys = phys * drive.k
             self.phase = _STOP
         elif ph == _STOP and self.v == 0.0 and abs(drive.pos_inc - drive.target_inc) <= 1 \
                 and abs(getattr(drive.model, "velocity_mm_s", 0.0)) < 1e-3:
@@ -195,6 +215,13 @@ def attach(drive) -> None:
     drive.hooks.on_controlword(h.on_controlword)
     drive.hooks.on_write(0x6060, h.on_mode)
     drive.hooks.on_sync(h.on_sync)
+    on_nmt = drive.on_nmt
+
+    def nmt_with_power_cycle(cmd: int) -> None:
+        if cmd == 0x81:
+            h.power_cycle(drive)
+        on_nmt(cmd)
+    drive.on_nmt = nmt_with_power_cycle
 
 
 if attach not in EXTENSIONS:

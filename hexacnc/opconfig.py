@@ -15,7 +15,9 @@ Keys (all optional, every value range-checked):
 * ``[homing] method``: ``absolute`` (absolute encoders: referenced at power-up) or ``cia402``
   (homing mode 6 of each drive: ``homing_method`` 0x6098, ``speed_search_mm_s`` /
   ``speed_zero_mm_s`` 0x6099, ``acceleration_mm_s2`` 0x609A, ``offset_mm`` 0x607C);
-  ``required``: refuse program, MDI and Cartesian jog motion until referenced (default false).
+  ``required``: refuse program, MDI and Cartesian jog motion until referenced (default false);
+  the reference is lost as :mod:`hexacnc.daemon.reference` says (``cia402``: any fault, a drive's
+  boot-up, a failed homing run; both: an encoder-error EMCY).
 * ``[jog] speed_mm_s``, ``speed_deg_s``, ``strut_speed_mm_s`` (continuous jog speeds),
   ``acceleration_scale`` (fraction of the strut limits a jog uses, 0.05 .. 0.8, default 0.3),
   ``deadman_s`` (a continuous jog stops when no confirmation came for this long, 0.01 .. 0.1,

@@ -192,7 +192,9 @@ def test_homing_gate_and_cia402_not_implemented(cfg, tmp_path):
     from hexacnc.daemon.operator import Operator, OperatorError
     hm = dataclasses.replace(cfg.operator.homing, method="cia402", required=True)
     c = cfg.replace(operator=dataclasses.replace(cfg.operator, homing=hm, state_dir=str(tmp_path)))
-    fake = SimpleNamespace(cfg=c, sh=SimpleNamespace(h={S.H_STATE: S.ST_IDLE}), alive=True)
+    h = np.zeros(S.N_HEADER, dtype=np.int64)
+    h[S.H_STATE] = S.ST_IDLE
+    fake = SimpleNamespace(cfg=c, sh=SimpleNamespace(h=h), alive=True)
     op = Operator(fake)
     assert op.referenced is False
     with pytest.raises(OperatorError) as ei:

@@ -9,7 +9,10 @@ first row that differs afterwards is the first setpoint the drives get that the 
   the cycle period - the time until the command reaches the drives, exact in cycles;
 * ``reaction_wall_ms``: the same seen on the wall clock (the hot loop passed that row; polled
   every 0.2 ms);
-* ``time_to_rest_ms`` (pause, stop): until the strut commands stop changing.
+* ``time_to_rest_ms`` (pause, stop): until the strut commands stop changing;
+* ``loop_speed``: hot-loop time / wall-clock time over the reaction (< 1: the loop fell behind the
+  wall clock, e.g. without SCHED_FIFO on a loaded machine: judge the wall-clock figures with it and
+  ``loadavg``).
 
 Jog deadman: a continuous jog confirmed every 20 ms for 0.3 s, then the confirmations stop;
 ``stop_after_deadline_ms`` is from the deadman deadline (last confirmation + ``[jog] deadman_s``)
@@ -91,9 +94,11 @@ def _command(daemon, client, S, op: str, fields: dict) -> dict:
     while sh.h[S.H_RING_R] <= k and time.monotonic() - t_cmd < 2.0:
         time.sleep(0.0002)
     t_seen = time.monotonic()
-    out = {"reaction_ms": round((k - r_cmd + 1) * daemon.period_s * 1e3, 2),
+    loop_s = (k - r_cmd + 1) * daemon.period_s
+    out = {"reaction_ms": round(loop_s * 1e3, 2),
            "reaction_wall_ms": round((t_seen - t_cmd) * 1e3, 2),
-           "reply_ms": round((t_reply - t_cmd) * 1e3, 2)}
+           "reply_ms": round((t_reply - t_cmd) * 1e3, 2),
+           "loop_speed": round(loop_s / max(t_seen - t_cmd, 1e-9), 3)}
     if op in ("pause", "stop"):
         out["time_to_rest_ms"] = round(_time_to_rest(sh, S, t_cmd) * 1e3, 1)
     return out
@@ -210,6 +215,7 @@ def main(args: argparse.Namespace) -> int:
                        operator=dataclasses.replace(base.operator, state_dir=tmp))
     load0 = os.getloadavg()
     out: dict = {"period_s": None, "speed_mm_s": args.speed, "lead_s": core.REWIND_LEAD_S,
+                 "realtime_requested": not args.no_realtime,
                  "relaxed": {"max_overruns_in_row": 1000, "following_error_mm": 25.0}}
     try:
         daemon = core.Daemon(cfg, realtime=not args.no_realtime)
@@ -217,6 +223,7 @@ def main(args: argparse.Namespace) -> int:
         try:
             with P.Client.unix(srv.socket_path) as client:
                 out["period_s"] = daemon.period_s
+                out["hot_loop_sched_fifo"] = bool(daemon.sh.h[S.H_PRIV_FIFO])
                 rows = _holds(daemon, client, S, args)
                 out["deadman_s"] = cfg.operator.jog.deadman_s
                 out["jog_deadman"], out["jog_deadman_early_stops"] = _deadman(daemon, client, S, args.repeats, P)
@@ -227,6 +234,7 @@ def main(args: argparse.Namespace) -> int:
             out[k] = {"runs": v, "reaction_ms": _summary(v, "reaction_ms"),
                       "reaction_wall_ms": _summary(v, "reaction_wall_ms")}
         out["jog_deadman_stop_after_deadline_ms"] = _summary(out["jog_deadman"], "stop_after_deadline_ms")
+        out["jog_deadman_stop_after_last_confirm_ms"] = _summary(out["jog_deadman"], "stop_after_last_confirm_ms")
         out["jog_deadman_stop_after_last_confirm_cycles_ms"] = _summary(out["jog_deadman"],
                                                                         "stop_after_last_confirm_cycles_ms")
         out["commands_rewound"], out["commands_at_queue_end"] = daemon.rewinds

@@ -18,6 +18,7 @@ BENCHES: dict[str, str] = {
     "hold": "hexacnc.bench.hold",
     "arch": "hexacnc.bench.arch",
     "operator": "hexacnc.bench.operator",
+    "homing": "hexacnc.bench.homing",
     "calib-cycle": "hexacnc.bench.calibcycle",
     "faults": "hexacnc.bench.faults",
 }

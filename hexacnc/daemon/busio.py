@@ -125,6 +125,24 @@ class PipeSim:
         if not self._line(f"inject {kind} {int(node)} {value}"):
             raise BusError("the simulated drives process is not running")
 
+    def truth(self, path: str, timeout_s: float = 5.0) -> dict:
+        """The drives' physical state (:func:`hexacnc.daemon.simhost.write_truth`), for benchmarks."""
+        import json
+        import time
+        try:
+            os.unlink(path)
+        except FileNotFoundError:
+            pass
+        if not self._line(f"truth {path}"):
+            raise BusError("the simulated drives process is not running")
+        t_end = time.monotonic() + timeout_s
+        while not os.path.exists(path):
+            if time.monotonic() > t_end:
+                raise BusError(f"the simulated drives wrote no state within {timeout_s:g} s")
+            time.sleep(0.005)
+        with open(path) as f:
+            return {int(k): v for k, v in json.load(f).items()}
+
     def terminate(self) -> None:
         """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:
@@ -233,6 +251,8 @@ class CyclicAdapter:
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
         self._emcy_last = [None] * 6
+        self.bootups = 0                #: boot-up messages seen (a drive was reset or power-cycled)
+        self.encoder_errors = 0         #: EMCYs 0x73xx (sensor / encoder)
         self.bus_load = bus_load
         self.info = info
         self._EV_EMCY = cyclic.EV_EMCY
@@ -263,6 +283,10 @@ class CyclicAdapter:
                 self.emcy_code[i] = code
                 self._emcy_last[i] = (code, reg, bytes(extra))
                 self.emcy_count[i] += 1
+                if code & 0xFF00 == 0x7300:     # sensor / encoder error: the position cannot be trusted
+                    self.encoder_errors += 1
+        if ev & self._EV_BOOTUP:
+            self.bootups = cio.bootups
         return ev
 
     def send(self) -> int:

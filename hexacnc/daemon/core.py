@@ -88,6 +88,7 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         self._planning: set = set()             #: programs being planned (planproc.PlanJob)
         self._stops = 0                         #: stop() calls so far (a plan started before one is dropped)
         self.awaiting_enable = False      #: started with drives disabled; "enable"/"reset" not sent yet
+        self.ref_watch = None             #: reference.ReferenceWatch (the operator's), polled by the feeder
         if start:
             self.start()
 

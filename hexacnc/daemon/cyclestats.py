@@ -131,4 +131,6 @@ def publish_status(self) -> None:
         s[S.S_TRAVEL + i] = tr[i]
         s[S.S_THERMAL_APP + i] = th[i]
     s[S.S_SPINDLE_APP] = ct.spindle_growth_mm
+    h[S.H_BOOTUPS] = getattr(io, "bootups", 0)             # reference trust (hexacnc.daemon.reference)
+    h[S.H_ENCODER_ERRORS] = getattr(io, "encoder_errors", 0)
     h[S.H_STATUS_SEQ] += 1

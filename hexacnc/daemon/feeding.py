@@ -23,13 +23,20 @@ log = logging.getLogger("hexacnc.daemon")
 #: rows kept queued in the ring while streaming (seconds of motion)
 FEED_AHEAD_S = 0.3
 #: a pause, resume, stop or override takes back the queued rows beyond this lead (seconds) and
-#: re-plans them from the source's state there: commands act within it plus one chunk (25 + 16 ms;
-#: 40 ms gave 41-43 ms reactions, over issue 15's 40 ms), not after FEED_AHEAD_S
-REWIND_LEAD_S = 0.025
+#: re-plans them from the source's state there: commands act within it (regenerated from the last
+#: mark, no chunk granularity), not after FEED_AHEAD_S.  It covers the supervisor's time from
+#: reading the hot loop's index to lowering the write index (the first batch: ~1 ms); a longer
+#: lead is tried when the hot loop overtakes (loaded machine).  History: 40 ms gave 41-43 ms
+#: reactions; 25 ms + one 16 ms chunk 26-28 ms
+REWIND_LEAD_S = 0.005
 #: rows per feeder chunk: a source snapshot is kept at every chunk start (the rewind points)
 FEED_CHUNK_ROWS = 32
-#: marks tried before a command falls back to acting at the end of the queue
-REWIND_ATTEMPTS = 3
+#: leads tried (each twice the last) before a command falls back to acting at the end of the queue
+REWIND_ATTEMPTS = 5
+#: replacement rows generated before the ring's write index is lowered (the rest of the queue right
+#: after): the time the hot loop may not overtake is the generation of these (~20 us a row in a
+#: transition, 1.3 ms), not of the whole queue (~12 ms)
+REWIND_BATCH_ROWS = 2 * FEED_CHUNK_ROWS
 #: feeder thread period
 FEED_PERIOD_S = 0.002
 
@@ -47,6 +54,17 @@ class Job:
     marks: deque = field(default_factory=deque)   #: (ring index, source snapshot before that row)
     extra: dict = field(default_factory=dict)
 
+
+
+def _same_rows(rows: np.ndarray, sh: S.Shared, k0: int) -> bool:
+    """``rows`` equal (to 1e-9 mm / rad) the ring's rows from index ``k0`` (regenerated from a mark)."""
+    ring = sh.ring          # no numpy view of the shared buffer: it would keep the segment from closing
+    for n, r in enumerate(rows.tolist()):
+        b = ((k0 + n) % S.RING_ROWS) * S.ROW
+        for j in range(S.ROW):
+            if abs(ring[b + j] - r[j]) > 1e-9:
+                return False
+    return True
 
 
 class FeedMixin:
@@ -74,6 +92,8 @@ class FeedMixin:
 
     def _feed_once(self, sh: S.Shared, ahead: int) -> None:
         with self.lock:
+            if self.ref_watch is not None:      # every latched fault, boot-up or encoder error seen
+                self.ref_watch.poll(sh.h)
             hstate = sh.h[S.H_STATE]
             if hstate == S.ST_FAULT or hstate == S.ST_DISABLED:
                 if self.current is not None or self.queue:
@@ -118,7 +138,7 @@ class FeedMixin:
         marks = job.marks
         can_mark = hasattr(src, "snapshot")
         r = sh.h[S.H_RING_R]
-        while marks and marks[0][0] < r:
+        while len(marks) > 1 and marks[1][0] <= r:      # keep the mark of the row being run
             marks.popleft()
         while need > 0 and not src.finished:
             if can_mark:
@@ -134,15 +154,17 @@ class FeedMixin:
         """Apply ``action`` (the source's pause, resume, stop or override) to the rows the drives
         get ``REWIND_LEAD_S`` from now, not after the whole queue (caller holds the lock).
 
-        The source goes back to its snapshot at the first mark past the lead, the command is
-        applied there and the replacement rows (the full queue length, ~2-3 ms of work) are
-        generated first; only then is the ring's write index lowered to the mark and the new rows
-        written, so the queue stays full and the hot loop never waits for the generation.
-        Continuity holds because the source continues from exactly the state it was in when it
-        produced that row the first time.  If the hot loop got past the mark meanwhile (a
-        descheduled supervisor), the source returns to where it was and the next mark is tried;
-        when there is nothing to take back the command acts on the end of the queue.  Returns
-        whether rows were taken back.
+        The source goes back to its snapshot at the last mark before the lead point and
+        regenerates the rows up to that point (they must come out as the queued ones, else the
+        first mark past it is used), the command is applied there and a first batch of replacement
+        rows (``REWIND_BATCH_ROWS``) is generated; only then is the ring's write index lowered to
+        the lead point (``Shared.retract``: single producer, checked against the hot loop's read
+        index afterwards) and the rows written; then the rest of the queue is generated.  Rows before
+        the lead point are untouched, so the command path is continuous (the source continues from
+        the state it was in when it produced that row).  If the hot loop got past the point
+        meanwhile (a descheduled supervisor), the source returns to where it was and a lead twice
+        as long is tried; when there is nothing to take back the command acts on the end of the
+        queue.  Returns whether rows were taken back.
         """
         job, sh = self.current, self.sh
         src = job.source if job is not None else None
@@ -150,39 +172,63 @@ class FeedMixin:
             action()
             return False
         end_snap = src.snapshot()
-        for _attempt in range(REWIND_ATTEMPTS):
-            k_min = sh.h[S.H_RING_R] + self._rewind_rows
-            w = sh.h[S.H_RING_W]
-            for i, (k, snap) in enumerate(job.marks):
-                if k >= k_min:
-                    break
-            else:
+        for attempt in range(REWIND_ATTEMPTS):
+            k_min = sh.h[S.H_RING_R] + (self._rewind_rows << attempt)
+            if k_min >= sh.h[S.H_RING_W]:
                 break
-            if k >= w:
+            at = self._rewind_point(job, src, sh, k_min)
+            if at is None:
                 break
-            src.restore(snap)
+            k, i = at
             action()
-            marks, chunks, idx, need = [], [], k, self._ahead_rows
+            batch, marks, idx = [], [], k
+            need = min(self._ahead_rows, REWIND_BATCH_ROWS)
             while need > 0 and not src.finished:
                 marks.append((idx, src.snapshot()))
                 rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
-                chunks.append(rows)
+                batch.append(rows)
                 idx += len(rows)
                 need -= max(1, len(rows))
             if sh.retract(k):
-                for rows in chunks:
+                for rows in batch:
                     if len(rows):
                         sh.push_rows(rows)
                 while len(job.marks) > i:
                     job.marks.pop()
                 job.marks.extend(marks)
                 job.end_index = sh.h[S.H_RING_W] if src.finished else -1
+                # the rest of the queue at once (the reaction is already fixed: the hot loop reads the
+                # new rows), so the ring holds FEED_AHEAD_S again, not only lead + batch
+                self._push(job, sh, self._ahead_rows - sh.ring_fill())
                 self.rewinds[0] += 1
                 return True
-            src.restore(end_snap)           # the hot loop got there first: try a later mark
+            src.restore(end_snap)           # the hot loop got there first: a longer lead
+        src.restore(end_snap)
         action()
         self.rewinds[1] += 1
         return False
+
+    @staticmethod
+    def _rewind_point(job: Job, src, sh: S.Shared, k_min: int):
+        """Put ``src`` in its state before ring row ``k``, the lead point ``k_min`` (regenerated from
+        the last mark before it, checked against the queued rows) or else the first mark past it.
+        Returns ``(k, index of the first mark to replace)`` or None (nothing to take back)."""
+        marks = job.marks
+        j = 0
+        while j < len(marks) and marks[j][0] <= k_min:
+            j += 1
+        if j > 0:                                      # marks[j - 1] is at or before the lead point
+            k0, snap = marks[j - 1]
+            src.restore(snap)
+            n = k_min - k0
+            rows = src.next_rows(n) if n > 0 else np.empty((0, S.ROW))
+            if not src.finished and len(rows) == n and (n == 0 or _same_rows(rows, sh, k0)):
+                return k_min, (j - 1 if n == 0 else j)
+        if j < len(marks) and marks[j][0] < sh.h[S.H_RING_W]:
+            k, snap = marks[j]
+            src.restore(snap)
+            return k, j
+        return None
 
     def _abort_jobs(self, why: str) -> None:
         for job in self.queue:          # queued behind the running one: dropped, never silently

@@ -153,6 +153,8 @@ class MotionMixin:
             st = self.sh.h[S.H_STATE]
             if st not in (S.ST_FAULT, S.ST_DISABLED) and not (st == S.ST_BOOT and self.awaiting_enable):
                 return self.status()
+            if self.ref_watch is not None:      # the fault being cleared: seen before it is gone
+                self.ref_watch.poll(self.sh.h)
             self.awaiting_enable = False
             self._abort_jobs("reset")
             self.last_program = None

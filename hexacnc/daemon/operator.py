@@ -11,7 +11,8 @@ referencing, jog, MDI, the persistent interpreter state and the operator's statu
   written to the files at once, so the next program and a restarted daemon start from them.
 * Overrides persist: a new program starts at the feed and rapid overrides in force.
 * ``[homing] required``: programs, MDI and Cartesian jogs are refused until the machine is
-  referenced (absolute encoders: at start; ``cia402``: by ``home``).
+  referenced (absolute encoders: at start; ``cia402``: by ``home``), and again once the reference
+  is lost (:mod:`.reference`: a fault, a drive's boot-up, an encoder error, a failed homing run).
 """
 from __future__ import annotations
 
@@ -29,6 +30,7 @@ from ..state import MachineState, StateStore, ToolEntry, interpret
 from . import shm as S
 from .jog import JogLimitError, JogSource, plan_jog, tip_poses, tool_point_platform
 from .opstatus import OperatorStatus
+from .reference import ReferenceWatch
 
 log = logging.getLogger("hexacnc.daemon.operator")
 
@@ -56,7 +58,10 @@ class Operator:
         self.rapid = 1.0
         self.max_feed = float(self.cfg.operator.max_feed_override)
         hm = self.cfg.operator.homing
-        self.referenced = hm.method == "absolute"
+        self.ref = ReferenceWatch(hm.method, hm.method == "absolute")
+        if daemon.sh is not None:
+            self.ref.baseline(daemon.sh.h)
+        daemon.ref_watch = self.ref       # polled by the feeder thread and before a reset
         self.pivot_mm = (None if self.cfg.operator.pivot_mm is None
                          else np.asarray(self.cfg.operator.pivot_mm, dtype=float))
         self.lock = threading.RLock()
@@ -79,8 +84,16 @@ class Operator:
         if st == S.ST_DISABLED:
             raise OperatorError(f"{what} refused: the drives are disabled (hexacnc enable)", "invalid_state")
         if cartesian and self.cfg.operator.homing.required and not self.referenced:
-            raise OperatorError(f"{what} refused: the machine is not referenced ([homing] required; "
+            lost = self.ref.lost
+            why = f": {lost['reason']}" if lost else ""
+            raise OperatorError(f"{what} refused: the machine is not referenced{why} ([homing] required; "
                                 f"hexacnc home)", "invalid_state")
+
+    @property
+    def referenced(self) -> bool:
+        """The struts' reference can be trusted (:mod:`.reference`)."""
+        sh = self.daemon.sh
+        return self.ref.poll(sh.h) if sh is not None else self.ref.referenced
 
     def _idle_checks(self, what: str) -> None:
         d = self.daemon
@@ -249,7 +262,7 @@ class Operator:
         self._motion_checks("home", cartesian=False)
         self._idle_checks("home")
         if hm.method == "absolute":
-            self.referenced = True
+            self.ref.mark(self.daemon.sh.h)
             return {"referenced": True, "method": "absolute",
                     "message": "absolute encoders: the struts are referenced from their readings"}
         return self._home_cia402(hm)
@@ -264,7 +277,7 @@ class Operator:
             if sh.h[S.H_STATE] != S.ST_IDLE:
                 raise OperatorError(f"home refused: the loop is {S.STATE_NAMES.get(sh.h[S.H_STATE], '?')}, "
                                     f"not idle", "invalid_state")
-            self.referenced = False
+            self.ref.unmark("homing started and did not finish", quiet=True)
             sh.h[S.H_HOME_RESULT] = RUNNING
             seq = sh.command(S.CMD_HOME)
         t_end = time.monotonic() + HOME_TIMEOUT_S + 5.0
@@ -277,8 +290,9 @@ class Operator:
         if r != DONE:
             where = f" (strut {strut})" if strut else ""
             why = ERROR_TEXT.get(r, "no answer from the hot loop" if r == RUNNING else f"code {r}")
+            self.ref.unmark(f"home failed{where}: {why}")
             raise OperatorError(f"home failed{where}: {why}", "unsupported" if r == E_UNSUPPORTED else "fault")
-        self.referenced = True
+        self.ref.mark(sh.h)
         st = d.status()
         return {"referenced": True, "method": "cia402", "homing_method": int(hm.homing_method),
                 "offset_mm": [float(v) for v in hm.offset_mm], "struts_act_mm": st.get("struts_act_mm"),
@@ -369,6 +383,10 @@ class Operator:
         self._watch.start()
 
     def _watchdog(self) -> None:
+        d = self.daemon
+        if getattr(d, "realtime", False):       # a stop must not wait behind normal work on a loaded machine
+            from .rt import sched_fifo
+            sched_fifo(max(1, self.cfg.cycle.realtime_priority - 31))
         while not self._closed:
             with self.lock:
                 src, deadline = self.active_jog(), self._deadline

@@ -122,6 +122,7 @@ class OperatorStatus:
         st["elapsed_s"] = None if elapsed is None else round(elapsed, 3)
         st["remaining_s"] = None if remaining is None else round(float(remaining), 3)
         st["referenced"] = op.referenced
+        st["reference_lost"] = None if st["referenced"] else op.ref.lost
         ji = op.jog_info
         src = op.active_jog()
         st["jog"] = None if ji is None or src is None else dict(ji, stopping=src.stopping)
@@ -145,7 +146,8 @@ class OperatorStatus:
                 return "feed override 0 % (hexacnc feed)"
             return None
         if op.cfg.operator.homing.required and not op.referenced:
-            return "not referenced (hexacnc home)"
+            lost = op.ref.lost
+            return "not referenced" + (f": {lost['reason']}" if lost else "") + " (hexacnc home)"
         return "idle: no program or jog"
 
 

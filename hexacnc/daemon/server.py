@@ -54,6 +54,15 @@ log = logging.getLogger("hexacnc.daemon.server")
 _AUTH_TIMEOUT_S = tcpauth.AUTH_TIMEOUT_S
 
 
+def _control_priority(daemon) -> None:
+    """The control worker (stop, pause, override, ...) runs SCHED_FIFO just below the feeder thread when
+    the daemon is real-time (permitted): a loaded machine must not delay a stop behind normal work."""
+    cfg = getattr(daemon, "cfg", None)
+    if getattr(daemon, "realtime", False) and cfg is not None:
+        from .rt import sched_fifo
+        sched_fifo(max(1, cfg.cycle.realtime_priority - 31))
+
+
 class SocketServer(ConnectionIO, StatusStreams, MotionOps, UploadOps, Admission):
     """Serve the protocol of ``docs/protocol.md`` for ``daemon``.
 
@@ -128,7 +137,8 @@ class SocketServer(ConnectionIO, StatusStreams, MotionOps, UploadOps, Admission)
             raise
         self._motion_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-motion")
         # stop/pause/resume/reset never wait behind a program being interpreted and planned
-        self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control")
+        self._control_pool = ThreadPoolExecutor(1, thread_name_prefix="hexacnc-control",
+                                                initializer=_control_priority, initargs=(self.daemon,))
         self._wait_pool = ThreadPoolExecutor(self.max_clients * _MAX_WAITS_PER_CLIENT,
                                              thread_name_prefix="hexacnc-wait")
         self._thread = threading.Thread(target=self._run, name="hexacnc-socket", daemon=True)

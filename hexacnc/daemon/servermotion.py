@@ -64,7 +64,9 @@ class MotionOps:
         with self._motion_cv:
             self._motion_submitted += 1
         # disable too: machine off never waits behind a motion op (e.g. a running CiA 402 home)
-        control = req.op in ("stop", "pause", "resume", "reset", "disable") and getattr(self, "_control_pool", None)
+        # and override: a feed change acts within REWIND_LEAD_S, not after a program being planned
+        control = req.op in ("stop", "pause", "resume", "reset", "disable", "override") \
+            and getattr(self, "_control_pool", None)
         (self._control_pool if control else self._motion_pool).submit(job)
 
     def _op_program(self, conn: _Conn, req: P.Request) -> None:

@@ -82,6 +82,26 @@ def inject(sim, kind: str, node: int, value: float = 0.0) -> None:
             raise ValueError(f"inject: unknown kind {kind!r} (one of {', '.join(INJECTIONS)})")
 
 
+def write_truth(sim, path: str) -> None:
+    """Each drive's physical state as JSON at ``path`` (written whole: temporary file, then rename):
+    ``position_mm`` (its position value), ``raw_mm`` (the encoder count without the home shift),
+    ``home_shift_mm``, ``switch_mm`` (its simulated limit switches, raw scale), ``referenced``."""
+    import json
+    out = {}
+    with sim.lock:
+        for node, d in sim.by_node.items():
+            hm = getattr(d, "homing", None)
+            shift = hm.shift_inc if hm is not None else 0
+            out[str(node)] = {"position_mm": d.pos_inc / d.k, "raw_mm": (d.pos_inc - shift) / d.k,
+                              "home_shift_mm": shift / d.k,
+                              "switch_mm": list(hm.home_switch_mm) if hm is not None else None,
+                              "referenced": bool(hm.referenced) if hm is not None else False}
+    tmp = f"{path}.tmp{os.getpid()}"
+    with open(tmp, "w") as f:
+        json.dump(out, f)
+    os.replace(tmp, path)
+
+
 def _number(text: str) -> float:
     try:
         return int(text, 0)
@@ -97,6 +117,12 @@ def _serve_stdin(sim) -> bool:
             continue
         if parts[0] == "STOP":
             return True
+        if parts[0] == "truth" and len(parts) == 2:      # benchmarks: the drives' physical state
+            try:
+                write_truth(sim, parts[1])
+            except OSError as exc:
+                log.error("truth %r: %s", parts[1], exc)
+            continue
         if parts[0] == "inject" and len(parts) >= 3:
             try:
                 inject(sim, parts[1], int(parts[2], 0), _number(parts[3]) if len(parts) > 3 else 0.0)

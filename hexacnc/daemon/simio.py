@@ -35,6 +35,8 @@ class SimIO:
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6
         self.emcy_code = [0] * 6
+        self.bootups = 0
+        self.encoder_errors = 0
         self.bus_load = 0.0
         self.frames_tx = 0
         self._x = [0.0] * 6                     # drive positions, mm of reading
@@ -67,6 +69,8 @@ class SimIO:
     def emcy(self, i: int, code: int) -> None:
         self.emcy_code[i] = code
         self.emcy_count[i] += 1
+        if code & 0xFF00 == 0x7300:
+            self.encoder_errors += 1
         self.statusword[i] = SW_FAULT_BIT | SW_REMOTE
 
     def poll(self, now_ns: int) -> int:

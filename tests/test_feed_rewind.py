@@ -1,0 +1,87 @@
+"""The feeder's command rewind (hexacnc.daemon.feeding.FeedMixin._command) on a real shared-memory ring
+and a planned program: a pause acts exactly REWIND_LEAD_S after the hot loop's read index - between
+two chunk marks, regenerated from the last mark - and the rows from there are those the source gives
+when paused at that row; the rows before are untouched."""
+from __future__ import annotations
+
+import threading
+from collections import deque
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.daemon import shm as S
+from hexacnc.daemon.feeding import FEED_CHUNK_ROWS, REWIND_LEAD_S, FeedMixin, Job
+from hexacnc.daemon.program import ProgramSource
+from hexacnc.gcode.factory import program_from_config
+from hexacnc.planner import plan_program
+
+DT = 0.0005
+
+
+class Feeder(FeedMixin):
+    def __init__(self, sh, src):
+        self.sh = sh
+        self.lock = threading.RLock()
+        self.feed_hold = False
+        self.rewinds = [0, 0]
+        self._rewind_rows = int(round(REWIND_LEAD_S / DT))
+        self._ahead_rows = 600
+        self.current = Job("t", src, np.zeros(6), np.zeros(6), marks=deque())
+
+
+@pytest.fixture(scope="module")
+def plan():
+    cfg = load_config(None)
+    text = "G21 G90 G64 P0.1\nG53 G0 X-120 Y0 Z-1140\nG53 G1 X120 F6000\nM2\n"
+    return plan_program(program_from_config(text, "t.ngc", cfg).blocks, cfg)
+
+
+def ring_rows(sh, a, b):
+    return np.array([[sh.ring[(k % S.RING_ROWS) * S.ROW + j] for j in range(S.ROW)] for k in range(a, b)])
+
+
+@pytest.mark.parametrize("consumed", [2000, 2000 + FEED_CHUNK_ROWS // 2 + 3, 2000 + FEED_CHUNK_ROWS - 1])
+def test_pause_acts_at_the_lead_between_marks_and_continues_the_queued_rows(plan, consumed):
+    sh = S.Shared(create=True)
+    try:
+        src = ProgramSource(plan, DT, "t")
+        f = Feeder(sh, src)
+        job = f.current
+        f._push(job, sh, consumed + 600)
+        sh.h[S.H_RING_R] = consumed                    # the hot loop ran this far
+        before = ring_rows(sh, 0, sh.h[S.H_RING_W])
+        with f.lock:
+            assert f._command(src.sampler.pause)
+        assert f.rewinds == [1, 0]
+        k = consumed + f._rewind_rows                   # the lead point, whatever the marks
+        after = ring_rows(sh, 0, sh.h[S.H_RING_W])
+        assert np.array_equal(after[:k], before[:k])
+        assert not np.allclose(after[k:k + 50, :6], before[k:k + 50, :6], atol=1e-9, rtol=0)
+        # the reference: the same program, paused when its row k is next
+        ref_src = ProgramSource(plan, DT, "t")
+        head = ref_src.next_rows(k)
+        assert np.allclose(head, before[:k], atol=1e-9, rtol=0)
+        ref_src.sampler.pause()
+        ref = ref_src.next_rows(after.shape[0] - k)
+        assert np.allclose(after[k:], ref, atol=1e-9, rtol=0)
+        # the feeder keeps the queue full from there, and stops where paused
+        f._push(job, sh, f._ahead_rows - sh.ring_fill())
+        assert sh.ring_fill() >= f._ahead_rows - 1
+    finally:
+        sh.close()
+
+
+def test_nothing_left_to_take_back_acts_at_the_end_of_the_queue(plan):
+    sh = S.Shared(create=True)
+    try:
+        src = ProgramSource(plan, DT, "t")
+        f = Feeder(sh, src)
+        f._push(f.current, sh, 600)
+        sh.h[S.H_RING_R] = sh.h[S.H_RING_W] - 3         # fewer rows queued than the lead
+        with f.lock:
+            assert not f._command(src.sampler.pause)
+        assert f.rewinds == [0, 1] and src.sampler.state == "pausing"
+    finally:
+        sh.close()
