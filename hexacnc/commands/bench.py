@@ -20,6 +20,7 @@ BENCHES: dict[str, str] = {
     "operator": "hexacnc.bench.operator",
     "calib-cycle": "hexacnc.bench.calibcycle",
     "faults": "hexacnc.bench.faults",
+    "stream": "hexacnc.bench.stream",
 }
 
 

@@ -22,9 +22,11 @@ from ..errors import GcodeError, HexacncError, PlanError
 
 _CTX = None
 _CTX_LOCK = threading.Lock()
-#: modules the forkserver imports once (children start with them loaded)
+#: modules the forkserver imports once (children start with them loaded: those a plan imports on its first
+#: call included, else every child pays ~0.7 s of imports before its first window)
 PRELOAD = ["hexacnc.daemon.program", "hexacnc.daemon.planstream", "hexacnc.gcode", "hexacnc.gcode.textstream",
-           "hexacnc.planner", "hexacnc.planner.window"]
+           "hexacnc.planner", "hexacnc.planner.window", "hexacnc.planner.sampler", "hexacnc.planner.smooth",
+           "hexacnc.planner.chain", "hexacnc.kinematics", "ruckig", "scipy.linalg"]
 
 
 def _context():

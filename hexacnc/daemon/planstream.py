@@ -84,30 +84,17 @@ def _blocks(cfg, text: str, name: str, start_tip):
 
 
 def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s) -> None:
-    import numpy as np
-    from ..kinematics import Hexapod
-    from ..planner import path as P
-    from ..planner.grid import check_path
-    from ..planner.window import _seconds, _Splitter
+    from ..planner.window import validate_windows
     ref: list = []
     _setup(max_mb, ref)
     try:
-        hx = Hexapod(cfg)
         stream = _blocks(cfg, text, name, start_tip)
         ref.append(stream)
         del text
-        sp = _Splitter(cfg, cfg.planner.window_blocks, cfg.planner.window_s)
-        nb, est = 0, 0.0
-        end = np.asarray(start_rad, dtype=float)
+        nb, est, end = 0, 0.0, start_rad
         _arm(max_s)
-        for blks, _forced, _last in sp.windows(stream):
-            path, events = P.build_path(blks, cfg)
-            if path.n:
-                check_path(path, hx, cfg, events)
-                end = path.platform(np.array([path.n - 1]), np.array([path.total]))[0]
-            nb += len(blks)
-            est += sum(_seconds(b, sp.rapid, sp.feed) for b in blks)
-            conn.send(("checked", int(max((b.line for b in blks), default=0)), nb))
+        for nb, est, line, end in validate_windows(stream, cfg, start_rad=start_rad):
+            conn.send(("checked", line, nb))
             _arm(max_s)
         _arm(0)
         out = ("valid", nb, est, end)
@@ -119,7 +106,7 @@ def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s) 
 
 def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s) -> None:
     from ..kinematics import Hexapod
-    from ..planner.window import plan_windows
+    from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows
     ref: list = []
     _setup(max_mb, ref)
     granted = 0
@@ -127,7 +114,9 @@ def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s) -> 
         stream = _blocks(cfg, text, name, start_tip)
         ref.append(stream)
         del text
-        gen = plan_windows(stream, cfg, hexapod=Hexapod(cfg), period_s=period_s, start_pose=start_tip)
+        first = FIRST_WINDOW_BLOCKS if cfg.planner.start_before_validated else 0
+        gen = plan_windows(stream, cfg, hexapod=Hexapod(cfg), period_s=period_s, start_pose=start_tip,
+                           first_blocks=first)
         while True:
             _arm(max_s)
             w = next(gen, None)
@@ -219,10 +208,10 @@ class StreamPlan:
         self._granted = 0
         self.t0 = time.monotonic()
         tip = tool_tip_pose_deg(cfg, start_rad)
-        self._val = _Child(_validate_child, (cfg, text, name, tip, start_rad, self.max_mb, self.max_s), self._on_val,
-                           "hexacnc-validate")
         self._plan = _Child(_stream_child, (cfg, text, name, tip, period_s, self.max_mb, self.max_s),
                             self._on_plan, "hexacnc-plan")
+        self._val = _Child(_validate_child, (cfg, text, name, tip, start_rad, self.max_mb, self.max_s), self._on_val,
+                           "hexacnc-validate")
         self._grant(AHEAD_WINDOWS)
 
     # -- messages (receiver threads) ----------------------------------------------------------

@@ -24,6 +24,8 @@ from ..pose import matrix_from_euler
 from . import path as P
 from .plan import Plan, plan_program
 
+#: motion blocks of the first window when motion starts before the validation ends (then 2x, 4x, ...)
+FIRST_WINDOW_BLOCKS = 100
 #: a window closes at a rest point once it holds at least this share of ``window_blocks`` motion blocks
 MIN_SHARE = 0.25
 #: cosine of the turn between moves below which the planner stops there (a reversal, as in path.py)
@@ -101,9 +103,12 @@ def _seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
 class _Splitter:
     """Cuts a block stream into windows (lists of blocks) at rest points."""
 
-    def __init__(self, cfg, window_blocks: int, window_s: float):
+    def __init__(self, cfg, window_blocks: int, window_s: float, first_blocks: int = 0):
+        """``first_blocks`` > 0: the first window closes after that many motion blocks, each next one after
+        twice as many, up to ``window_blocks`` (a quick first window: motion starts sooner)."""
         pc = cfg.planner
         self.wb = int(window_blocks)
+        self.grow = int(first_blocks) if 0 < int(first_blocks) < self.wb else self.wb
         self.ws = float(window_s)
         self.rapid = pc.rapid_feed_mm_min / 60.0
         self.feed = pc.default_feed_mm_min / 60.0
@@ -132,7 +137,8 @@ class _Splitter:
             secs += _seconds(blk, self.rapid, self.feed)
             if blk.kind == B.END:
                 break
-            if nmot >= self.wb or secs >= self.ws:
+            if nmot >= self.grow or secs >= self.ws:
+                self.grow = min(self.wb, 2 * self.grow)
                 cut, forced = self._cut(buf, rests)
                 pending = (buf[:cut + 1], forced)
                 buf = buf[cut + 1:]
@@ -164,8 +170,9 @@ class _Splitter:
 
 
 def plan_windows(blocks, cfg, hexapod=None, period_s: float | None = None, start_pose=None,
-                 window_blocks: int | None = None, window_s: float | None = None):
+                 window_blocks: int | None = None, window_s: float | None = None, first_blocks: int = 0):
     """Plan the blocks (any iterable) window by window; yields :class:`Window` s (see the module docstring).
+    ``first_blocks``: a short first window, the next ones twice as long up to ``window_blocks``.
 
     Each window's plan starts at rest where the previous one ended; errors (GcodeError from the
     iterator, PlanError from a window) are raised when the window that holds them is reached, after
@@ -177,8 +184,29 @@ def plan_windows(blocks, cfg, hexapod=None, period_s: float | None = None, start
     wb = int(window_blocks if window_blocks is not None else pc.window_blocks)
     ws = float(window_s if window_s is not None else pc.window_s)
     start = start_pose
-    for i, (blks, forced, last) in enumerate(_Splitter(cfg, wb, ws).windows(blocks)):
+    for i, (blks, forced, last) in enumerate(_Splitter(cfg, wb, ws, first_blocks).windows(blocks)):
         plan = plan_program(blks, cfg, hexapod=hx, period_s=period_s, start_pose=start)
         lines = [int(b.line) for b in blks] or [0]
         yield Window(i, plan, last, min(lines), max(lines), len(blks), forced)
         start = tool_tip_pose_deg(cfg, plan.end_pose_platform)
+
+
+def validate_windows(blocks, cfg, hexapod=None, start_rad=None):
+    """Check the blocks window by window without planning their timing (:func:`~hexacnc.planner.grid.check_path`:
+    strut lengths, joint angles, singularity, soft limits, continuity); yields after every window
+    (blocks so far, nominal seconds so far, last line, platform pose at the end (mm, rad)) and raises
+    the first error (GcodeError from the iterator, PlanError) with its line."""
+    from ..kinematics import Hexapod
+    from .grid import check_path
+    hx = hexapod if hexapod is not None else Hexapod(cfg)
+    sp = _Splitter(cfg, cfg.planner.window_blocks, cfg.planner.window_s)
+    nb, est = 0, 0.0
+    end = None if start_rad is None else np.asarray(start_rad, dtype=float)
+    for blks, _forced, _last in sp.windows(blocks):
+        path, events = P.build_path(blks, cfg)
+        if path.n:
+            check_path(path, hx, cfg, events)
+            end = path.platform(np.array([path.n - 1]), np.array([path.total]))[0]
+        nb += len(blks)
+        est += sum(_seconds(b, sp.rapid, sp.feed) for b in blks)
+        yield nb, est, int(max((b.line for b in blks), default=0)), end
