@@ -118,6 +118,11 @@ def first_motion(path: Path, args, source: str) -> dict:
     text = path.read_text(encoding="utf-8")
     t0 = time.perf_counter()
     warm()
+    sp = StreamPlan(cfg, "M2\n", "warm.ngc", home, cfg.cycle.period_s)   # the forkserver's imports done
+    try:
+        sp.wait_ready()
+    finally:
+        sp.cancel()
     out = {"forkserver_start_s": round(time.perf_counter() - t0, 3)}
     for before in (True, False):
         c = cfg.replace(planner=dataclasses.replace(cfg.planner, start_before_validated=before))
