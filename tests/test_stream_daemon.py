@@ -12,7 +12,8 @@ import pytest
 
 from hexacnc.bench.camgen import cam_program
 from hexacnc.config import load_config
-from hexacnc.daemon.program import open_stream, program_source
+from hexacnc.daemon.planstream import StreamPlan
+from hexacnc.daemon.program import program_source
 from hexacnc.errors import ConfigError, PlanError
 from hexacnc.gcode import program_from_config
 from hexacnc.setpoint import FLAG_END
@@ -33,7 +34,7 @@ def _home(cfg):
 
 
 def _start(cfg, text):
-    sp = open_stream(cfg, text, "cam.ngc", _home(cfg), cfg.cycle.period_s)
+    sp = StreamPlan(cfg, text, "cam.ngc", _home(cfg), cfg.cycle.period_s)
     return sp, program_source(sp, "cam.ngc", _home(cfg), cfg.cycle.period_s)
 
 

@@ -74,14 +74,15 @@ class MotionMixin:
         """Stream the program through validation and windowed planning (:mod:`.planstream`), then queue it:
         after the whole program is validated, or at the first planned window with ``[planner]
         start_before_validated``. Raises GcodeError/PlanError (nothing moved)."""
-        from .program import open_stream, program_source
+        from .planstream import StreamPlan
+        from .program import program_source
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
             stops = self._stops
         # interpreted, validated and planned in children with bounded memory and time (started outside
         # the lock: stop/pause never wait for them); a stop kills them
-        sp = open_stream(self.cfg, text, name, start, self.period_s)
+        sp = StreamPlan(self.cfg, text, name, start, self.period_s)
         with self.lock:
             self._planning.add(sp)
             if self._stops != stops:        # a stop came while the children were being started

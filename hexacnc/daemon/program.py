@@ -135,14 +135,9 @@ def plan_program(cfg, hx, text: str, name: str, start_rad, period_s: float) -> P
                        end_rad=np.asarray(plan.end_pose_platform, dtype=float), summary=plan.summary())
 
 
-def open_stream(cfg, text: str, name: str, start_rad, period_s: float):
-    """Start streaming a program: its validator and windowed planner (:class:`.planstream.StreamPlan`)."""
-    from .planstream import StreamPlan
-    return StreamPlan(cfg, text, name, start_rad, period_s)
-
-
 def program_source(sp, name: str, start_rad, period_s: float):
-    """Wait until the streamed program ``sp`` may move (:meth:`StreamPlan.wait_ready`); returns
+    """Wait until the streamed program ``sp`` (a :class:`~hexacnc.daemon.planstream.StreamPlan`) may move
+    (``wait_ready``); returns
     (ProgramSource, info: blocks, duration_s, duration_exact, validated, end_rad or None).  ``duration_s``
     is the planned duration for a program of one window, else the validation's nominal estimate at the
     programmed feeds (a lower bound; ``duration_exact`` false)."""
