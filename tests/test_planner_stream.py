@@ -114,3 +114,29 @@ def test_rewind_across_a_window_handover_repeats_the_same_rows(cfg):
     n2 = chain.next_rows(again)
     assert n1 == n2 == 200
     np.testing.assert_array_equal(first, again)
+
+
+@pytest.mark.parametrize("text", ["%\nG1 X1 F100\no100 sub\nG1 X2\no100 endsub\no100 call\n%\n", "  \n\nO1 call\n",
+                                  "G1 X1 F100", " % \n(comment o)\nG0 Z5\n%%\n", ""])
+def test_text_lines_note_what_the_file_lines_note(tmp_path, text):
+    """The in-memory program (uploads) and a file give the interpreter the same structure."""
+    from hexacnc.gcode.stream import _FileLines
+    from hexacnc.gcode.textstream import _TextLines
+    data = (text if not text or text.endswith("\n") else text + "\n").encode()
+    f = tmp_path / "p.ngc"
+    f.write_bytes(data)
+    a, b = _TextLines(data, 64), _FileLines(f, 64)
+    assert (a.n, a.offsets, a.owords, a.percent, a.first_nonblank) == \
+           (b.n, b.offsets, b.owords, b.percent, b.first_nonblank)
+    assert [a[i] for i in range(a.n)] == [b[i] for i in range(b.n)]
+
+
+def test_streamed_text_gives_the_blocks_of_the_whole_text(cfg):
+    from hexacnc.gcode.textstream import iter_text_blocks
+    text = cam_program(700)
+    whole = _blocks(cfg, text)
+    streamed = list(iter_text_blocks(text, "cam.ngc", window_lines=64, **machine_defaults(cfg)))
+    assert [(b.kind, b.line) for b in streamed] == [(b.kind, b.line) for b in whole]
+    for a, b in zip(streamed, whole):
+        if b.end is not None:
+            np.testing.assert_array_equal(a.end, b.end)

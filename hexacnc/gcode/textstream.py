@@ -50,7 +50,7 @@ class _TextLines(_FileLines):
         return self.data[int(starts[k]):int(nl[k])].decode("utf-8", errors="replace")
 
 
-def iter_text_blocks(text: str, name: str, *, window_lines: int = 16384, queue_batches: int = 4,
+def iter_text_blocks(text: str, name: str, *, window_lines: int = 4096, queue_batches: int = 4,
                      **kw) -> BlockStream:
     """Stream the blocks of program ``text`` (keywords of :func:`~hexacnc.gcode.parse_program`); errors are
     raised from ``next()`` where they happen, after the blocks before them."""
