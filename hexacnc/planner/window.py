@@ -52,19 +52,26 @@ def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
 
 
 def _direction(blk, at_end: bool):
-    """Unit xyz direction of a move at its start or end (arcs: tangent from centre and normal), or None."""
-    d = np.asarray(blk.end[:3], dtype=float) - np.asarray(blk.start[:3], dtype=float)
+    """Unit xyz direction (3 floats) of a move at its start or end (arcs: tangent from centre and normal), or
+    None.  Plain floats: the splitter looks at every block."""
+    s, e = blk.start, blk.end
     if blk.kind == B.ARC and blk.center is not None and blk.normal is not None:
-        p = np.asarray(blk.end[:3] if at_end else blk.start[:3], dtype=float) - np.asarray(blk.center, dtype=float)
-        d = np.cross(np.asarray(blk.normal, dtype=float), p) * (-1.0 if blk.clockwise else 1.0)
-    n = float(np.linalg.norm(d))
-    return d / n if n > 1e-9 else None
+        p = e if at_end else s
+        c, n = blk.center, blk.normal
+        px, py, pz = float(p[0]) - float(c[0]), float(p[1]) - float(c[1]), float(p[2]) - float(c[2])
+        nx, ny, nz = float(n[0]), float(n[1]), float(n[2])
+        sg = -1.0 if blk.clockwise else 1.0
+        dx, dy, dz = sg * (ny * pz - nz * py), sg * (nz * px - nx * pz), sg * (nx * py - ny * px)
+    else:
+        dx, dy, dz = float(e[0]) - float(s[0]), float(e[1]) - float(s[1]), float(e[2]) - float(s[2])
+    n = math.sqrt(dx * dx + dy * dy + dz * dz)
+    return (dx / n, dy / n, dz / n) if n > 1e-9 else None
 
 
 def turn_cos(a, b) -> float:
     """Cosine of the turn from move ``a``'s end to move ``b``'s start (1 where either has no direction)."""
     da, db = _direction(a, True), _direction(b, False)
-    return 1.0 if da is None or db is None else float(da @ db)
+    return 1.0 if da is None or db is None else da[0] * db[0] + da[1] * db[1] + da[2] * db[2]
 
 
 def rest_after(blk, nxt) -> bool:
@@ -91,10 +98,13 @@ def _seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
         return 0.0
     if blk.inverse_time_s is not None:
         return max(0.0, float(blk.inverse_time_s))
-    d = np.asarray(blk.end, dtype=float) - np.asarray(blk.start, dtype=float)
-    length = float(np.linalg.norm(d[:3])) or float(np.linalg.norm(d[3:]))
+    s, e = blk.start, blk.end
+    length = math.sqrt(sum((float(e[k]) - float(s[k])) ** 2 for k in range(3)))
+    if length == 0.0:
+        length = math.sqrt(sum((float(e[k]) - float(s[k])) ** 2 for k in range(3, 6)))
     if blk.kind == B.ARC and blk.center is not None:
-        r = float(np.linalg.norm(np.asarray(blk.start[:3], dtype=float) - np.asarray(blk.center, dtype=float)))
+        c = blk.center
+        r = math.sqrt(sum((float(s[k]) - float(c[k])) ** 2 for k in range(3)))
         length += 2 * math.pi * r * (int(blk.turns or 0) + (1 if length < 1e-9 else 0))
     feed = rapid_mm_s if blk.kind == B.RAPID else (blk.feed_mm_s or default_mm_s)
     return length / max(float(feed), 1e-9)
@@ -117,6 +127,7 @@ class _Splitter:
         """Yields (blocks, forced_stop, last); a window is yielded once a block after it arrived (or the
         stream ended), so that ``last`` is known."""
         buf: list = []
+        sec: list = []              # nominal seconds of each block in buf
         rests: list = []            # indices i in buf after which the motion rests
         nmot = 0
         secs = 0.0
@@ -134,17 +145,18 @@ class _Splitter:
             elif rest_after(blk, None):
                 rests.append(len(buf))
             buf.append(blk)
-            secs += _seconds(blk, self.rapid, self.feed)
+            sec.append(_seconds(blk, self.rapid, self.feed))
+            secs += sec[-1]
             if blk.kind == B.END:
                 break
             if nmot >= self.grow or secs >= self.ws:
                 self.grow = min(self.wb, 2 * self.grow)
                 cut, forced = self._cut(buf, rests)
                 pending = (buf[:cut + 1], forced)
-                buf = buf[cut + 1:]
+                buf, sec = buf[cut + 1:], sec[cut + 1:]
                 rests = [i - cut - 1 for i in rests if i > cut]
                 nmot = sum(1 for b in buf if b.kind in B.MOTION_KINDS)
-                secs = sum(_seconds(b, self.rapid, self.feed) for b in buf)
+                secs = sum(sec)
                 mot = [i for i, b in enumerate(buf) if b.kind in B.MOTION_KINDS]
                 prev_mot = mot[-1] if mot else None
         if pending is not None:
