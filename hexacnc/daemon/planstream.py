@@ -34,17 +34,23 @@ from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reach
 AHEAD_WINDOWS = 2
 
 
-#: niceness of the children: background work beside the supervisor's feeder and the simulated drives
-CHILD_NICE = 5
+#: niceness of the validator, which runs flat out for minutes on a long program: background work beside the
+#: supervisor's feeder and the simulated drives (the planner needs ~1 % of a CPU on average, in bursts that
+#: the motion may wait for: it keeps the normal priority)
+VALIDATOR_NICE = 5
+#: with start_before_validated the validator starts once the first window is planned (or after this long),
+#: so that it does not compete with the first window
+VALIDATOR_DELAY_S = 2.0
 
 
-def _setup(max_mb: float, stream_ref: list) -> None:
+def _setup(max_mb: float, stream_ref: list, nice: int = 0) -> None:
     import os
     import resource
-    try:
-        os.nice(CHILD_NICE)
-    except OSError:
-        pass
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
     if max_mb > 0:
         lim = int(max_mb) << 20
         resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
@@ -86,7 +92,7 @@ def _blocks(cfg, text: str, name: str, start_tip):
 def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s) -> None:
     from ..planner.window import validate_windows
     ref: list = []
-    _setup(max_mb, ref)
+    _setup(max_mb, ref, VALIDATOR_NICE)
     try:
         stream = _blocks(cfg, text, name, start_tip)
         ref.append(stream)
@@ -210,9 +216,23 @@ class StreamPlan:
         tip = tool_tip_pose_deg(cfg, start_rad)
         self._plan = _Child(_stream_child, (cfg, text, name, tip, period_s, self.max_mb, self.max_s),
                             self._on_plan, "hexacnc-plan")
-        self._val = _Child(_validate_child, (cfg, text, name, tip, start_rad, self.max_mb, self.max_s), self._on_val,
-                           "hexacnc-validate")
         self._grant(AHEAD_WINDOWS)
+        self._val = None
+        val_args = (cfg, text, name, tip, start_rad, self.max_mb, self.max_s)
+        if self.before_validated:
+            threading.Thread(target=self._start_validator, args=(val_args, VALIDATOR_DELAY_S),
+                             name="hexacnc-validate-start", daemon=True).start()
+        else:
+            self._start_validator(val_args, 0.0)
+
+    def _start_validator(self, args: tuple, delay_s: float) -> None:
+        with self._cv:
+            t_end = time.monotonic() + delay_s
+            while 0 not in self._have and not self.finished and not self.cancelled and time.monotonic() < t_end:
+                self._cv.wait(0.05)
+            if self.cancelled:
+                return
+            self._val = _Child(_validate_child, args, self._on_val, "hexacnc-validate")
 
     # -- messages (receiver threads) ----------------------------------------------------------
     def _exc(self, msg) -> HexacncError:
@@ -295,13 +315,15 @@ class StreamPlan:
         with self._cv:
             self.cancelled = True
             self._cv.notify_all()
-        self._val.kill()
+            val = self._val
+        if val is not None:
+            val.kill()
         self._plan.kill()
 
     close = cancel
 
     def alive(self) -> list:
-        return [c.proc for c in (self._val, self._plan) if c.proc.is_alive()]
+        return [c.proc for c in (self._val, self._plan) if c is not None and c.proc.is_alive()]
 
 
 __all__ = ["StreamPlan", "AHEAD_WINDOWS", "PlanError"]
