@@ -1,7 +1,8 @@
-"""End to end through the real daemon (simulated drives): a program larger than the planning window with
-``[planner] start_before_validated`` starts moving before its validation is done; the validation finds a bad
-line far past the start; the motion stops with a controlled stop before it, and the status names the line
-and the reason."""
+"""End to end through the real daemon (simulated drives, Daemon.load_program: the streamed program path): a
+program larger than the planning window with ``[planner] start_before_validated`` starts moving before its
+validation is done; the validation finds a bad line far past the start; the motion stops with a controlled
+stop before it, and the status names the line and the reason.  (The socket's ``program`` op goes through the
+operator's persistent-state path, which still plans a program as a whole: see docs/planner.md.)"""
 from __future__ import annotations
 
 import dataclasses
@@ -22,13 +23,14 @@ def test_program_found_bad_ahead_stops_before_the_bad_line(machine, client):
                                                           start_before_validated=True))
     bad = 58_000
     try:
-        r = client.call("program", text=cam_program(60_000, bad_line=bad), name="bad-ahead.ngc",
-                        reply_timeout_s=600.0)
-        assert r["ok"] and r["validated"] is False
+        daemon.load_program("M2\n", "warm")                  # the forkserver up before the measured program
+        assert client.call("wait", timeout_s=600.0)["state"] == "idle"
+        r = daemon.load_program(cam_program(60_000, bad_line=bad), "bad-ahead.ngc")
+        assert r["validated"] is False
         st = client.call("wait", timeout_s=600.0)
     finally:
         daemon.cfg = keep
-    assert st["state"] == "idle" and st["fault"] is None
+    assert st["state"] == "idle" and st["fault"] is None, (st["fault"], st["program"])
     prog = st["program"]
     assert prog["name"] == "bad-ahead.ngc" and prog["stopped"] is True
     assert prog["error"]["line"] == bad and "max_length_mm" in prog["error"]["message"]

@@ -37,7 +37,7 @@ AHEAD_WINDOWS = 2
 #: niceness of the validator, which runs flat out for minutes on a long program: background work beside the
 #: supervisor's feeder and the simulated drives (the planner needs ~1 % of a CPU on average, in bursts that
 #: the motion may wait for: it keeps the normal priority)
-VALIDATOR_NICE = 5
+VALIDATOR_NICE = 10
 #: with start_before_validated the validator starts once the first window is planned (or after this long),
 #: so that it does not compete with the first window
 VALIDATOR_DELAY_S = 2.0
@@ -165,6 +165,7 @@ class _Child:
             try:
                 msg = self.conn.recv()
             except (EOFError, OSError):
+                self.proc.join(1.0)
                 msg = None
             except MemoryError:
                 msg = ("memory", "planning", 0)
@@ -235,9 +236,13 @@ class StreamPlan:
             self._val = _Child(_validate_child, args, self._on_val, "hexacnc-validate")
 
     # -- messages (receiver threads) ----------------------------------------------------------
-    def _exc(self, msg) -> HexacncError:
+    def _exc(self, msg, child=None) -> HexacncError:
         if msg is None:
-            return HexacncError(f"{self.name}: the planning process ended without an answer")
+            code = child.proc.exitcode if child is not None else None
+            if code is not None and code < 0 and self.max_mb > 0:
+                return PlanError(f"{self.name}: planning ended by signal {-code} (over [daemon] max_plan_memory_mb "
+                                 f"= {self.max_mb:g} MB?)", limit="max_plan_memory_mb")
+            return HexacncError(f"{self.name}: the planning process ended without an answer (exit {code})")
         return refusal(self.name, msg, self.max_s, self.max_mb)
 
     def _on_val(self, msg) -> None:
@@ -250,7 +255,7 @@ class StreamPlan:
                 self.validation.update(state="valid", blocks=msg[1], estimate_s=round(msg[2], 3))
                 self.end_rad = msg[3]
             elif not self.cancelled:
-                self.invalid = self._exc(msg)
+                self.invalid = self._exc(msg, self._val)
                 self.validation.update(state="invalid", error=str(self.invalid),
                                        error_line=getattr(self.invalid, "line", None))
                 cb = self.on_invalid
@@ -267,7 +272,7 @@ class StreamPlan:
             elif msg is not None and msg[0] == "done":
                 self.finished = True
             elif not self.cancelled and not self.finished:
-                self.error = self._exc(msg)
+                self.error = self._exc(msg, self._plan)
                 self.finished = True
             self._cv.notify_all()
 
