@@ -21,11 +21,11 @@ def test_program_found_bad_ahead_stops_before_the_bad_line(machine, client):
     keep = daemon.cfg
     daemon.cfg = keep.replace(planner=dataclasses.replace(keep.planner, window_blocks=60,
                                                           start_before_validated=True))
-    bad = 58_000
+    bad = 9_000
     try:
         daemon.load_program("M2\n", "warm")                  # the forkserver up before the measured program
         assert client.call("wait", timeout_s=600.0)["state"] == "idle"
-        r = daemon.load_program(cam_program(60_000, bad_line=bad), "bad-ahead.ngc")
+        r = daemon.load_program(cam_program(10_000, bad_line=bad), "bad-ahead.ngc")
         assert r["validated"] is False
         st = client.call("wait", timeout_s=600.0)
     finally:
