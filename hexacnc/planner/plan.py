@@ -144,7 +144,8 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     dv.tip_g = None
     xlim, c, e, dd = speed_limits(path, cfg, g, dv, dt, *lims)
     rs = rests(path, events, g, hold_min, dt)
-    prof = tighten(Tightener(path, hx, g, dv, rs, xlim, c, e, dd, lims, dt, nf, w_plateau))
+    tt = Tightener(path, hx, g, dv, rs, xlim, c, e, dd, lims, dt, nf, w_plateau)
+    prof = tighten(tt)         # (a final retiming of prof.s_f would go here: tt.bounds, tt.measure)
     del c, e, dd, xlim
     s_f = prof.s_f
     line_tab, flag_tab, ev_out, pause_idx, line_times = row_tables(path, events, g, rs, s_f, prof.TH, dt, nf)
