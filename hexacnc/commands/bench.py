@@ -21,6 +21,7 @@ BENCHES: dict[str, str] = {
     "homing": "hexacnc.bench.homing",
     "calib-cycle": "hexacnc.bench.calibcycle",
     "faults": "hexacnc.bench.faults",
+    "stream": "hexacnc.bench.stream",
 }
 
 

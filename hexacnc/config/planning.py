@@ -26,6 +26,11 @@ class PlannerConfig:
     #: user/remap M-codes (100..9999) the interpreter accepts as no-ops (noted in the program's
     #: messages), e.g. LinuxCNC's M428/M429 kinematics switches, which a hexapod does not need
     noop_m_codes: tuple = ()
+    #: windowed planning (hexacnc/planner/window.py): motion blocks and estimated seconds per window
+    window_blocks: int = 2000
+    window_s: float = 120.0
+    #: motion starts once the first window is planned while the validation of the rest runs ahead
+    start_before_validated: bool = False
 
 
 @dataclass(frozen=True)
@@ -56,6 +61,9 @@ def parse_planner(p: Section) -> PlannerConfig:
                                          maxval=1000.0),
         work_offset_mm=_freeze(p.getvec("work_offset_mm", 3, [0.0, 0.0, 0.0])),
         noop_m_codes=_noop_m_codes(p),
+        window_blocks=p.getint("window_blocks", pd.window_blocks, minval=8, maxval=1_000_000),
+        window_s=p.getfloat("window_s", pd.window_s, minval=1.0, maxval=3600.0),
+        start_before_validated=p.getbool("start_before_validated", pd.start_before_validated),
     )
 
 

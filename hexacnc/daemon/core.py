@@ -149,6 +149,8 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         self.thermal.start()
         self._feeder = threading.Thread(target=self._feed_loop, name="hexacnc-feeder", daemon=True)
         self._feeder.start()
+        from .planproc import warm      # the planning children's server, ready before the first program
+        threading.Thread(target=warm, name="hexacnc-plan-warm", daemon=True).start()
         log.info("daemon ready: %s drives %s, cycle %.3f ms, io %s", self.cfg.name,
                  "disabled: waiting for enable ([daemon] enable_at_start false)" if self.awaiting_enable
                  else "enabled", self.period_s * 1e3, mode)

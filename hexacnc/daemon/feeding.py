@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..errors import HexacncError
 from . import shm as S
 
 log = logging.getLogger("hexacnc.daemon")
@@ -129,6 +130,10 @@ class FeedMixin:
                 if self.stop_requested:
                     self.queue.clear()
                     self.stop_requested = False
+                err = getattr(src, "error", None)
+                if err is not None:
+                    self.last_program["error"] = {"line": getattr(err, "line", None), "message": str(err)}
+                self._close_job(job)
                 log.info("%s %s", "stopped" if src.stopping else "finished", job.name)
                 self.cv.notify_all()
 
@@ -232,6 +237,7 @@ class FeedMixin:
 
     def _abort_jobs(self, why: str) -> None:
         for job in self.queue:          # queued behind the running one: dropped, never silently
+            self._close_job(job)
             self.dropped.append({"name": job.name, "reason": why})
             log.warning("%s dropped from the queue: %s", job.name, why)
         del self.dropped[:-32]
@@ -240,6 +246,7 @@ class FeedMixin:
             self.last_program = {"name": self.current.name, "line": line, "percent": pct,
                                  "time_left_s": left, "aborted": why}
             log.warning("%s aborted at line %d: %s", self.current.name, line, why)
+            self._close_job(self.current)
         self.current = None
         self.queue.clear()
         self.stop_requested = False
@@ -262,9 +269,43 @@ class FeedMixin:
 
     def _planned_start(self) -> np.ndarray:
         """Where the next queued job will start: the end of the last queued one, or now."""
-        if self.queue:
-            return self.queue[-1].end_rad.copy()
-        if self.current is not None:
-            return self.current.end_rad.copy()
-        return self._pose_cmd_rad()
+        job = self.queue[-1] if self.queue else self.current
+        if job is None:
+            return self._pose_cmd_rad()
+        if job.end_rad is None:         # a streamed program started before its validation ended
+            end = getattr(getattr(job.source, "stream", None), "end_rad", None)
+            if end is None:
+                raise HexacncError(f"{job.name} is still being validated (its end pose is not known yet): "
+                                   f"send this motion when its validation is done")
+            job.end_rad = np.asarray(end, dtype=float)
+        return job.end_rad.copy()
+
+    # ------------------------------------------------------------------ streamed programs
+    @staticmethod
+    def _close_job(job: Job) -> None:
+        close = getattr(job.source, "close", None)
+        if close is not None:
+            close()
+
+    def _watch_validation(self, job: Job) -> None:
+        """An error the validation finds after the job was queued (``[planner] start_before_validated``)
+        stops it: the running job with a controlled stop on its path, a queued one is dropped."""
+        sp = getattr(job.source, "stream", None)
+        if sp is None:
+            return
+        sp.on_invalid = lambda err: self._program_invalid(job, err)
+        if sp.invalid is not None:
+            self._program_invalid(job, sp.invalid)
+
+    def _program_invalid(self, job: Job, err) -> None:
+        with self.lock:
+            log.error("%s: %s", job.name, err)
+            if job is self.current:
+                self._command(lambda: job.source.fail(err))
+            elif job in self.queue:
+                self.queue.remove(job)
+                self._close_job(job)
+                self.dropped.append({"name": job.name, "reason": str(err), "line": getattr(err, "line", None)})
+                del self.dropped[:-32]
+            self.cv.notify_all()
 

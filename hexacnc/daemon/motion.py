@@ -71,35 +71,44 @@ class MotionMixin:
         return {"blocks": 1, "duration_s": job.duration_s}
 
     def load_program(self, text: str, name: str) -> dict:
-        """Parse, plan and check the whole program, then queue it. Raises GcodeError/PlanError."""
+        """Stream the program through validation and windowed planning (:mod:`.planstream`), then queue it:
+        after the whole program is validated, or at the first planned window with ``[planner]
+        start_before_validated``. G38.x programs run probe-synchronised (reply at the end).
+        Raises GcodeError/PlanError (nothing moved)."""
         from .probeprog import has_probe_words, run_probe_program
-        if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
+        if has_probe_words(text):
             return run_probe_program(self, text, name)
-        from .planproc import PlanJob
-        from .program import ProgramSource
+        from .planstream import StreamPlan
+        from .program import program_source
         with self.lock:
             self._require_motion_ok()
             start = self._planned_start()
             stops = self._stops
-        # interpreted and planned in a child with bounded memory and time (started outside the
-        # lock: stop/pause never wait for it); a stop kills it
-        pj = PlanJob(self.cfg, text, name, start, self.period_s)
+        # interpreted, validated and planned in children with bounded memory and time (started outside
+        # the lock: stop/pause never wait for them); a stop kills them
+        sp = StreamPlan(self.cfg, text, name, start, self.period_s)
         with self.lock:
-            self._planning.add(pj)
-            if self._stops != stops:        # a stop came while the child was being started
-                pj.cancel()
+            self._planning.add(sp)
+            if self._stops != stops:        # a stop came while the children were being started
+                sp.cancel()
         try:
-            plan, blocks, duration_s, end_rad, _summary = pj.result()
+            src, info = program_source(sp, name, start, self.period_s)
         finally:
             with self.lock:
-                self._planning.discard(pj)
-        job = Job(name=name, source=ProgramSource(plan, self.period_s, name), start_rad=start, end_rad=end_rad,
-                  blocks=blocks, duration_s=duration_s)
+                self._planning.discard(sp)
+        job = Job(name=name, source=src, start_rad=start, end_rad=info["end_rad"], blocks=info["blocks"],
+                  duration_s=info["duration_s"])
         with self.lock:
             if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                src.close()
                 raise HexacncError("another motion was queued while this program was planned; send it again")
-            self._queue(job)
-        return {"blocks": blocks, "duration_s": duration_s}
+            try:
+                self._queue(job)
+            except BaseException:
+                src.close()
+                raise
+        self._watch_validation(job)
+        return {k: v for k, v in info.items() if k != "end_rad"}
 
     def _cancel_planning(self) -> None:
         for pj in list(self._planning):
@@ -134,6 +143,7 @@ class MotionMixin:
             self._stops += 1
             self._cancel_planning()         # a program still being interpreted or planned: dropped
             for job in self.queue:
+                self._close_job(job)
                 self.dropped.append({"name": job.name, "reason": "stop requested"})
             del self.dropped[:-32]
             self.queue.clear()

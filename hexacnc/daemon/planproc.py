@@ -22,8 +22,11 @@ from ..errors import GcodeError, HexacncError, PlanError
 
 _CTX = None
 _CTX_LOCK = threading.Lock()
-#: modules the forkserver imports once (children start with them loaded)
-PRELOAD = ["hexacnc.daemon.program", "hexacnc.gcode", "hexacnc.planner"]
+#: modules the forkserver imports once (children start with them loaded: those a plan imports on its first
+#: call included, else every child pays ~0.7 s of imports before its first window)
+PRELOAD = ["hexacnc.daemon.program", "hexacnc.daemon.planstream", "hexacnc.gcode", "hexacnc.gcode.textstream",
+           "hexacnc.planner", "hexacnc.planner.window", "hexacnc.planner.sampler", "hexacnc.planner.smooth",
+           "hexacnc.planner.chain", "hexacnc.kinematics", "ruckig", "scipy.linalg"]
 
 
 def _context():
@@ -34,6 +37,16 @@ def _context():
             ctx.set_forkserver_preload(PRELOAD)
             _CTX = ctx
         return _CTX
+
+
+def warm() -> None:
+    """Start the forkserver (it imports PRELOAD once), so that the first program's children start at once."""
+    _context()
+    from multiprocessing import forkserver
+    try:
+        forkserver.ensure_running()
+    except Exception:           # noqa: BLE001 - a later program starts it (and reports why it cannot)
+        pass
 
 
 class PlanLimit(Exception):
@@ -195,20 +208,25 @@ class PlanJob:
                 raise PlanError(f"{self.name}: planning ended by signal {-code} (over [daemon] max_plan_memory_mb "
                                 f"= {self.max_mb:g} MB?)", limit="max_plan_memory_mb")
             raise HexacncError(f"{self.name}: the planning process ended without an answer (exit {code})")
-        kind = msg[0]
-        if kind == "ok":
+        if msg[0] == "ok":
             return msg[1:]
-        if kind == "error":
-            raise _error_from(msg[1])
-        stage, line = msg[1], msg[2]
-        where = f" at line {line}" if line else ""
-        if kind == "time":
-            raise PlanError(f"{self.name}: {stage} took longer than [daemon] max_plan_s = {self.max_s:g} s "
-                            f"(stopped{where}); split the program or raise the limit", line=line or None,
-                            limit="max_plan_s")
-        raise PlanError(f"{self.name}: {stage} needs more than [daemon] max_plan_memory_mb = {self.max_mb:g} MB "
-                        f"(stopped{where}); split the program or raise the limit", line=line or None,
-                        limit="max_plan_memory_mb")
+        raise refusal(self.name, msg, self.max_s, self.max_mb)
 
 
-__all__ = ["PlanJob", "line_reached", "GcodeError"]
+def refusal(name: str, msg: tuple, max_s: float, max_mb: float) -> HexacncError:
+    """The exception for a child's ("error", fields), ("time", stage, line) or ("memory", stage, line)."""
+    kind = msg[0]
+    if kind == "error":
+        return _error_from(msg[1])
+    stage, line = msg[1], msg[2]
+    where = f" at line {line}" if line else ""
+    if kind == "time":
+        return PlanError(f"{name}: {stage} took longer than [daemon] max_plan_s = {max_s:g} s "
+                         f"(stopped{where}); split the program or raise the limit", line=line or None,
+                         limit="max_plan_s")
+    return PlanError(f"{name}: {stage} needs more than [daemon] max_plan_memory_mb = {max_mb:g} MB "
+                     f"(stopped{where}); split the program or raise the limit", line=line or None,
+                     limit="max_plan_memory_mb")
+
+
+__all__ = ["PlanJob", "line_reached", "refusal", "GcodeError"]

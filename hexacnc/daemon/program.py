@@ -11,13 +11,12 @@ jerk-limited stop, M0/M1) to the feeder's source interface.
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import PlanError
-from ..pose import matrix_from_euler
+from ..planner.window import tool_tip_pose_deg  # noqa: F401 (re-exported: the daemon's callers use it here)
 from .shm import FLAG_END, ROW
 
 
@@ -30,20 +29,15 @@ class ProgramPlan:
     summary: dict
 
 
-def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
-    """Tool reference point (tool length 0) of a platform pose (mm, rad) -> [x,y,z mm, a,b,c deg]."""
-    X = np.asarray(platform_rad, dtype=float)
-    R = matrix_from_euler(*X[3:6])
-    tip = X[:3] + R @ np.asarray(cfg.tool.tip_platform_mm, dtype=float)
-    return [float(v) for v in tip] + [math.degrees(float(v)) for v in X[3:6]]
-
-
 class ProgramSource:
     """Feeder source over a :class:`hexacnc.planner.sampler.PlanSampler`."""
 
-    def __init__(self, plan, period_s: float, name: str):
+    def __init__(self, plan, period_s: float, name: str, sampler=None, stream=None):
+        """``plan`` (a whole plan), or ``sampler`` (a :class:`~hexacnc.planner.chain.ChainSampler`) over the
+        windows of ``stream`` (a :class:`~hexacnc.daemon.planstream.StreamPlan`, closed with the source)."""
         self.plan = plan
-        self.sampler = plan.sampler(period_s)
+        self.sampler = sampler if sampler is not None else plan.sampler(period_s)
+        self.stream = stream
         self.name = name
         self.finished = False
         self.stopping = False
@@ -71,6 +65,31 @@ class ProgramSource:
         pct, left = self.sampler.progress
         f = max(1e-3, self.sampler.override) if not self.paused else 1.0
         return int(self.sampler.line), float(pct), float(left) / f
+
+    @property
+    def error(self):
+        """The program's error that ended the motion early (streamed programs), else None."""
+        return getattr(self.sampler, "error", None)
+
+    def fail(self, error) -> None:
+        """Stop at once (jerk-limited, on the path) for an error found ahead by the validation."""
+        self.stopping = True
+        self.sampler.fail(error)
+
+    def close(self) -> None:
+        """The job is over: its planning children end."""
+        if self.stream is not None:
+            self.stream.cancel()
+
+    def stream_status(self) -> dict:
+        """Status fields of a streamed program: its validation, windows waited for (rows at rest)."""
+        if self.stream is None:
+            return {}
+        out = {"validation": dict(self.stream.validation),
+               "starved_s": round(getattr(self.sampler, "starved_rows", 0) * self.sampler.period_s, 3)}
+        if self.error is not None:
+            out["error"] = {"line": getattr(self.error, "line", None), "message": str(self.error)}
+        return out
 
     # -- rewind ----------------------------------------------------------------------------
     def snapshot(self) -> tuple:
@@ -114,3 +133,30 @@ def plan_program(cfg, hx, text: str, name: str, start_rad, period_s: float) -> P
     src = ProgramSource(plan, period_s, name)
     return ProgramPlan(source=src, blocks=len(prog.blocks), duration_s=float(plan.duration_s),
                        end_rad=np.asarray(plan.end_pose_platform, dtype=float), summary=plan.summary())
+
+
+def program_source(sp, name: str, start_rad, period_s: float):
+    """Wait until the streamed program ``sp`` (a :class:`~hexacnc.daemon.planstream.StreamPlan`) may move
+    (``wait_ready``); returns
+    (ProgramSource, info: blocks, duration_s, duration_exact, validated, end_rad or None).  ``duration_s``
+    is the planned duration for a program of one window, else the validation's nominal estimate at the
+    programmed feeds (a lower bound; ``duration_exact`` false)."""
+    from ..planner.chain import ChainSampler
+    try:
+        first = sp.wait_ready()
+        p0 = np.asarray(first.plan.start_pose_platform, dtype=float)
+        if float(np.max(np.abs(p0 - np.asarray(start_rad, dtype=float)))) > 1e-6:
+            raise PlanError(f"program {name!r} does not start where the machine is (planned start "
+                            f"{np.round(p0, 6).tolist()}, machine {np.round(start_rad, 6).tolist()})", limit="start")
+        chain = ChainSampler(sp, period_s)
+    except BaseException:
+        sp.cancel()
+        raise
+    src = ProgramSource(None, period_s, name, sampler=chain, stream=sp)
+    val = dict(sp.validation)
+    single = first.last
+    info = {"blocks": int(first.blocks if single else val.get("blocks", 0)),
+            "duration_s": float(first.plan.duration_s if single else val.get("estimate_s", first.plan.duration_s)),
+            "duration_exact": bool(single), "validated": val.get("state") == "valid",
+            "end_rad": np.asarray(first.plan.end_pose_platform, dtype=float) if single else sp.end_rad}
+    return src, info

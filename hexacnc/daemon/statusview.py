@@ -118,6 +118,7 @@ class StatusMixin:
                 line, pct, left = job.source.progress()
                 prog = {"name": job.name, "line": line, "percent": round(pct, 2), "time_left_s": round(left, 3),
                         "queued": len(self.queue)}
+                prog.update(getattr(job.source, "stream_status", dict)())
             else:
                 prog = dict(self.last_program) if self.last_program else None
         if not self.alive and state != "fault":

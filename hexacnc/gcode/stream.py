@@ -50,9 +50,13 @@ class _FileLines:
         self._pre = None
         self._scan()
 
+    def _open(self):
+        """The program's bytes as a binary file (a subclass may serve them from memory)."""
+        return open(self.path, "rb")
+
     def _scan(self) -> None:
         pos = 0
-        with open(self.path, "rb") as f:
+        with self._open() as f:
             for raw in f:
                 if self.n % self.window == 0:
                     self.offsets.append(pos)
@@ -84,7 +88,7 @@ class _FileLines:
         if o is not None:
             return o
         chunk = idx // self.window
-        with open(self.path, "rb") as f:
+        with self._open() as f:
             f.seek(self.offsets[chunk])
             cur = []
             for _ in range(self.window):
@@ -146,8 +150,9 @@ class _StreamInterpreter(Interpreter):
 class BlockStream:
     """Iterator of the blocks of a streamed program (see the module docstring)."""
 
-    def __init__(self, path: Path, name: str, window_lines: int, queue_batches: int, kw: dict):
-        lines = _FileLines(path, window_lines)
+    def __init__(self, path: Path, name: str, window_lines: int, queue_batches: int, kw: dict, lines=None):
+        """``lines``: a :class:`_FileLines` over the program (default: over the file ``path``)."""
+        lines = lines if lines is not None else _FileLines(path, window_lines)
         self._it = _StreamInterpreter(None, name, lines=lines, **kw)
         self._it.parsed = _Parsed(2 * window_lines)
         self._q: queue.Queue = queue.Queue(maxsize=queue_batches)

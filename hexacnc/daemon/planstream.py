@@ -1,0 +1,334 @@
+"""Programs of any length in the daemon: streamed validation and windowed planning in bounded children.
+
+A program is handled by two forkserver children (as :mod:`.planproc`: ``RLIMIT_AS`` =
+``[daemon] max_plan_memory_mb``, ``SIGALRM`` after ``max_plan_s``):
+
+* the **validator** streams the text through the interpreter (:func:`hexacnc.gcode.textstream.iter_text_blocks`)
+  and checks every window's path (strut lengths, joint angles, singularity, soft limits, continuity:
+  :func:`hexacnc.planner.grid.check_path`) without its time parameterisation; it answers ``valid`` (blocks,
+  nominal seconds) or the first error with line and reason;
+* the **planner** streams the text again and plans window by window (:func:`hexacnc.planner.window.plan_windows`),
+  sending each window to the supervisor only when granted: :data:`AHEAD_WINDOWS` beyond the one the
+  motion needs.  Both hold one window at a time: memory is proportional to the look-ahead.
+
+By default (``[planner] start_before_validated = false``) nothing moves until the validator has checked the
+whole program.  With ``true`` the motion starts as soon as the first window is planned; an error the
+validator finds later stops the motion at once with a controlled stop (the error's window is never
+planned, so the motion is always before the bad line) and is reported with its line and reason.
+
+The time bound ``max_plan_s`` applies to each window (re-armed per window: interpreting, checking and
+planning at most ``window_blocks`` blocks), not to the program: a 10 h program is never refused for its
+length, while an interpreter loop without motion or a pathological window still is.  The planner's bound
+is disarmed while it waits for the motion to need more.
+"""
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+from ..errors import HexacncError, PlanError
+from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reached, refusal
+
+#: windows planned ahead of the one the motion is in
+AHEAD_WINDOWS = 2
+
+
+#: niceness of the validator, which runs flat out for minutes on a long program: background work beside the
+#: supervisor's feeder and the simulated drives (the planner needs ~1 % of a CPU on average, in bursts that
+#: the motion may wait for: it keeps the normal priority)
+VALIDATOR_NICE = 10
+#: with start_before_validated the validator starts once the first window is planned (or after this long),
+#: so that it does not compete with the first window
+VALIDATOR_DELAY_S = 2.0
+
+
+def _setup(max_mb: float, stream_ref: list, nice: int = 0) -> None:
+    import os
+    import resource
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    if max_mb > 0:
+        lim = int(max_mb) << 20
+        resource.setrlimit(resource.RLIMIT_AS, (lim, lim))
+
+    def alarm(signum, frame):
+        stage, line = line_reached(frame)
+        if not line and stream_ref:
+            line = int(getattr(stream_ref[0]._it, "line_now", 0) or 0)
+            stage = "interpreting"
+        raise PlanLimit(stage, line)
+    signal.signal(signal.SIGALRM, alarm)
+
+
+def _arm(max_s: float) -> None:
+    signal.setitimer(signal.ITIMER_REAL, float(max_s) if max_s > 0 else 0.0)
+
+
+def _failure(exc: BaseException, name: str) -> tuple:
+    signal.setitimer(signal.ITIMER_REAL, 0.0)
+    if isinstance(exc, PlanLimit):
+        return ("time", exc.args[0], exc.args[1])
+    stage, line = line_reached(_innermost(exc.__traceback__))
+    if isinstance(exc, MemoryError):
+        return ("memory", stage, line)
+    if isinstance(exc, HexacncError):
+        return ("error", _error_fields(exc))
+    return ("error", {"kind": "HexacncError", "text": f"{name}: internal error while {stage}"
+                      + (f" at line {line}" if line else "") + f": {type(exc).__name__}: {exc}"})
+
+
+def _blocks(cfg, text: str, name: str, start_tip):
+    from ..gcode.factory import machine_defaults
+    from ..gcode.textstream import iter_text_blocks
+    kw = machine_defaults(cfg)
+    kw["start_pose"] = start_tip
+    return iter_text_blocks(text, name, **kw)
+
+
+def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s) -> None:
+    from ..planner.window import validate_windows
+    ref: list = []
+    _setup(max_mb, ref, VALIDATOR_NICE)
+    try:
+        stream = _blocks(cfg, text, name, start_tip)
+        ref.append(stream)
+        del text
+        nb, est, end = 0, 0.0, start_rad
+        _arm(max_s)
+        for nb, est, line, end in validate_windows(stream, cfg, start_rad=start_rad):
+            conn.send(("checked", line, nb))
+            _arm(max_s)
+        _arm(0)
+        out = ("valid", nb, est, end)
+    except BaseException as exc:       # noqa: BLE001 - every failure is an answer
+        out = _failure(exc, name)
+    conn.send(out)
+    conn.close()
+
+
+def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s) -> None:
+    from ..kinematics import Hexapod
+    from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows
+    ref: list = []
+    _setup(max_mb, ref)
+    granted = 0
+    try:
+        stream = _blocks(cfg, text, name, start_tip)
+        ref.append(stream)
+        del text
+        first = FIRST_WINDOW_BLOCKS if cfg.planner.start_before_validated else 0
+        gen = plan_windows(stream, cfg, hexapod=Hexapod(cfg), period_s=period_s, start_pose=start_tip,
+                           first_blocks=first)
+        while True:
+            _arm(max_s)
+            w = next(gen, None)
+            _arm(0)
+            if w is None:
+                break
+            while w.index >= granted:
+                msg = conn.recv()
+                if msg[0] == "grant":
+                    granted = int(msg[1])
+            conn.send(("window", w))
+            del w
+        out = ("done",)
+    except (EOFError, BrokenPipeError):
+        return
+    except BaseException as exc:       # noqa: BLE001
+        out = _failure(exc, name)
+    try:
+        conn.send(out)
+    except (BrokenPipeError, OSError):
+        pass
+    conn.close()
+
+
+class _Child:
+    """One child process and the thread that receives its messages."""
+
+    def __init__(self, target, args: tuple, on_message, name: str):
+        ctx = _context()
+        self.conn, child_conn = ctx.Pipe(duplex=True)
+        self.proc = ctx.Process(target=target, args=(child_conn, *args), name=name, daemon=True)
+        self.proc.start()
+        child_conn.close()
+        self._lock = threading.Lock()
+        self._thread = threading.Thread(target=self._recv_loop, args=(on_message,), name=name, daemon=True)
+        self._thread.start()
+
+    def _recv_loop(self, on_message) -> None:
+        while True:
+            try:
+                msg = self.conn.recv()
+            except (EOFError, OSError):
+                self.proc.join(1.0)
+                msg = None
+            except MemoryError:
+                msg = ("memory", "planning", 0)
+            on_message(msg)
+            if msg is None or msg[0] not in ("window", "checked"):
+                return
+
+    def send(self, msg) -> None:
+        with self._lock:
+            try:
+                self.conn.send(msg)
+            except (OSError, ValueError):
+                pass
+
+    def kill(self) -> None:
+        if self.proc.is_alive():
+            self.proc.kill()
+        self.proc.join(1.0)
+        try:
+            self.conn.close()
+        except OSError:
+            pass
+
+
+class StreamPlan:
+    """A program streamed through a validator and a windowed planner (see the module docstring); also the
+    window feed of a :class:`~hexacnc.planner.chain.ChainSampler` (``window``, ``peek``, ``release``,
+    ``finished``, ``error``, ``total_lines``)."""
+
+    def __init__(self, cfg, text: str, name: str, start_rad, period_s: float):
+        from ..planner.window import tool_tip_pose_deg
+        d = cfg.daemon
+        self.max_mb = float(getattr(d, "max_plan_memory_mb", 0) or 0)
+        self.max_s = float(getattr(d, "max_plan_s", 0) or 0)
+        self.name = name
+        self.before_validated = bool(cfg.planner.start_before_validated)
+        self.total_lines = text.count("\n") + (0 if text.endswith("\n") else 1)
+        self.finished = False
+        self.error: HexacncError | None = None
+        self.validation: dict = {"state": "running", "line": 0, "blocks": 0}
+        self.invalid: HexacncError | None = None
+        self.end_rad = None             #: platform pose (mm, rad) at the program's end, once validated
+        self.on_invalid = None          #: called with the error the validator finds (after the start)
+        self.cancelled = False
+        self._cv = threading.Condition()
+        self._have: dict = {}
+        self._granted = 0
+        self.t0 = time.monotonic()
+        tip = tool_tip_pose_deg(cfg, start_rad)
+        self._plan = _Child(_stream_child, (cfg, text, name, tip, period_s, self.max_mb, self.max_s),
+                            self._on_plan, "hexacnc-plan")
+        self._grant(AHEAD_WINDOWS)
+        self._val = None
+        val_args = (cfg, text, name, tip, start_rad, self.max_mb, self.max_s)
+        if self.before_validated:
+            threading.Thread(target=self._start_validator, args=(val_args, VALIDATOR_DELAY_S),
+                             name="hexacnc-validate-start", daemon=True).start()
+        else:
+            self._start_validator(val_args, 0.0)
+
+    def _start_validator(self, args: tuple, delay_s: float) -> None:
+        with self._cv:
+            t_end = time.monotonic() + delay_s
+            while 0 not in self._have and not self.finished and not self.cancelled and time.monotonic() < t_end:
+                self._cv.wait(0.05)
+            if self.cancelled:
+                return
+            self._val = _Child(_validate_child, args, self._on_val, "hexacnc-validate")
+
+    # -- messages (receiver threads) ----------------------------------------------------------
+    def _exc(self, msg, child=None) -> HexacncError:
+        if msg is None:
+            code = child.proc.exitcode if child is not None else None
+            if code is not None and code < 0 and self.max_mb > 0:
+                return PlanError(f"{self.name}: planning ended by signal {-code} (over [daemon] max_plan_memory_mb "
+                                 f"= {self.max_mb:g} MB?)", limit="max_plan_memory_mb")
+            return HexacncError(f"{self.name}: the planning process ended without an answer (exit {code})")
+        return refusal(self.name, msg, self.max_s, self.max_mb)
+
+    def _on_val(self, msg) -> None:
+        cb = None
+        with self._cv:
+            if msg is not None and msg[0] == "checked":
+                self.validation.update(line=msg[1], blocks=msg[2])
+                return
+            if msg is not None and msg[0] == "valid":
+                self.validation.update(state="valid", blocks=msg[1], estimate_s=round(msg[2], 3))
+                self.end_rad = msg[3]
+            elif not self.cancelled:
+                self.invalid = self._exc(msg, self._val)
+                self.validation.update(state="invalid", error=str(self.invalid),
+                                       error_line=getattr(self.invalid, "line", None))
+                cb = self.on_invalid
+            self._cv.notify_all()
+        if cb is not None:
+            cb(self.invalid)
+
+    def _on_plan(self, msg) -> None:
+        with self._cv:
+            if msg is not None and msg[0] == "window":
+                w = msg[1]
+                self._have[w.index] = w
+                self.finished = self.finished or w.last
+            elif msg is not None and msg[0] == "done":
+                self.finished = True
+            elif not self.cancelled and not self.finished:
+                self.error = self._exc(msg, self._plan)
+                self.finished = True
+            self._cv.notify_all()
+
+    def _grant(self, n: int) -> None:
+        if n > self._granted:
+            self._granted = n
+            self._plan.send(("grant", n))
+
+    # -- window feed ----------------------------------------------------------------------------
+    def window(self, i: int):
+        self._grant(i + 1 + AHEAD_WINDOWS)
+        with self._cv:
+            return self._have.get(i)
+
+    def peek(self, i: int):
+        with self._cv:
+            return self._have.get(i)
+
+    def release(self, i: int) -> None:
+        with self._cv:
+            for k in [k for k in self._have if k < i]:
+                del self._have[k]
+
+    # -- control ----------------------------------------------------------------------------------
+    def wait_ready(self) -> "object":
+        """The first window once motion may start: after the validation (default), or at once with
+        ``start_before_validated``.  Raises the program's error (nothing moved), or when cancelled."""
+        with self._cv:
+            while True:
+                if self.cancelled:
+                    raise HexacncError(f"{self.name}: stopped while it was being interpreted and planned")
+                if self.invalid is not None:
+                    raise self.invalid
+                first = self._have.get(0)
+                valid = self.validation["state"] == "valid"
+                if first is not None and (valid or self.before_validated):
+                    return first
+                if first is None and self.error is not None and (valid or self.before_validated):
+                    raise self.error
+                if self.finished and first is None and self.error is None:
+                    raise HexacncError(f"{self.name}: the planner sent no window")
+                self._cv.wait(0.05)
+
+    def cancel(self) -> None:
+        with self._cv:
+            self.cancelled = True
+            self._cv.notify_all()
+            val = self._val
+        if val is not None:
+            val.kill()
+        self._plan.kill()
+
+    close = cancel
+
+    def alive(self) -> list:
+        return [c.proc for c in (self._val, self._plan) if c is not None and c.proc.is_alive()]
+
+
+__all__ = ["StreamPlan", "AHEAD_WINDOWS", "PlanError"]

@@ -1,0 +1,46 @@
+"""Tuning constants of the planning stages (see :mod:`hexacnc.planner.plan` for the method).
+
+ETA (the share of the acceleration and jerk limits) is defined in profile.py, whose acceleration cap uses it;
+FD_STEP (the central differences' step) in verify.py, which checks pieces shorter than its stencil.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .profile import ETA
+
+#: fraction of the velocity limit the nominal plan may use
+ETA_V = 1.0
+#: share of the jerk limit a full acceleration change through the smoothing filter may take: the moving
+#: average's width is ``w = max(a_max / j_max) / FILTER_JERK_SHARE`` (a one-sided change of the path
+#: acceleration by A then gives path jerk A / w; reversals are kept out of every window by plateaus)
+FILTER_JERK_SHARE = 0.9
+#: a jerk-only violation lowers the acceleration cap by the verification's factor f and the speed limit
+#: by f ** CAP_JERK_SPEED (the filter's |L'| du / w hardly changes with speed)
+CAP_JERK_SPEED = 0.75
+#: reach of the spreading, in filter widths (w/2 plus 10 %: at the reach's end the filter's transition
+#: still adds jerk where the curvature term is near its share)
+SPREAD_REACH = 0.55
+#: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
+CAP_ROUNDS = 2
+#: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass
+RHO_J = 0.9     # 0.9: 3D_Chips 1.5 % shorter than at 0.8; the verification keeps the total jerk <= ETA
+#: share of the jerk limit an acceleration step at a junction may take
+RHO_STEP = 0.5
+#: share of the planned acceleration (ETA a_max) the TOPP pass may use (the rest absorbs smoothing)
+ACC_SHARE = 0.97
+#: extra grid offsets from both ends of every piece (s-units)
+GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
+#: the derivatives' step on a piece shorter than FD_PIECE_STEPS * FD_STEP is its length / FD_PIECE_STEPS,
+#: at least FD_MIN_STEP (mm; the third difference's rounding, ~1e-16 L / step^3, stays below 1 mm^-2)
+FD_PIECE_STEPS = 8
+FD_MIN_STEP = 1e-4
+#: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
+REST_PIECE_INTERVALS = 32
+#: samples whose interval bound stays below this are not measured by exact inverse kinematics
+SCREEN = 0.5
+#: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds
+#: (the bounds are upper bounds of the model, so a sample below them cannot violate), 1e-9 lower
+MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
+#: iterations of the tightening loop (steps 3-5) before the plan is refused
+MAX_ITERATIONS = 40

@@ -1,0 +1,211 @@
+"""Time parameterisation tightened until the measured table is within the limits (steps 3-5 of
+:mod:`hexacnc.planner.plan`): TOPP, plateaus at speed peaks, the raw profile and its moving average, the
+measurement, and local lowering of the limits where a sample exceeds its target."""
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import PlanError
+from . import path as P
+from .consts import CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, MAX_ITERATIONS, MODEL_SCREEN, SCREEN, SPREAD_REACH
+from .grid import Derivs, Grid
+from .holds import Rests
+from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
+                      _sample_profile, _with_accel_cap)
+from .toppvec import WavefrontTopp
+from .verify import _Bounds, _measure_fast
+
+log = logging.getLogger("hexacnc.planner.plan")
+
+
+@dataclass
+class Profile:
+    """The result: table ``s_f`` at dt, grid speeds ``x``, raw times ``TH`` of the grid points, the measured
+    utilisations per sample and the passes it took."""
+    s_f: np.ndarray
+    x: np.ndarray
+    TH: np.ndarray
+    meas: tuple
+    iterations: int
+
+
+class Tightener:
+    """The loop's state: limits, caps and the factors the measurement lowered."""
+
+    def __init__(self, path: P.Path, hx, g: Grid, dv: Derivs, rs: Rests, xlim, c, e, dd, lims, dt: float,
+                 nf: int, w_plateau: float):
+        self.path, self.hx, self.g, self.dv, self.rs = path, hx, g, dv, rs
+        self.vmax, self.amax, self.jmax = lims
+        self.dt, self.nf, self.w_plateau = dt, nf, w_plateau
+        Ng = g.n
+        xlim = xlim.copy()
+        xlim[rs.stop_all] = 0.0
+        self.xlim = self._spread(xlim)
+        # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
+        # cap only grows as speeds drop, so it stays valid)
+        x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
+        self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
+        del x0
+        c, self.e, self.dd, xcap = _with_accel_cap(c, e, dd, self.ecap)
+        lower = np.nonzero(xcap < self.xlim)[0]
+        if lower.size:      # curvature alone needs more than the cap: a speed limit, spread like the others
+            xw = np.full(Ng, np.inf)
+            xw[lower] = xcap[lower]
+            self.xlim = np.minimum(self.xlim, self._spread(xw))
+        self.topp = WavefrontTopp(g.h, c, self.e, self.dd)   # same result as topp.forward_backward
+        self.factor = np.ones(Ng)
+        self.caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
+        self.cfac = np.ones(Ng)                     # the verification's factors on the acceleration cap
+        self.xcapf = np.full(Ng, np.inf)            # speed limits where a lowered cap leaves no acceleration
+        self.bounds = _Bounds(dv.Lp, dv.Lpp, dv.Lppp, self.vmax, self.amax, self.jmax)
+        self.xc = None
+
+    def _spread(self, xw):
+        """Speed limits spread over the filter's reach (the window reaches w/2 either side of its
+        centre); stops spread nothing and stay at rest."""
+        sa = self.rs.stop_all
+        xw[sa] = np.inf
+        out = _dilate_min(self.g.sg, xw, SPREAD_REACH * self.nf * self.dt)
+        out[sa] = 0.0
+        return out
+
+    def solve(self, first: bool, changed, cap_changed) -> np.ndarray:
+        """TOPP on the current limits (from scratch the first time, else on the changed ranges)."""
+        if first:
+            self.xc = self.xlim.copy()
+            return self.topp.solve(self.xc)
+        Ng = self.g.n
+        for a0, a1 in cap_changed:
+            sl = slice(a0, a1 + 1)
+            ec = self.ecap[sl] * self.cfac[sl]
+            bound = np.zeros(Ng)
+            bound[sl] = ec
+            self.topp.set_bound(6, np.arange(a0, a1 + 1), bound)
+            # a lower cap can leave no acceleration at the highest speeds: those become a limit
+            self.xcapf[sl] = np.minimum(self.xcapf[sl], _cap_speed(self.e[sl, :6], self.dd[sl, :6], ec))
+        xc = self.xc
+        for a0, a1 in changed:
+            sl = slice(a0, a1 + 1)
+            xc[sl] = np.minimum(np.minimum(self.xlim[sl] * self.factor[sl], self.xcapf[sl]), self.caps[sl])
+        return self.topp.solve_ranges(xc, changed, bounds_changed=bool(cap_changed))
+
+    def plateaus(self, x: np.ndarray, rounds: int) -> np.ndarray:
+        """Speed peaks capped (caps only ever lowered, kept across passes) until each has a plateau of w, so
+        that no filter window holds an acceleration reversal; re-solving moves the ramps by up to a grid
+        step, so a second round caps what the first left."""
+        spans = None                       # the first round looks at every hill
+        for _round in range(rounds):
+            region, cap = _cap_round(self.g.h, x, self.w_plateau, spans)
+            if region is None:
+                break
+            self.caps[region] = np.minimum(self.caps[region], cap[region])
+            self.xc[region] = np.minimum(self.xc[region], cap[region])
+            spans = _runs(region)          # whole hills: the next round only looks at those
+            x = self.topp.solve_ranges(self.xc, spans)
+        return x
+
+    def table(self, x: np.ndarray):
+        """Raw profile at dt, its moving average, and rows that rest exactly at each hold."""
+        g, rs, dt, nf = self.g, self.rs, self.dt, self.nf
+        try:
+            s_raw, TH, _total = _sample_profile(g.sg, g.h, x, rs.holds_s, dt)
+        except FloatingPointError as exc:
+            k = int(str(exc).rsplit(" ", 1)[-1])
+            raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
+                self.path.line[g.pidx[k]]), limit="speed") from exc
+        s_f = _box_filter(s_raw, nf)
+        # rows whose window lies inside a stop's hold rest exactly at the stop (the running sum of the
+        # filter leaves them an ulp off, which put them on the arriving piece in the model pass)
+        for k in rs.rest_grid:
+            c0 = int(math.ceil(TH[k] / dt - 1e-9)) + nf
+            c1 = min(s_f.shape[0] - 1, int(math.floor((TH[k] + rs.holds_s[k]) / dt + 1e-9)) - 1)
+            if c1 >= c0:
+                s_f[c0:c1 + 1] = g.sg[k]
+                # the rows around stay on their side of the stop (the same rounding, either way)
+                np.minimum(s_f[max(0, c0 - nf):c0], g.sg[k], out=s_f[max(0, c0 - nf):c0])
+                np.maximum(s_f[c1 + 1:c1 + 1 + nf], g.sg[k], out=s_f[c1 + 1:c1 + 1 + nf])
+        return s_f, TH
+
+    def measure(self, s_f: np.ndarray, exact: bool):
+        """Model passes only decide where to slow down: a sample whose bound is within its violation
+        threshold cannot violate (model <= bound), so only the others are evaluated."""
+        dv = self.dv
+        return _measure_fast(self.path, self.hx, self.g.sg, dv.Lp, dv.Lpp, dv.Lppp, self.bounds, s_f, self.dt,
+                             self.vmax, self.amax, self.jmax, exact, SCREEN if exact else MODEL_SCREEN)
+
+    def lower(self, s_f, uv, ua, uj, viol, iters: int, exact_iters: int):
+        """Lower the limits on every grid point a violating sample's filter window touched; returns the
+        changed ranges of the speed limit and of the acceleration cap."""
+        viol_v, viol_a, viol_j = viol
+        bad = viol_v | viol_a | viol_j
+        fac = np.ones(s_f.shape[0])
+        with np.errstate(divide="ignore"):
+            fac = np.where(viol_v, np.minimum(fac, (ETA_V * 0.999 / np.maximum(uv, 1e-12)) ** 2 * 0.98), fac)
+            fac = np.where(viol_a, np.minimum(fac, ETA / np.maximum(ua, 1e-12) * 0.97), fac)
+            fac = np.where(viol_j, np.minimum(fac, ETA / np.maximum(uj, 1e-12) * 0.9), fac)
+        fac = np.maximum(fac, 0.3)
+        if iters > 25 or exact_iters > 8:
+            fac = np.minimum(fac, 0.7)
+        jb = np.nonzero(bad)[0]
+        nf, sg, Ng = self.nf, self.g.sg, self.g.n
+        # group into runs; tighten every grid point the filter window touched
+        br = np.nonzero(np.diff(jb) > nf)[0]
+        starts = np.concatenate([[0], br + 1])
+        ends = np.concatenate([br, [jb.size - 1]])
+        Nt = s_f.shape[0]
+        changed, cap_changed = [], []
+        for a0, a1 in zip(starts, ends):
+            j0, j1 = jb[a0], jb[a1]
+            lo_s = s_f[max(0, j0 - nf - 1)]
+            hi_s = s_f[min(Nt - 1, j1 + nf + 1)]
+            g0 = max(0, int(np.searchsorted(sg, lo_s, side="left")) - 1)
+            g1 = min(Ng, int(np.searchsorted(sg, hi_s, side="right")) + 1)
+            f = float(np.min(fac[j0:j1 + 1]))
+            if not (viol_v[j0:j1 + 1].any() or viol_a[j0:j1 + 1].any()):
+                # jerk alone: mostly the filter's |L'| du / w, which slower speeds hardly change, so
+                # the acceleration cap is lowered with the speed limit
+                self.cfac[g0:g1] *= f
+                cap_changed.append((g0, g1 - 1))
+                f = f ** CAP_JERK_SPEED
+            self.factor[g0:g1] *= f
+            changed.append((g0, g1 - 1))
+        return changed, cap_changed
+
+
+def tighten(tt: Tightener) -> Profile:
+    """Passes of TOPP, plateaus, table and measurement until the model, then the exact measurement, is
+    within the targets; raises PlanError after MAX_ITERATIONS."""
+    changed: list = []             # grid ranges whose limit changed since the last pass
+    cap_changed: list = []
+    exact = False
+    exact_iters = 0
+    iters = 0
+    for iters in range(1, MAX_ITERATIONS):
+        first = iters == 1
+        if first or changed:
+            x = tt.solve(first, changed, cap_changed)
+        x = tt.plateaus(x, CAP_ROUNDS if first or changed else 0)
+        s_f, TH = tt.table(x)
+        meas = tt.measure(s_f, exact)
+        uv, ua, uj = meas[0], meas[1], meas[2]
+        viol = (uv > ETA_V * 0.9995, ua > ETA, uj > ETA)
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug(f"plan iter {iters} exact={exact} uv={uv.max():.3f} ua={ua.max():.3f} uj={uj.max():.3f} "
+                      f"bad v/a/j={viol[0].sum()}/{viol[1].sum()}/{viol[2].sum()} T={s_f.shape[0] * tt.dt:.2f}s")
+        changed, cap_changed = [], []
+        if not (viol[0] | viol[1] | viol[2]).any():
+            if exact:
+                return Profile(s_f, x, TH, meas, iters)
+            exact = True        # the model is satisfied: now measure the real table
+            exact_iters = 0
+            continue
+        if exact:
+            exact_iters += 1
+        changed, cap_changed = tt.lower(s_f, uv, ua, uj, viol, iters, exact_iters)
+    raise PlanError(f"could not meet the strut dynamic limits (velocity {uv.max():.3f}, acceleration "
+                    f"{ua.max():.3f}, jerk {uj.max():.3f} of the limits) after {iters} iterations",
+                    line=int(tt.path.line[0]), limit="dynamics")
