@@ -1,0 +1,169 @@
+"""Final time scaling of a verified setpoint table against the strut limits (measured from the rows).
+
+The jerk filter of :mod:`hexacnc.planner.profile` leaves the strut limits partly unused (its transitions
+are slower than a jerk-limited optimum's, its slow spots are spread).  This pass runs the table faster
+where the rows leave room: the new table is ``s_new(t) = s_old(tau(t))`` with ``d tau / dt = r >= 1``.
+With the old strut rates ``l', l'', l'''`` (in old time) the new ones are ``l' r``, ``l'' r^2 + l' r'``
+and ``l''' r^3 + 3 l'' r r' + l' r''``; ``r`` is therefore chosen at most the pointwise room
+``R = min(V/|l'|, sqrt(A/|l''|), cbrt(J/|l'''|))`` (targets V, A, J), eroded and smoothed over a window
+so that its derivatives stay small, and the result is measured again from the rows (exact inverse
+kinematics, finite differences at the cycle period).  Where a row exceeds a target the room there is
+lowered and the pass repeats; if it does not converge the old table is kept.  ``r`` is 1 wherever the
+table rests (holds keep their duration).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.interpolate import CubicSpline
+from scipy.ndimage import minimum_filter1d, uniform_filter1d
+
+#: largest rate (the pass never runs a row more than this much faster)
+R_MAX = 1.5
+#: smoothing window of the rate, in rows (the erosion reaches a full window either side)
+WINDOW_ROWS = 56
+#: repeats after a violation before the old table is kept
+MAX_ROUNDS = 12
+#: windows before a violating row whose room is lowered with it
+BACK_WINDOWS = 8
+
+
+@dataclasses.dataclass
+class Retimed:
+    s_tab: np.ndarray            #: new table (path positions at the cycle period)
+    t_of_old: np.ndarray         #: new time (s) of every old row
+    rounds: int
+    gain: float                  #: old duration / new duration
+
+
+def row_utilisation(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax):
+    """Per row peak |v|, |a|, |jerk| of the struts over the limits (exact inverse kinematics, finite
+    differences at ``dt``: velocity between rows k-1, k and k, k+1; acceleration at k; jerk of the two
+    third differences touching k)."""
+    L = path.platform_struts(path.piece_at(s_tab), s_tab, hx.plat, hx.base)[1]
+    n = L.shape[0]
+    uv = np.zeros(n)
+    ua = np.zeros(n)
+    uj = np.zeros(n)
+    if n < 4:
+        return uv, ua, uj
+    v = np.max(np.abs(np.diff(L, axis=0)) / (dt * vmax[None]), axis=1)
+    uv[1:] = v
+    uv[:-1] = np.maximum(uv[:-1], v)
+    ua[1:-1] = np.max(np.abs(L[2:] - 2 * L[1:-1] + L[:-2]) / (dt * dt * amax[None]), axis=1)
+    j = np.max(np.abs(L[3:] - 3 * L[2:-1] + 3 * L[1:-2] - L[:-3]) / (dt ** 3 * jmax[None]), axis=1)
+    uj[1:-2] = j
+    uj[2:-1] = np.maximum(uj[2:-1], j)
+    return uv, ua, uj
+
+
+def _room(uv, ua, uj, targets) -> np.ndarray:
+    tv, ta, tj = targets
+    with np.errstate(divide="ignore"):
+        R = np.minimum(np.minimum(tv / uv, np.sqrt(ta / ua)), np.cbrt(tj / uj))
+    return np.clip(R, 1.0, R_MAX)
+
+
+def _smooth_rate(R: np.ndarray, w: int) -> np.ndarray:
+    """A rate at most R everywhere, changing over ``w`` rows (erosion over 2w+1, two box filters of w/2)."""
+    r = minimum_filter1d(R, 2 * w + 1, mode="nearest")
+    h = max(1, w // 2)
+    r = uniform_filter1d(uniform_filter1d(r, h, mode="nearest"), h, mode="nearest")
+    return np.minimum(r, R)
+
+
+def _quantise(r: np.ndarray, dt: float) -> np.ndarray:
+    """The rate with the time saved over every stretch of r > 1 rounded down to whole cycles (the excess of
+    the stretch, r - 1, scaled by a factor in [0, 1]): wherever r = 1 the new rows then sample the old
+    table at its own phase (a curvature step read by the finite differences reads as before)."""
+    r = np.where(r < 1.0 + 1e-9, 1.0, r)
+    up = r > 1.0
+    if not up.any():
+        return r
+    d = np.diff(np.concatenate([[0], up.astype(np.int8), [0]]))
+    a = np.nonzero(d == 1)[0]
+    b = np.nonzero(d == -1)[0]                   # stretch = rows a..b-1; intervals a-1..b-1 touch it
+    ia = np.maximum(a - 1, 0)
+    ex = r - 1.0
+
+    lab = np.zeros(r.shape[0], dtype=np.int64)
+    lab[a] = np.arange(1, a.size + 1)
+    lab[np.minimum(b, r.shape[0] - 1)] -= np.where(b < r.shape[0], np.arange(1, a.size + 1), 0)
+    lab = np.cumsum(lab)                         # stretch number (1-based) of every row, 0 outside
+
+    def saving(alpha):
+        rr = 1.0 + ex * np.concatenate([[0.0], alpha])[lab]
+        step = dt - dt * 2.0 / (rr[:-1] + rr[1:])
+        cs = np.concatenate([[0.0], np.cumsum(step)])
+        hi = np.minimum(b, r.shape[0] - 1)
+        return cs[hi] - cs[ia]
+
+    goal = np.floor(saving(np.ones(a.size)) / dt + 1e-9) * dt
+    lo = np.zeros(a.size)
+    hi_ = np.ones(a.size)
+    for _ in range(40):
+        mid = 0.5 * (lo + hi_)
+        ok = saving(mid) <= goal
+        lo = np.where(ok, mid, lo)
+        hi_ = np.where(ok, hi_, mid)
+    return 1.0 + ex * np.concatenate([[0.0], lo])[lab]
+
+
+def _apply(s_old: np.ndarray, r: np.ndarray, dt: float):
+    """The table run at rate r (per old row): new rows at the cycle period and the new time of each old row."""
+    n = s_old.shape[0]
+    t_old = np.arange(n) * dt
+    t_new = np.concatenate([[0.0], np.cumsum(dt * 2.0 / (r[:-1] + r[1:]))])
+    m = int(np.floor(t_new[-1] / dt + 1e-9)) + 1
+    tq = np.arange(m) * dt
+    tau = np.clip(CubicSpline(t_new, t_old)(tq), 0.0, t_old[-1])
+    s = CubicSpline(t_old, s_old)(tau)
+    # where the new row falls on an old row (r = 1 since the last whole-cycle saving), take it bit for bit
+    k = np.rint(tau / dt).astype(np.int64)
+    on = np.abs(tau - k * dt) <= 1e-6 * dt
+    s[on] = s_old[k[on]]
+    s = np.clip(np.maximum.accumulate(s), s_old[0], s_old[-1])
+    if s[-1] != s_old[-1]:                  # the end row is the old end (at rest)
+        s = np.append(s, s_old[-1])
+    return s, t_new
+
+
+def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets) -> Retimed:
+    """The table ``s_tab`` (rows at ``dt``) run faster where the rows leave room below ``targets`` (v, a, j
+    fractions of the limits); every row of the result is within the targets (measured), or the old
+    table is returned (``rounds`` = -1)."""
+    vmax, amax, jmax = (np.asarray(x, dtype=float) for x in (vmax, amax, jmax))
+    n = s_tab.shape[0]
+    keep = Retimed(s_tab, np.arange(n) * dt, -1, 1.0)
+    if n < 8:
+        return keep
+    uv, ua, uj = row_utilisation(path, hx, s_tab, dt, vmax, amax, jmax)
+    # a target the table itself exceeds (by rounding) becomes the table's own peak: never worse than before
+    targets = (max(targets[0], uv.max()), max(targets[1], ua.max()), max(targets[2], uj.max()))
+    moving = np.zeros(n, dtype=bool)
+    moving[1:] = s_tab[1:] != s_tab[:-1]
+    moving[:-1] |= moving[1:]
+    # no room at rest and within a window of it: stops keep their standstill rows exactly
+    near_rest = minimum_filter1d(moving.astype(np.int8), 2 * WINDOW_ROWS + 1, mode="nearest") == 0
+    R = np.where(near_rest, 1.0, _room(uv, ua, uj, targets))
+    for rnd in range(MAX_ROUNDS):
+        r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
+        if r.max() <= 1.0 + 1e-9:
+            return keep
+        s_new, t_new = _apply(s_tab, r, dt)
+        nv, na, nj = row_utilisation(path, hx, s_new, dt, vmax, amax, jmax)
+        over = np.maximum(np.maximum(nv / targets[0], na / targets[1]), nj / targets[2])
+        if over.max() <= 1.0:
+            return Retimed(s_new, t_new, rnd, (n - 1) / max(s_new.shape[0] - 1, 1))
+        # lower the room around every violating row (mapped back to old rows) by its excess; also over the
+        # stretch before it (BACK_WINDOWS windows): a row that has no room itself (r ~ 1) exceeds only because
+        # the time saved before it moved its sampling phase against a curvature step
+        bad = np.nonzero(over > 1.0)[0]
+        old = np.clip(np.searchsorted(t_new, bad * dt), 0, n - 1)
+        hit = np.zeros(n)
+        np.maximum.at(hit, old, 1.0)
+        near = minimum_filter1d(-hit, 2 * WINDOW_ROWS + 1, mode="nearest") < 0
+        back = np.convolve(hit, np.ones(BACK_WINDOWS * WINDOW_ROWS), mode="full")[:n] > 0
+        R = np.where(near | back, 1.0 + (R - 1.0) * 0.5, R)
+    return keep
