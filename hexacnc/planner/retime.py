@@ -17,7 +17,7 @@ import dataclasses
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.ndimage import minimum_filter1d, uniform_filter1d
+from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 
 #: largest rate (the pass never runs a row more than this much faster)
 R_MAX = 1.5
@@ -141,11 +141,13 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets) ->
     uv, ua, uj = row_utilisation(path, hx, s_tab, dt, vmax, amax, jmax)
     # a target the table itself exceeds (by rounding) becomes the table's own peak: never worse than before
     targets = (max(targets[0], uv.max()), max(targets[1], ua.max()), max(targets[2], uj.max()))
-    moving = np.zeros(n, dtype=bool)
-    moving[1:] = s_tab[1:] != s_tab[:-1]
-    moving[:-1] |= moving[1:]
-    # no room at rest and within a window of it: stops keep their standstill rows exactly
-    near_rest = minimum_filter1d(moving.astype(np.int8), 2 * WINDOW_ROWS + 1, mode="nearest") == 0
+    # rows at rest (equal to a neighbour): no room there and within a window of them, so that every stop
+    # keeps its standstill rows exactly
+    still = np.zeros(n, dtype=np.int8)
+    eq = s_tab[1:] == s_tab[:-1]
+    still[1:] |= eq
+    still[:-1] |= eq
+    near_rest = maximum_filter1d(still, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
     R = np.where(near_rest, 1.0, _room(uv, ua, uj, targets))
     for rnd in range(MAX_ROUNDS):
         r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
