@@ -46,6 +46,7 @@ from . import path as P
 from . import rawmoves as R
 from .limits import _check_limits
 from .softlimits import check_box
+from .retime import hold_times, retime
 from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
                       _sample_profile, _with_accel_cap)
 from .toppvec import WavefrontTopp, accel_coefficients
@@ -81,6 +82,8 @@ FD_PIECE_STEPS = 8
 FD_MIN_STEP = 1e-4
 #: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
 REST_PIECE_INTERVALS = 32
+#: run the verified table faster where its rows leave room below the shares (retime.py, measured from the rows)
+RETIME = True
 #: samples whose interval bound stays below this are not measured by exact inverse kinematics
 SCREEN = 0.5
 #: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds
@@ -469,6 +472,13 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
                         f"{ua.max():.3f}, jerk {uj.max():.3f} of the limits) after {iters} iterations",
                         line=int(path.line[0]), limit="dynamics")
 
+    if RETIME:            # the verified table, run faster where its rows leave room (retime.py)
+        rt = retime(path, hx, s_f, dt, vmax, amax, jmax, (ETA_V * 0.995, ETA, ETA), pc.max_angular_velocity_deg_s)
+        if rt.rounds >= 0:
+            m = _measure_fast(path, hx, sg, Lp, Lpp, Lppp, bounds, rt.s_tab, dt, vmax, amax, jmax, True, SCREEN)
+            if m[0].max() <= max(ETA_V * 0.9995, uv.max()) and m[1].max() <= ETA and m[2].max() <= ETA:
+                s_f, TH = rt.s_tab, hold_times(rt.t_of_old, TH, nf * dt, dt)
+                uv, ua, uj, va, ajr, vjr, n_detail = m
     Nt = s_f.shape[0]
     # ---- tables: line, flags, holds ----------------------------------------------------------------
     pt = path.piece_at(s_f)

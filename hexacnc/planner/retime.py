@@ -23,6 +23,8 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 R_MAX = 1.5
 #: smoothing window of the rate, in rows (the erosion reaches a full window either side)
 WINDOW_ROWS = 56
+#: share of the programmed feed and the angular-velocity limit the scaled rows may use (rounding margin)
+FEED_TARGET = 1.0 - 1e-7
 #: repeats after a violation before the old table is kept
 MAX_ROUNDS = 12
 #: windows before a violating row whose room is lowered with it
@@ -58,10 +60,41 @@ def row_utilisation(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax):
     return uv, ua, uj
 
 
-def _room(uv, ua, uj, targets) -> np.ndarray:
+def feed_utilisation(path, s_tab: np.ndarray, dt: float, max_angular_velocity_deg_s: float) -> np.ndarray:
+    """Per row the larger of the programmed feed's and the angular-velocity limit's use between rows k-1, k
+    and k, k+1 (finite differences of the tool tip): the feed is the tool-tip speed (mm/s), or the angular
+    speed (deg/s) of a move that only rotates, as the planner reads it."""
+    n = s_tab.shape[0]
+    out = np.zeros(n)
+    if n < 2:
+        return out
+    pc = path.piece_at(s_tab)
+    tip = path.tip(pc, s_tab)
+    d = np.diff(tip, axis=0)
+    ds = np.diff(s_tab)
+    lin = np.linalg.norm(d[:, :3], axis=1)
+    ang = np.linalg.norm(np.degrees(d[:, 3:]), axis=1)
+    meas = np.where(lin > 1e-6 * ds, lin, ang)
+    feed = np.minimum(path.feed[pc[:-1]], path.feed[pc[1:]])
+    u = meas / (dt * feed)
+    if np.isfinite(max_angular_velocity_deg_s):
+        a = 0.5 * (tip[:-1, 3:] + tip[1:, 3:])
+        r = d[:, 3:] / dt
+        cb, sb, cc, sc = np.cos(a[:, 1]), np.sin(a[:, 1]), np.cos(a[:, 2]), np.sin(a[:, 2])
+        wx = cc * cb * r[:, 0] - sc * r[:, 1]
+        wy = sc * cb * r[:, 0] + cc * r[:, 1]
+        wz = -sb * r[:, 0] + r[:, 2]
+        u = np.maximum(u, np.sqrt(wx * wx + wy * wy + wz * wz) / np.radians(max_angular_velocity_deg_s))
+    out[1:] = u
+    out[:-1] = np.maximum(out[:-1], u)
+    return out
+
+
+def _room(uv, ua, uj, uf, targets) -> np.ndarray:
     tv, ta, tj = targets
     with np.errstate(divide="ignore"):
         R = np.minimum(np.minimum(tv / uv, np.sqrt(ta / ua)), np.cbrt(tj / uj))
+        R = np.minimum(R, FEED_TARGET / uf)
     return np.clip(R, 1.0, R_MAX)
 
 
@@ -129,7 +162,8 @@ def _apply(s_old: np.ndarray, r: np.ndarray, dt: float):
     return s, t_new
 
 
-def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets) -> Retimed:
+def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
+           max_angular_velocity_deg_s: float = float("inf")) -> Retimed:
     """The table ``s_tab`` (rows at ``dt``) run faster where the rows leave room below ``targets`` (v, a, j
     fractions of the limits); every row of the result is within the targets (measured), or the old
     table is returned (``rounds`` = -1)."""
@@ -148,14 +182,18 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets) ->
     still[1:] |= eq
     still[:-1] |= eq
     near_rest = maximum_filter1d(still, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
-    R = np.where(near_rest, 1.0, _room(uv, ua, uj, targets))
+    uf = feed_utilisation(path, s_tab, dt, max_angular_velocity_deg_s)
+    R = np.where(near_rest, 1.0, _room(uv, ua, uj, uf, targets))
     for rnd in range(MAX_ROUNDS):
         r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
         if r.max() <= 1.0 + 1e-9:
             return keep
         s_new, t_new = _apply(s_tab, r, dt)
         nv, na, nj = row_utilisation(path, hx, s_new, dt, vmax, amax, jmax)
+        nf = feed_utilisation(path, s_new, dt, max_angular_velocity_deg_s)
         over = np.maximum(np.maximum(nv / targets[0], na / targets[1]), nj / targets[2])
+        # the feed: never above FEED_TARGET, nor above the old table's own peak where that was higher
+        over = np.maximum(over, nf / max(FEED_TARGET, float(uf.max())))
         if over.max() <= 1.0:
             return Retimed(s_new, t_new, rnd, (n - 1) / max(s_new.shape[0] - 1, 1))
         # lower the room around every violating row (mapped back to old rows) by its excess; also over the
@@ -166,6 +204,16 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets) ->
         hit = np.zeros(n)
         np.maximum.at(hit, old, 1.0)
         near = minimum_filter1d(-hit, 2 * WINDOW_ROWS + 1, mode="nearest") < 0
-        back = np.convolve(hit, np.ones(BACK_WINDOWS * WINDOW_ROWS), mode="full")[:n] > 0
+        c = np.concatenate([[0.0], np.cumsum(hit)])
+        ahead = np.minimum(np.arange(n) + BACK_WINDOWS * WINDOW_ROWS, n)
+        back = c[ahead] - c[:-1] > 0                    # a violating row within BACK_WINDOWS windows ahead
         R = np.where(near | back, 1.0 + (R - 1.0) * 0.5, R)
     return keep
+
+
+def hold_times(t_of_old: np.ndarray, TH: np.ndarray, lag_s: float, dt: float) -> np.ndarray:
+    """Start times (s) of the raw profile's holds in the retimed table: the old table comes to rest
+    ``lag_s`` (the filter's lag) after ``TH``; the new one at the new time of that row, and rests as long
+    (the rate is 1 at rest)."""
+    t_old = np.arange(t_of_old.shape[0]) * dt
+    return np.interp(TH + lag_s, t_old, t_of_old) - lag_s
