@@ -26,9 +26,14 @@ WINDOW_ROWS = 56
 #: share of the programmed feed and the angular-velocity limit the scaled rows may use (rounding margin)
 FEED_TARGET = 1.0 - 1e-7
 #: repeats after a violation before the old table is kept
-MAX_ROUNDS = 12
-#: windows before a violating row whose room is lowered with it
-BACK_WINDOWS = 8
+MAX_ROUNDS = 6
+#: Newton steps of the whole-cycle rounding of every stretch's saving
+QUANTISE_NEWTON = 8
+#: rounds of the chain-rule prediction per measurement, and the share of the targets it aims at
+PREDICT_ROUNDS = 12
+PREDICT_SHARE = 0.995
+#: every this many rows the rate is 1 (stretches decided on their own are at most this long)
+ANCHOR_ROWS = 2000
 
 
 @dataclasses.dataclass
@@ -44,6 +49,11 @@ def row_utilisation(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax):
     differences at ``dt``: velocity between rows k-1, k and k, k+1; acceleration at k; jerk of the two
     third differences touching k)."""
     L = path.platform_struts(path.piece_at(s_tab), s_tab, hx.plat, hx.base)[1]
+    return _utilisation_of(L, dt, vmax, amax, jmax)
+
+
+def _utilisation_of(L: np.ndarray, dt: float, vmax, amax, jmax):
+    """:func:`row_utilisation` of the strut lengths L (n, 6) of the rows."""
     n = L.shape[0]
     uv = np.zeros(n)
     ua = np.zeros(n)
@@ -109,42 +119,48 @@ def _smooth_rate(R: np.ndarray, w: int) -> np.ndarray:
 def _quantise(r: np.ndarray, dt: float) -> np.ndarray:
     """The rate with the time saved over every stretch of r > 1 rounded down to whole cycles (the excess of
     the stretch, r - 1, scaled by a factor in [0, 1]): wherever r = 1 the new rows then sample the old
-    table at its own phase (a curvature step read by the finite differences reads as before)."""
+    table at its own phase (a curvature step read by the finite differences reads as before).
+
+    The saving of a stretch, ``f(alpha) = sum dt (1 - 2 / (2 + alpha (e_i + e_i+1)))``, is increasing and
+    concave in alpha: Newton's method from alpha = 1 (f above the whole cycles) steps below the root once
+    and then rises to it from below, so the saving never exceeds the whole cycles."""
+    n = r.shape[0]
     r = np.where(r < 1.0 + 1e-9, 1.0, r)
     up = r > 1.0
     if not up.any():
         return r
     d = np.diff(np.concatenate([[0], up.astype(np.int8), [0]]))
     a = np.nonzero(d == 1)[0]
-    b = np.nonzero(d == -1)[0]                   # stretch = rows a..b-1; intervals a-1..b-1 touch it
+    b = np.nonzero(d == -1)[0]                   # stretch = rows a..b-1; intervals max(a-1,0)..min(b,n-1)-1
     ia = np.maximum(a - 1, 0)
+    ib = np.minimum(b, n - 1)
+    cnt = ib - ia
+    first = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+    owner = np.repeat(np.arange(a.size), cnt)
+    iv = np.repeat(ia, cnt) + (np.arange(int(cnt.sum())) - np.repeat(first, cnt))
     ex = r - 1.0
+    E = ex[iv] + ex[iv + 1]                      # excess of both ends of every interval of a stretch
 
-    lab = np.zeros(r.shape[0], dtype=np.int64)
+    def f_and_df(alpha):
+        q = 2.0 + alpha[owner] * E
+        return (np.add.reduceat(dt * (1.0 - 2.0 / q), first), np.add.reduceat(dt * 2.0 * E / (q * q), first))
+
+    s1, _ = f_and_df(np.ones(a.size))
+    goal = np.floor(s1 / dt + 1e-9) * dt
+    alpha = np.ones(a.size)
+    for _ in range(QUANTISE_NEWTON):
+        f, df = f_and_df(alpha)
+        alpha = np.clip(alpha - np.where(df > 0, (f - goal) / np.where(df > 0, df, 1.0), alpha), 0.0, 1.0)
+    lab = np.zeros(n, dtype=np.int64)
     lab[a] = np.arange(1, a.size + 1)
-    lab[np.minimum(b, r.shape[0] - 1)] -= np.where(b < r.shape[0], np.arange(1, a.size + 1), 0)
+    lab[b[b < n]] -= np.arange(1, a.size + 1)[b < n]
     lab = np.cumsum(lab)                         # stretch number (1-based) of every row, 0 outside
-
-    def saving(alpha):
-        rr = 1.0 + ex * np.concatenate([[0.0], alpha])[lab]
-        step = dt - dt * 2.0 / (rr[:-1] + rr[1:])
-        cs = np.concatenate([[0.0], np.cumsum(step)])
-        hi = np.minimum(b, r.shape[0] - 1)
-        return cs[hi] - cs[ia]
-
-    goal = np.floor(saving(np.ones(a.size)) / dt + 1e-9) * dt
-    lo = np.zeros(a.size)
-    hi_ = np.ones(a.size)
-    for _ in range(40):
-        mid = 0.5 * (lo + hi_)
-        ok = saving(mid) <= goal
-        lo = np.where(ok, mid, lo)
-        hi_ = np.where(ok, hi_, mid)
-    return 1.0 + ex * np.concatenate([[0.0], lo])[lab]
+    return 1.0 + ex * np.concatenate([[0.0], alpha])[lab]
 
 
 def _apply(s_old: np.ndarray, r: np.ndarray, dt: float):
-    """The table run at rate r (per old row): new rows at the cycle period and the new time of each old row."""
+    """The table run at rate r (per old row): new rows at the cycle period, the new time of each old row
+    and the old time (in rows) of each new row."""
     n = s_old.shape[0]
     t_old = np.arange(n) * dt
     t_new = np.concatenate([[0.0], np.cumsum(dt * 2.0 / (r[:-1] + r[1:]))])
@@ -157,24 +173,105 @@ def _apply(s_old: np.ndarray, r: np.ndarray, dt: float):
     on = np.abs(tau - k * dt) <= 1e-6 * dt
     s[on] = s_old[k[on]]
     s = np.clip(np.maximum.accumulate(s), s_old[0], s_old[-1])
+    rows = tau / dt
     if s[-1] != s_old[-1]:                  # the end row is the old end (at rest)
         s = np.append(s, s_old[-1])
-    return s, t_new
+        rows = np.append(rows, n - 1.0)
+    return s, t_new, rows
+
+
+def _strut_rates(L: np.ndarray, dt: float):
+    """Central differences (per row, zero at the ends) of the strut lengths L (n, 6): first to third."""
+    n = L.shape[0]
+    d1 = np.zeros_like(L)
+    d2 = np.zeros_like(L)
+    d3 = np.zeros_like(L)
+    d1[1:-1] = (L[2:] - L[:-2]) / (2 * dt)
+    d2[1:-1] = (L[2:] - 2 * L[1:-1] + L[:-2]) / (dt * dt)
+    if n >= 5:
+        d3[2:-2] = (L[4:] - 2 * L[3:-1] + 2 * L[1:-3] - L[:-4]) / (2 * dt ** 3)
+    return d1, d2, d3
+
+
+def _predict(rates, uf, r: np.ndarray, dt: float, lims, idx: np.ndarray) -> np.ndarray:
+    """Predicted share (over the targets) of the rows ``idx`` run at rate r, by the chain rule on the old
+    rows' strut rates l1, l2, l3 (each (n, 6)): ``l1 r``, ``l2 r^2 + l1 r_t``,
+    ``l3 r^3 + 3 l2 r r_t + l1 r_tt``."""
+    d1, d2, d3 = (x[idx] for x in rates)
+    vmax, amax, jmax, targets, ftarget = lims
+    rp = np.gradient(r, dt)
+    rpp = np.gradient(rp, dt)[idx]
+    rp = rp[idx]
+    rr = r[idx]
+    rt = (rr * rp)[:, None]
+    rtt = (rr * rp * rp + rr * rr * rpp)[:, None]
+    c = rr[:, None]
+    v = (np.abs(d1) / vmax[None]).max(axis=1) * rr / targets[0]
+    a = (np.abs(d2 * (c * c) + d1 * rt) / amax[None]).max(axis=1) / targets[1]
+    j = (np.abs(d3 * (c * c * c) + d2 * (3.0 * c * rt) + d1 * rtt) / jmax[None]).max(axis=1) / targets[2]
+    return np.maximum(np.maximum(v, a), np.maximum(j, uf[idx] * rr / ftarget))
+
+
+def _lower(R: np.ndarray, rows_bad: np.ndarray, back: int) -> np.ndarray:
+    """R with its excess over 1 halved within a window of the old rows ``rows_bad`` and ``back`` rows
+    before them (a row without room of its own exceeds when the time saved before it moved its phase)."""
+    n = R.shape[0]
+    hit = np.zeros(n)
+    hit[rows_bad] = 1.0
+    near = maximum_filter1d(hit, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
+    c = np.concatenate([[0.0], np.cumsum(hit)])
+    ahead = np.minimum(np.arange(n) + back, n)
+    before = c[ahead] - c[:-1] > 0
+    return np.where(near | before, 1.0 + (R - 1.0) * 0.5, R)
+
+
+def _measure_rows(path, hx, s: np.ndarray, sel: np.ndarray, dt, lims, wmax_deg_s) -> np.ndarray:
+    """Largest share (v, a, j over their targets, feed over its target) at the rows ``sel`` (sorted unique
+    indices) of the table ``s``; each run of selected rows is measured with 3 rows either side."""
+    n = s.shape[0]
+    d = np.diff(np.concatenate([[-10], sel]))
+    start = np.nonzero(d > 7)[0]                      # runs closer than their margins are measured as one
+    a = sel[start]
+    b = sel[np.concatenate([start[1:] - 1, [sel.size - 1]])]
+    lo, hi = np.maximum(a - 3, 0), np.minimum(b + 3, n - 1)
+    cnt = hi - lo + 1
+    idx = np.repeat(lo, cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
+    vmax, amax, jmax, targets, ftarget = lims
+    uv, ua, uj = row_utilisation(path, hx, s[idx], dt, vmax, amax, jmax)
+    uf = feed_utilisation(path, s[idx], dt, wmax_deg_s)
+    over = np.maximum(np.maximum(uv / targets[0], ua / targets[1]), np.maximum(uj / targets[2], uf / ftarget))
+    return over[np.searchsorted(idx, sel)]
+
+
+def _run_labels(up: np.ndarray) -> np.ndarray:
+    """Run number (1-based) of every True of ``up`` (maximal runs), 0 elsewhere."""
+    return np.cumsum(np.diff(np.concatenate([[0], up.astype(np.int8)])) == 1) * up
 
 
 def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
            max_angular_velocity_deg_s: float = float("inf")) -> Retimed:
     """The table ``s_tab`` (rows at ``dt``) run faster where the rows leave room below ``targets`` (v, a, j
-    fractions of the limits); every row of the result is within the targets (measured), or the old
-    table is returned (``rounds`` = -1)."""
+    fractions of the limits) and the programmed feed; every row of the result is within them (measured
+    from the rows); ``rounds`` = -1 when nothing was gained (the old table is returned).
+
+    The rate is 1 at rest and at every ANCHOR_ROWS-th row, so the rows run faster come in stretches; each
+    stretch saves whole cycles, so the rows between stretches are old rows (shifted by whole cycles) and
+    every stretch is decided on its own: the rate is lowered where the chain rule on the old rows predicts
+    an excess (cheap), the new rows are measured, a stretch within the targets is kept as it is, one over
+    them is lowered and measured again, and after MAX_ROUNDS dropped (rate 1)."""
     vmax, amax, jmax = (np.asarray(x, dtype=float) for x in (vmax, amax, jmax))
     n = s_tab.shape[0]
     keep = Retimed(s_tab, np.arange(n) * dt, -1, 1.0)
     if n < 8:
         return keep
-    uv, ua, uj = row_utilisation(path, hx, s_tab, dt, vmax, amax, jmax)
+    L = path.platform_struts(path.piece_at(s_tab), s_tab, hx.plat, hx.base)[1]
+    uv, ua, uj = _utilisation_of(L, dt, vmax, amax, jmax)
+    uf = feed_utilisation(path, s_tab, dt, max_angular_velocity_deg_s)
     # a target the table itself exceeds (by rounding) becomes the table's own peak: never worse than before
     targets = (max(targets[0], uv.max()), max(targets[1], ua.max()), max(targets[2], uj.max()))
+    lims = (vmax, amax, jmax, targets, max(FEED_TARGET, float(uf.max())))
+    rates = _strut_rates(L, dt)
+    del L
     # rows at rest (equal to a neighbour): no room there and within a window of them, so that every stop
     # keeps its standstill rows exactly
     still = np.zeros(n, dtype=np.int8)
@@ -182,33 +279,40 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     still[1:] |= eq
     still[:-1] |= eq
     near_rest = maximum_filter1d(still, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
-    uf = feed_utilisation(path, s_tab, dt, max_angular_velocity_deg_s)
     R = np.where(near_rest, 1.0, _room(uv, ua, uj, uf, targets))
-    for rnd in range(MAX_ROUNDS):
-        r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
+    R[::ANCHOR_ROWS] = 1.0
+    ok = np.zeros(n, dtype=bool)                  # rows of stretches measured within the targets (r frozen)
+    r_ok = np.ones(n)
+    for rnd in range(MAX_ROUNDS + 1):
+        for _ in range(PREDICT_ROUNDS):
+            r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
+            r[ok] = r_ok[ok]
+            act = np.nonzero((maximum_filter1d((r > 1.0).astype(np.int8), 5, mode="nearest") > 0) & ~ok)[0]
+            bad = act[_predict(rates, uf, r, dt, lims, act) > PREDICT_SHARE]
+            if bad.size == 0:
+                break
+            R = _lower(R, bad, 0)
+        runs = _run_labels(r > 1.0)
+        if rnd == MAX_ROUNDS:                     # stretches never measured within the targets: rate 1
+            r = np.where(ok, r, 1.0)
+            runs = np.zeros(n, dtype=np.int64)
         if r.max() <= 1.0 + 1e-9:
             return keep
-        s_new, t_new = _apply(s_tab, r, dt)
-        nv, na, nj = row_utilisation(path, hx, s_new, dt, vmax, amax, jmax)
-        nf = feed_utilisation(path, s_new, dt, max_angular_velocity_deg_s)
-        over = np.maximum(np.maximum(nv / targets[0], na / targets[1]), nj / targets[2])
-        # the feed: never above FEED_TARGET, nor above the old table's own peak where that was higher
-        over = np.maximum(over, nf / max(FEED_TARGET, float(uf.max())))
-        if over.max() <= 1.0:
-            return Retimed(s_new, t_new, rnd, (n - 1) / max(s_new.shape[0] - 1, 1))
-        # lower the room around every violating row (mapped back to old rows) by its excess; also over the
-        # stretch before it (BACK_WINDOWS windows): a row that has no room itself (r ~ 1) exceeds only because
-        # the time saved before it moved its sampling phase against a curvature step
-        bad = np.nonzero(over > 1.0)[0]
-        old = np.clip(np.searchsorted(t_new, bad * dt), 0, n - 1)
-        hit = np.zeros(n)
-        np.maximum.at(hit, old, 1.0)
-        near = minimum_filter1d(-hit, 2 * WINDOW_ROWS + 1, mode="nearest") < 0
-        c = np.concatenate([[0.0], np.cumsum(hit)])
-        ahead = np.minimum(np.arange(n) + BACK_WINDOWS * WINDOW_ROWS, n)
-        back = c[ahead] - c[:-1] > 0                    # a violating row within BACK_WINDOWS windows ahead
-        R = np.where(near | back, 1.0 + (R - 1.0) * 0.5, R)
-    return keep
+        s_new, t_new, rows = _apply(s_tab, r, dt)
+        k = np.clip(np.rint(rows).astype(np.int64), 0, n - 1)
+        todo = maximum_filter1d(np.where(ok, 0, runs), 7, mode="nearest")          # +-3 rows
+        sel = np.nonzero(todo[k] > 0)[0]
+        if sel.size == 0:
+            break
+        over = _measure_rows(path, hx, s_new, sel, dt, lims, max_angular_velocity_deg_s)
+        bad_runs = np.unique(todo[k[sel[over > 1.0]]])
+        good = np.isin(runs, np.setdiff1d(np.unique(todo[k[sel]]), bad_runs)) & (runs > 0)
+        ok |= good
+        r_ok = np.where(good, r, r_ok)
+        if bad_runs.size == 0:
+            break
+        R = np.where(ok, R, _lower(R, k[sel[over > 1.0]], 0))
+    return Retimed(s_new, t_new, rnd, (n - 1) / max(s_new.shape[0] - 1, 1))
 
 
 def hold_times(t_of_old: np.ndarray, TH: np.ndarray, lag_s: float, dt: float) -> np.ndarray:
