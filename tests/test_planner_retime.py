@@ -35,7 +35,7 @@ def _rest_runs(s: np.ndarray) -> list:
 
 
 def test_retime_faster_within_targets_and_holds_kept(cfg, monkeypatch):
-    blocks = exact_stop_moves(cfg, [(2.0, (1, 0, 0)), (25.0, (0, 1, 0)), (8.0, (-1, 1, 1)), (30.0, (1, 0, 0))])
+    blocks = exact_stop_moves(cfg, [(2.0, (1, 0, 0)), (80.0, (0, 1, 0)), (8.0, (-1, 1, 1)), (120.0, (1, 0, 0))])
     monkeypatch.setattr(PL, "RETIME", False)            # the table before the pass
     plan = plan_program(blocks, cfg)
     dt = plan.dt
