@@ -22,7 +22,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 #: largest rate (the pass never runs a row more than this much faster)
 R_MAX = 1.5
 #: smoothing window of the rate, in rows (the erosion reaches a full window either side)
-WINDOW_ROWS = 56
+WINDOW_ROWS = 40
 #: share of the programmed feed and the angular-velocity limit the scaled rows may use (rounding margin)
 FEED_TARGET = 1.0 - 1e-7
 #: repeats after a violation before the old table is kept
