@@ -19,6 +19,8 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 
+from .path import platform_struts
+
 #: largest rate (the pass never runs a row more than this much faster)
 R_MAX = 1.5
 #: smoothing window of the rate, in rows (the erosion reaches a full window either side)
@@ -70,16 +72,26 @@ def _utilisation_of(L: np.ndarray, dt: float, vmax, amax, jmax):
     return uv, ua, uj
 
 
-def feed_utilisation(path, s_tab: np.ndarray, dt: float, max_angular_velocity_deg_s: float) -> np.ndarray:
+def _lengths_and_tips(path, hx, s_tab: np.ndarray):
+    """Strut lengths (n, 6), tool-tip poses (n, 6) and pieces (n,) of the rows: one evaluation of the path."""
+    pc = path.piece_at(s_tab)
+    tip = path.tip(pc, s_tab)
+    return platform_struts(tip, path.tool_point[pc], hx.plat, hx.base)[1], tip, pc
+
+
+def feed_utilisation(path, s_tab: np.ndarray, dt: float, max_angular_velocity_deg_s: float,
+                     tip=None, pc=None) -> np.ndarray:
     """Per row the larger of the programmed feed's and the angular-velocity limit's use between rows k-1, k
     and k, k+1 (finite differences of the tool tip): the feed is the tool-tip speed (mm/s), or the angular
-    speed (deg/s) of a move that only rotates, as the planner reads it."""
+    speed (deg/s) of a move that only rotates, as the planner reads it.  ``tip``, ``pc``: the rows' tool-tip
+    poses and pieces if already at hand."""
     n = s_tab.shape[0]
     out = np.zeros(n)
     if n < 2:
         return out
-    pc = path.piece_at(s_tab)
-    tip = path.tip(pc, s_tab)
+    if tip is None:
+        pc = path.piece_at(s_tab)
+        tip = path.tip(pc, s_tab)
     d = np.diff(tip, axis=0)
     ds = np.diff(s_tab)
     lin = np.linalg.norm(d[:, :3], axis=1)
@@ -237,8 +249,9 @@ def _measure_rows(path, hx, s: np.ndarray, sel: np.ndarray, dt, lims, wmax_deg_s
     cnt = hi - lo + 1
     idx = np.repeat(lo, cnt) + (np.arange(int(cnt.sum())) - np.repeat(np.cumsum(cnt) - cnt, cnt))
     vmax, amax, jmax, targets, ftarget = lims
-    uv, ua, uj = row_utilisation(path, hx, s[idx], dt, vmax, amax, jmax)
-    uf = feed_utilisation(path, s[idx], dt, wmax_deg_s)
+    L, tip, pc = _lengths_and_tips(path, hx, s[idx])
+    uv, ua, uj = _utilisation_of(L, dt, vmax, amax, jmax)
+    uf = feed_utilisation(path, s[idx], dt, wmax_deg_s, tip, pc)
     over = np.maximum(np.maximum(uv / targets[0], ua / targets[1]), np.maximum(uj / targets[2], uf / ftarget))
     return over[np.searchsorted(idx, sel)]
 
@@ -264,9 +277,10 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     keep = Retimed(s_tab, np.arange(n) * dt, -1, 1.0)
     if n < 8:
         return keep
-    L = path.platform_struts(path.piece_at(s_tab), s_tab, hx.plat, hx.base)[1]
+    L, tip, pc = _lengths_and_tips(path, hx, s_tab)
     uv, ua, uj = _utilisation_of(L, dt, vmax, amax, jmax)
-    uf = feed_utilisation(path, s_tab, dt, max_angular_velocity_deg_s)
+    uf = feed_utilisation(path, s_tab, dt, max_angular_velocity_deg_s, tip, pc)
+    del tip, pc
     # a target the table itself exceeds (by rounding) becomes the table's own peak: never worse than before
     targets = (max(targets[0], uv.max()), max(targets[1], ua.max()), max(targets[2], uj.max()))
     lims = (vmax, amax, jmax, targets, max(FEED_TARGET, float(uf.max())))
