@@ -72,3 +72,18 @@ def test_optimum_is_a_lower_bound_for_hexacnc_and_above_the_rest_to_rest_floor(a
     assert floor * (1 - 1e-3) <= r["duration_s"] < plan.duration_s
     u = JO.utilisation(plan.path, plan.hexapod, cfg, r["sections"])
     assert 0.9 < max(u.values()) < 1.1          # at the limits (between nodes it may exceed slightly)
+
+
+@pytest.mark.slow
+def test_optimum_at_the_planners_shares_lies_between_the_full_optimum_and_its_time_scaling():
+    """Lower limits cannot be faster; the full optimum slowed by c = min(0.995, sqrt(0.95), cbrt(0.95)) keeps
+    every limit within its share, so the optimum at the shares takes at most 1 / c times as long."""
+    from hexacnc.bench.toppra_peer import _lifted_config, stops_path_blocks
+    cfg = _lifted_config(load_config(None), False)
+    plan = plan_program(stops_path_blocks(cfg, moves=((5.0, (1, 0, 0)),)), cfg)
+    secs = _sections(_rest_points(plan))
+    full = JO.jerk_optimum(plan, cfg, secs)
+    part = JO.jerk_optimum(plan, cfg, secs, shares=JO.PLAN_SHARES)
+    assert full["ok"] and part["ok"]
+    c = min(JO.PLAN_SHARES[0], JO.PLAN_SHARES[1] ** 0.5, JO.PLAN_SHARES[2] ** (1 / 3))
+    assert full["duration_s"] * (1 - 1e-6) <= part["duration_s"] <= full["duration_s"] / c * (1 + 1e-4)

@@ -34,9 +34,10 @@ def bench_excerpts(cfg, gridpoints: int, corpus: Path, excerpts=CAM_EXCERPTS) ->
     return res
 
 
-def bench_optimum_only(cfg, corpus: Path | None) -> dict:
+def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=None) -> dict:
     """hexacnc against the jerk-limited optimum alone (no TOPP-RA) on the bench paths and the CAM excerpts:
-    per path the plan's duration and measured utilisation, the optimum's keys (feeds lifted, dwells zeroed)."""
+    per path the plan's duration and measured utilisation, the optimum's keys (feeds lifted, dwells zeroed).
+    ``at_shares``: also the optimum at the planner's shares; ``only``: path names (keys' first word) to run."""
     import time
     from ..planner import plan_program
     from .jerkfloor import _rest_points
@@ -52,6 +53,8 @@ def bench_optimum_only(cfg, corpus: Path | None) -> dict:
                                                      if first <= int(getattr(b, "line", 0) or 0) <= last]
     out = {}
     for key, blocks in paths.items():
+        if only and key.split(" ")[0].split(".")[0] not in only:
+            continue
         t0 = time.perf_counter()
         try:
             plan = plan_program(blocks, cfg)
@@ -59,11 +62,13 @@ def bench_optimum_only(cfg, corpus: Path | None) -> dict:
             out[key] = {"planned": False, "reason": str(exc)}
             continue
         t_plan = time.perf_counter() - t0
-        jo = jerk_optimum_report(plan, cfg, _rest_points(plan))
+        jo = jerk_optimum_report(plan, cfg, _rest_points(plan), at_shares=at_shares)
         out[key] = {"hexacnc_duration_s": round(plan.duration_s, 6),
                     "hexacnc_utilisation": {k: round(v, 6) for k, v in plan.utilisation.items()},
                     "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
                     "hexacnc_planning_s": round(t_plan, 4),
                     "jerk_optimum_s": jo.get("jerk_optimum_s"), "jerk_optimum_ratio": jo.get("jerk_optimum_ratio"),
                     "jerk_optimum_utilisation": jo.get("utilisation"), "jerk_optimum": jo}
+        if at_shares:
+            out[key]["jerk_optimum_at_shares_ratio"] = jo.get("jerk_optimum_at_shares_ratio")
     return out

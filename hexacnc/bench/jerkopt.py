@@ -275,14 +275,14 @@ def utilisation(path, hx, cfg, opts: list) -> dict:
 
 
 def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes: int = PIECE_NODES,
-                 jerk_scale: float = 1.0, accel_jumps: bool = False) -> dict:
+                 jerk_scale: float = 1.0, accel_jumps: bool = False, shares=(1.0, 1.0, 1.0)) -> dict:
     """The jerk-limited optimum on the rest-to-rest ``sections`` [(a, b)] of the plan's executed path under
-    the strut limits of ``cfg`` (jerk times ``jerk_scale``): total time, per-section times and solver
-    status, the trajectory's measured utilisation."""
+    the strut limits of ``cfg`` (jerk times ``jerk_scale``; velocity, acceleration and jerk times ``shares``):
+    total time, per-section times and solver status, the trajectory's measured utilisation."""
     path, hx = plan.path, plan.hexapod
-    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float)
-    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float)
-    jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float) * jerk_scale
+    vmax = np.asarray(cfg.max_velocity_mm_s, dtype=float) * float(shares[0])
+    amax = np.asarray(cfg.max_acceleration_mm_s2, dtype=float) * float(shares[1])
+    jmax = np.asarray(cfg.max_jerk_mm_s3, dtype=float) * jerk_scale * float(shares[2])
     t0 = time.perf_counter()
     opts = []
     for a, b in sections:
@@ -295,13 +295,25 @@ def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes
             "nodes": int(sum(o.s.shape[0] for o in opts))}
 
 
-def jerk_optimum_report(plan, cfg, stops) -> dict:
-    """The jerk-limited optimum (:mod:`hexacnc.bench.jerkopt`) on the plan's rest-to-rest sections."""
+#: the planner's own shares of the strut limits (v, a, j): the nominal plan uses at most these (plan.py, profile.py)
+PLAN_SHARES = (0.995, 0.95, 0.95)
+
+
+def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False) -> dict:
+    """The jerk-limited optimum (:mod:`hexacnc.bench.jerkopt`) on the plan's rest-to-rest sections; with
+    ``at_shares`` also the optimum under the planner's own shares of the limits (``PLAN_SHARES``), which
+    splits hexacnc's gap into the shares' part and the profile method's part."""
     if not have_casadi():
         return {"skipped": INSTALL}
     r = jerk_optimum(plan, cfg, _sections(stops))
     opt = r["duration_s"]
-    return {"jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
+    extra = {}
+    if at_shares:
+        rs = jerk_optimum(plan, cfg, _sections(stops), shares=PLAN_SHARES)
+        o2 = rs["duration_s"]
+        extra = {"jerk_optimum_at_shares_s": round(o2, 6), "jerk_optimum_at_shares_ratio": round(plan.duration_s / o2, 6),
+                 "shares": list(PLAN_SHARES), "shares_cost": round(o2 / opt, 6), "at_shares_solver_ok": rs["ok"]}
+    return {**extra, "jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
             "within_8_percent": bool(plan.duration_s <= 1.08 * opt),
             "utilisation": {k: round(v, 6) for k, v in utilisation(plan.path, plan.hexapod, cfg,
                                                                      r["sections"]).items()},

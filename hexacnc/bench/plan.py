@@ -56,6 +56,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--optimum-only", action="store_true",
                         help="only hexacnc against the jerk-limited optimum (bench paths and CAM excerpts; no "
                              "TOPP-RA); combine with --skip-corpus --skip-memory for that figure alone")
+    parser.add_argument("--optimum-at-shares", action="store_true",
+                        help="with --optimum-only: also the optimum under the planner's own shares of the limits "
+                             "(v 0.995, a/j 0.95): the gap split into the shares' part and the method's part")
+    parser.add_argument("--paths", default="",
+                        help="with --optimum-only: only these paths (comma-separated: corners, smooth, stops, "
+                             "arcspiral, tort, 3D_Chips)")
+    parser.add_argument("--retime", action="store_true",
+                        help="plan with the final time scaling on (hexacnc.planner.plan.RETIME; off by default)")
     parser.add_argument("--skip-memory", action="store_true",
                         help="no peak-RSS measurement of planning a repeated 3D_Chips program")
     parser.add_argument("--skip-excerpts", action="store_true",
@@ -121,7 +129,9 @@ def _optimum_summary(topp: dict) -> dict:
     util = {k: v["jerk_optimum"].get("utilisation") for k, v in rows.items()
             if isinstance(v.get("jerk_optimum"), dict) and v["jerk_optimum"].get("utilisation")}
     worst = max(ratios.values()) if ratios else None
+    at_shares = {k: v.get("jerk_optimum_at_shares_ratio") for k, v in rows.items() if v.get("jerk_optimum_at_shares_ratio")}
     return {"ratios": ratios, "worst_ratio": worst, "target_ratio": 1.08,
+            **({"ratios_at_shares": at_shares} if at_shares else {}),
             "within_target": bool(worst is not None and worst <= 1.08),
             "hexacnc_utilisation_ok": all(bool(v.get("utilisation_ok")) for v in rows.values() if "utilisation_ok" in v),
             "optimum_utilisation": util}
@@ -130,10 +140,16 @@ def _optimum_summary(topp: dict) -> dict:
 def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     res: dict = {"bench": "plan", "machine": cfg.name, "cpu_count": os.cpu_count()}
+    if args.retime:
+        from ..planner import plan as planner_plan
+        planner_plan.RETIME = True
+    res["retime"] = bool(args.retime)
     corpus = Path(args.corpus) if args.corpus else Path(__file__).resolve().parents[3] / "shared/data/gcode"
     if args.optimum_only:
         from .excerpts import bench_optimum_only
-        res["optimum"] = bench_optimum_only(cfg, corpus if corpus.is_dir() else None)
+        only = {p.strip() for p in args.paths.split(",") if p.strip()}
+        res["optimum"] = bench_optimum_only(cfg, corpus if corpus.is_dir() else None,
+                                            at_shares=args.optimum_at_shares, only=only or None)
         res["optimum"]["jerk_optimum_summary"] = _optimum_summary(
             {**{k: res["optimum"].get(k) for k in ("corners", "smooth", "stops")},
              "cam_excerpts": {k: v for k, v in res["optimum"].items() if " lines " in k}})

@@ -1,0 +1,88 @@
+"""Final time scaling (hexacnc.planner.retime): never slower, rows within the targets measured independently
+(Hexapod.inverse_batch + finite differences at the cycle period), stops still held for as long."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.gcode.blocks import Block
+from hexacnc.planner import plan as PL
+from hexacnc.planner import plan_program
+from hexacnc.planner.retime import retime
+
+from test_planner_motion import utilisation
+from test_planner_sections import exact_stop_moves
+
+TARGETS = (0.995, 0.95, 0.95)
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def _rows(plan, s):
+    return plan.platform_at(s)
+
+
+def _rest_runs(s: np.ndarray) -> list:
+    """Lengths of the runs of consecutive equal rows (standstills) strictly inside the table."""
+    still = np.concatenate([[False], s[1:] == s[:-1]])
+    d = np.diff(np.concatenate([[0], still.astype(np.int8), [0]]))
+    a, b = np.nonzero(d == 1)[0], np.nonzero(d == -1)[0]
+    return [int(y - x) for x, y in zip(a, b) if x > 1 and y < s.shape[0]]
+
+
+def test_retime_faster_within_targets_and_holds_kept(cfg, monkeypatch):
+    blocks = exact_stop_moves(cfg, [(2.0, (1, 0, 0)), (80.0, (0, 1, 0)), (8.0, (-1, 1, 1)), (120.0, (1, 0, 0))])
+    monkeypatch.setattr(PL, "RETIME", False)            # the table before the pass
+    plan = plan_program(blocks, cfg)
+    dt = plan.dt
+    r = retime(plan.path, plan.hexapod, plan.s_tab, dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+               cfg.max_jerk_mm_s3, TARGETS)
+    assert r.rounds >= 0, "the time scaling found no table within the targets"
+    s = r.s_tab
+    assert s.shape[0] < plan.s_tab.shape[0]                     # faster (rest to rest moves leave room)
+    assert s[0] == plan.s_tab[0] and s[-1] == plan.s_tab[-1]
+    assert np.all(np.diff(s) >= 0)
+    uv, ua, uj = utilisation(cfg, _rows(plan, s), dt)
+    assert uv <= TARGETS[0] + 1e-9 and ua <= TARGETS[1] + 1e-9 and uj <= TARGETS[2] + 1e-9, (uv, ua, uj)
+    # every stop rests at least as long as before (the rate is 1 wherever the table rests)
+    old, new = _rest_runs(plan.s_tab), _rest_runs(s)
+    assert len(new) == len(old) and all(n >= o for n, o in zip(new, old)), (old, new)
+    # the new time of every old row is increasing and ends at the new duration
+    assert np.all(np.diff(r.t_of_old) > 0)
+    assert abs(r.t_of_old[-1] - (s.shape[0] - 1) * dt) <= dt
+
+
+def test_retime_keeps_a_table_without_room(cfg):
+    """A table whose every moving row is at its target cannot be run faster: the pass returns it."""
+    blocks = exact_stop_moves(cfg, [(10.0, (1, 0, 0))])
+    plan = plan_program(blocks, cfg)
+    r = retime(plan.path, plan.hexapod, plan.s_tab, plan.dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+               cfg.max_jerk_mm_s3, (1e-3, 1e-3, 1e-3))
+    assert r.rounds == -1 and r.s_tab is plan.s_tab and r.gain == 1.0
+
+
+def test_plan_with_retime_is_shorter_within_limits_and_dwells_rest(cfg, monkeypatch):
+    """In plan_program: never longer than without the pass, rows within the shares (independent finite
+    differences), a dwell still rests for its time on its line, the table ends where it did."""
+    from test_planner_motion import tip_of
+    home = np.array(cfg.home_pose, dtype=float)
+    t0, t1, t2 = (tip_of(cfg, home + d) for d in ([0] * 6, [60, 0, 0, 0, 0, 0], [60, 40, -20, 3, 0, 0]))
+    blocks = [Block("line", 1, t0, t1, feed_mm_s=1e4, blend_tolerance_mm=0.5), Block("dwell", 2, seconds=0.3),
+              Block("line", 3, t1, t2, feed_mm_s=1e4, blend_tolerance_mm=0.5),
+              Block("line", 4, t2, t0, feed_mm_s=1e4, blend_tolerance_mm=0.5)]
+    monkeypatch.setattr(PL, "RETIME", False)
+    before = plan_program(blocks, cfg)
+    monkeypatch.setattr(PL, "RETIME", True)
+    plan = plan_program(blocks, cfg)
+    assert plan.duration_s <= before.duration_s
+    rows = plan.rows()
+    uv, ua, uj = utilisation(cfg, rows, plan.dt)
+    assert uv <= 0.9995 and ua <= 0.95 + 1e-9 and uj <= 0.95 + 1e-9, (uv, ua, uj)
+    assert max(plan.utilisation.values()) <= 0.9995
+    on2 = rows[rows[:, 6] == 2]
+    assert on2.shape[0] * plan.dt >= 0.3 and np.ptp(on2[:, :3], axis=0).max() < 1e-9
+    assert np.array_equal(rows[-1, :6], before.rows()[-1, :6])
