@@ -13,7 +13,7 @@ from drivers import cia402, simhoming
 from hexacnc.cli import main as cli
 from hexacnc.daemon import protocol as P
 from hexacnc.kinematics import Hexapod
-from hexacnc.opconfig import HomingConfig
+from hexacnc.config.operator import HomingConfig
 
 from e2e_fixtures import cfg, running_machine  # noqa: F401
 

@@ -114,7 +114,7 @@ def test_a_drive_power_cycle_restarts_its_counter_and_drops_the_reference(cfg, c
 
 def test_absolute_encoders_keep_the_reference_through_faults_but_not_an_encoder_error(cfg, capsys):  # noqa: F811
     import dataclasses
-    from hexacnc.opconfig import HomingConfig
+    from hexacnc.config.operator import HomingConfig
     mc = cfg.replace(operator=dataclasses.replace(cfg.operator, homing=HomingConfig(method="absolute",
                                                                                      required=True)))
     gen = running_machine(mc, name="rfa")

@@ -11,7 +11,7 @@ from hexacnc.config import load_config
 from hexacnc.daemon import homecodes as C
 from hexacnc.daemon import homeloop as H
 from hexacnc.daemon import shm as S
-from hexacnc.opconfig import HomingConfig
+from hexacnc.config.operator import HomingConfig
 
 OE = 0x0237                       # Operation enabled, remote
 

@@ -161,7 +161,7 @@ def test_rapid_override_slows_rapids_only(cfg):
 
 def test_jog_plan_reach_and_rotation_about_the_tip(cfg):
     from hexacnc.daemon.jog import JogSource, plan_jog, tip_poses
-    from hexacnc.opconfig import tip_box
+    from hexacnc.config.operator import tip_box
     hx = Hexapod(cfg)
     tip = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     jp = plan_jog(cfg, hx, cfg.home_pose, "x", "base", tip, 0.0)

@@ -51,7 +51,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _machine(base, method: int, args, state_dir: str):
     from drivers.simhoming import SWITCH_FROM_START_MM
     from ..kinematics import Hexapod
-    from ..opconfig import HomingConfig
+    from ..config.operator import HomingConfig
     start = Hexapod(base).lengths(base.home_pose) - np.asarray(base.strut_offset_mm, dtype=float)
     # the offsets keep the position values on the raw scale (the power-up values), so a wrong home
     # shows as a difference there

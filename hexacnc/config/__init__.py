@@ -34,7 +34,7 @@ simulation) and :mod:`.load` (files, the embedded default).  Everything importab
 """
 from __future__ import annotations
 
-from ..opconfig import OperatorConfig, parse_operator
+from .operator import OperatorConfig, parse_operator
 from .load import DEFAULT_CONFIG_NAME, default_config_path, load_config, read_toml
 from .machine import (_KNOWN_SECTIONS, MachineConfig, ToolConfig, _check_geometry, parse_carrier, parse_config,
                       parse_frame, parse_tool, parse_workspace)

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ConfigError
-from ..opconfig import OperatorConfig, parse_operator
+from .operator import OperatorConfig, parse_operator
 from .models import (CalibrationConfig, DynamicsConfig, KinematicsConfig, SpindleConfig, ThermalConfig,
                      _check_calibration, _parse_calibration, parse_dynamics, parse_kinematics, parse_spindle,
                      parse_thermal)
@@ -60,7 +60,7 @@ class MachineConfig:
     tools: ToolTableConfig = field(default_factory=ToolTableConfig)
     dynamics: DynamicsConfig = field(default_factory=DynamicsConfig)
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
-    operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/opconfig.py
+    operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/config/operator.py
     gcode: GcodeConfig = field(default_factory=GcodeConfig)
     #: ``[simulation] truth``: true machine the simulated plant follows (path, "" = none); the
     #: controller's model never reads it (hexacnc.sim.truth)

@@ -26,7 +26,7 @@ import numpy as np
 from ruckig import ControlInterface, InputParameter, Result, Ruckig, Trajectory
 
 from ..errors import HexacncError
-from ..opconfig import tip_box
+from ..config.operator import tip_box
 from ..pose import euler_from_matrix, matrix_from_axis_angle, matrix_from_euler
 from ..setpoint import COL_FLAGS, FLAG_END, FLAG_MOTION, ROW
 

@@ -25,7 +25,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..errors import HexacncError, PlanError
-from ..opconfig import tip_box, tip_violation
+from ..config.operator import tip_box, tip_violation
 from ..state import MachineState, StateStore, ToolEntry, interpret
 from . import shm as S
 from .jog import JogLimitError, JogSource, plan_jog, tip_poses, tool_point_platform

@@ -12,7 +12,7 @@ itself, the adapter sets and reads its public state attributes (``P``, ``g92``, 
 ``tools`` and the modal ones) around ``run``.
 
 :class:`StateStore` keeps the current state of one daemon and its two files (``tool.tbl`` and
-``hexacnc.var`` in :func:`hexacnc.opconfig.state_dir`), written atomically on every change.
+``hexacnc.var`` in :func:`state_dir`), written atomically on every change.
 """
 from __future__ import annotations
 

@@ -114,7 +114,7 @@ def tip_box(cfg) -> tuple[np.ndarray, np.ndarray]:
     op = cfg.operator
     if op.tip_min is not None:
         return np.asarray(op.tip_min, dtype=float), np.asarray(op.tip_max, dtype=float)
-    from .pose import matrix_from_euler
+    from ..pose import matrix_from_euler
     home = np.asarray(cfg.home_pose, dtype=float)
     R = matrix_from_euler(*np.radians(home[3:6]))
     shift = np.r_[R @ np.asarray(cfg.tool.tip_platform_mm, dtype=float), 0.0, 0.0, 0.0]
