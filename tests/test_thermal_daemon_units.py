@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from hexacnc.config import load_config, parse_config
-from hexacnc.daemon.thermalsup import ThermalInputError, parse_reading, resolve_source
+from hexacnc.daemon.thermalin import ThermalInputError, parse_reading, resolve_source
 from hexacnc.errors import ConfigError
 from hexacnc.sim.thermalplant import ThermalPlant
 
@@ -97,7 +97,7 @@ def test_simulated_drives_model_selected_by_config(cfg):
 
 
 def test_offset_rate_the_cycle_cannot_take_is_refused(cfg):
-    from hexacnc.daemon.thermalsup import check_offset_rate, max_safe_offset_rate_mm_s
+    from hexacnc.daemon.thermalin import check_offset_rate, max_safe_offset_rate_mm_s
     lim = max_safe_offset_rate_mm_s(cfg, 0.0005)
     assert cfg.thermal.max_offset_rate_mm_s <= lim             # the default fits the default cycle
     fast = cfg.replace(thermal=dataclasses.replace(cfg.thermal, max_offset_rate_mm_s=0.05))

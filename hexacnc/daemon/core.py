@@ -101,7 +101,8 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         rep = busload.check_layout(self.cfg.bus, self.period_s)   # refuse a layout over max_load, with figures
         self.info["bus_load"] = rep["load"]
         self.info["bus_summary"] = busload.describe(rep)
-        from .thermalsup import check_offset_rate, thermal_supervisor
+        from .thermalin import check_offset_rate
+        from .thermalsup import thermal_supervisor
         check_offset_rate(self.cfg, self.period_s)      # refuse a rate the cycle's acceleration guard would trip on
         if mode == "bus":           # a real (or netns) bus: one daemon per interface, before any frame
             self._bus_lock = acquire_lock(bus_lock_path(self.cfg),
@@ -239,7 +240,7 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         """One reading for the thermal observer (the socket op ``temperatures``).
 
         ``fields``: ``probes_C`` (map or flat list, see :mod:`.thermalsup`), optional ``spindle_C``
-        and ``time_s``.  Raises :class:`~.thermalsup.ThermalInputError` (``code``, ``field``) on a
+        and ``time_s``.  Raises :class:`~.thermalin.ThermalInputError` (``code``, ``field``) on a
         bad reading, which then changes nothing.
         """
         if self.thermal is None:

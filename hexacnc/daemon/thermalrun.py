@@ -11,7 +11,7 @@ without them) is sampled over the run.
 
 Consistent time scaling: the plant runs ``scale`` times faster than the wall clock, so the offsets'
 rate limit is scaled too (``[thermal] max_offset_rate_mm_s`` x scale), but never beyond what the
-cycle's acceleration guard takes (:func:`hexacnc.daemon.thermalsup.max_safe_offset_rate_mm_s`,
+cycle's acceleration guard takes (:func:`hexacnc.daemon.thermalin.max_safe_offset_rate_mm_s`,
 3.9 um/s wall at 0.5 ms): at a large ``scale`` the applied offsets lag the estimate for that reason
 alone.  Probes at ``rate_hz`` wall-clock readings per second.
 """
@@ -28,7 +28,7 @@ from ..sim.program import synthetic_program, to_gcode_tooltip
 def run(cfg, hours: float = 2.5, scale: float = 300.0, rate_hz: float = 2.0, lines: int = 300,
         seed: int = 1, sample_hz: float = 4.0, progress=None) -> dict:
     from . import core
-    from .thermalsup import max_safe_offset_rate_mm_s
+    from .thermalin import max_safe_offset_rate_mm_s
     rate_limit = min(0.999 * max_safe_offset_rate_mm_s(cfg, cfg.cycle.period_s), cfg.thermal.max_offset_rate_mm_s * scale)
     th = dataclasses.replace(cfg.thermal, source="sim", sim_time_scale=float(scale), probe_rate_hz=float(rate_hz),
                              max_offset_rate_mm_s=rate_limit, sim_seed=seed)
