@@ -46,11 +46,17 @@ def running_machine(cfg, realtime: bool = False, name: str = "e2e"):
     (drives disabled, processes joined) after it."""
     d = tempfile.mkdtemp(prefix="hx" + name[:3], dir="/tmp")
     daemon = core.Daemon(cfg, realtime=realtime)
-    srv = SocketServer(daemon, cfg, os.path.join(d, name + ".sock")).start()
-    yield daemon, srv
-    srv.close()
-    daemon.close()
-    shutil.rmtree(d, ignore_errors=True)
+    try:
+        srv = SocketServer(daemon, cfg, os.path.join(d, name + ".sock")).start()
+    except BaseException:
+        daemon.close()
+        raise
+    try:
+        yield daemon, srv
+    finally:        # also on gen.close(): never a daemon left running behind a test
+        srv.close()
+        daemon.close()
+        shutil.rmtree(d, ignore_errors=True)
 
 
 @pytest.fixture(scope="module")

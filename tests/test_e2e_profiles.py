@@ -26,7 +26,7 @@ def profile_machine(request, base_cfg):
     gen = running_machine(cfg, name=f"pr{request.param[:2]}")
     daemon, srv = next(gen)
     yield request.param, cfg, daemon, srv
-    gen.close()                                     # shutdown: server closed, drives disabled, joined
+    next(gen, None)                                 # shutdown: server closed, drives disabled, joined
     assert daemon.info.get("bus_summary") is not None
 
 
