@@ -125,6 +125,11 @@ class PipeSim:
         if not self._line(f"inject {kind} {int(node)} {value}"):
             raise BusError("the simulated drives process is not running")
 
+    def iolog(self, path: str) -> None:
+        """Ask the simulated drives to write their digital I/O and its log to ``path`` (JSON; tests)."""
+        if not self._line(f"iolog {path}"):
+            raise BusError("the simulated drives process is not running")
+
     def terminate(self) -> None:
         """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:

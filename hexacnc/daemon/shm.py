@@ -91,6 +91,9 @@ S_PROBE_ACK = 68        #: last request the hot loop took
 S_PROBE_STATE = 69      #: latch state (hexacnc.daemon.probelatch OFF/ARMING/ARMED/LATCHED, < 0 error)
 S_PROBE_MASK = 70       #: bit per drive whose latched position is read
 S_PROBE_POS = 72        #: 6: latched drive positions at the edge, increments
+S_IO_OUT = 88           #: 6: program digital outputs: 0x60FE:1 word each drive acknowledged (.dioloop)
+S_IO_ERR = 94           #: 0, or < 0: last digital-output write error (hexacnc.daemon.dioloop.ERROR_TEXT)
+S_IO_WRITES = 95        #: digital-output writes acknowledged by the drives
 N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)
