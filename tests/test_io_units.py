@@ -153,3 +153,14 @@ def test_sim_drive_digital_io_objects():
     assert [e["outputs"] for e in dio.log] == [1 << 16, 0] and dio.log[1]["syncs"] == 1
     dio.inputs = 0b100
     assert dr.hooks.read[0x60FD](0) == 0b100
+
+
+def test_output_without_motion_refused_where_nothing_would_run():
+    from hexacnc.daemon.ioprog import check_io_needs_motion
+    from hexacnc.gcode import program_from_config
+    cfg = _cfg(IO)
+    prog = program_from_config("M64 P0\n", "mdi", cfg)
+    with pytest.raises(GcodeError) as ei:
+        check_io_needs_motion(prog.blocks)
+    assert ei.value.line == 1 and "M64 P0" in str(ei.value) and ei.value.code == "unsupported"
+    check_io_needs_motion(program_from_config("G91 G1 X1 F600\nM64 P0\n", "mdi", cfg).blocks)

@@ -66,6 +66,19 @@ def check_io(cfg, blocks) -> None:
                              line=int(b.line), code="io")
 
 
+def check_io_needs_motion(blocks) -> None:
+    """Paths that run nothing without motion (the operator's MDI/program, a probe program's segment):
+    an output change there would be dropped silently, so it is refused."""
+    blocks = list(blocks)
+    if any(b.kind in B.MOTION_KINDS for b in blocks):
+        return
+    for b in blocks:
+        if b.kind == B.IO:
+            raise GcodeError(f"{_mcode(b.extra or {})} P{int((b.extra or {}).get('index', -1))}: an output change "
+                             "without any motion after the last probe / in this MDI is not supported yet",
+                             line=int(b.line), code="unsupported")
+
+
 @dataclass(frozen=True)
 class IoActions:
     """Output changes of a plan: ``index`` (n,) table indices, ascending; ``code`` (n,) packed changes."""

@@ -68,8 +68,9 @@ def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, st
     seg, probe = segment_after(blocks, len(known))
     if tip_check is not None:
         tip_check(cfg, type("Segment", (), {"motion_blocks": [b for b in seg if b.kind in B.MOTION_KINDS]}))
-    from .ioprog import check_io, plan_with_io
+    from .ioprog import check_io, check_io_needs_motion, plan_with_io
     check_io(cfg, seg)
+    check_io_needs_motion(seg)
     plan = None
     if any(b.kind in B.MOTION_KINDS for b in seg):
         plan = plan_with_io(seg, cfg, planner_plan, hexapod=Hexapod(cfg), period_s=period_s)
