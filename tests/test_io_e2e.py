@@ -19,7 +19,7 @@ pytestmark = [pytest.mark.e2e]
 
 @pytest.fixture(scope="module")
 def machine(cfg):  # noqa: F811
-    io = IoConfig(digital_out={0: (0, 16), 1: (1, 17)}, digital_in={})
+    io = IoConfig(digital_out={0: (0, 16), 1: (1, 17)}, digital_in={2: (2, 5)})
     yield from running_machine(dataclasses.replace(cfg, io=io), name="dio")
 
 
@@ -77,4 +77,48 @@ def test_unmapped_output_refused_before_motion(machine, client):
                     reply_timeout_s=60.0)
     msg = str(ei.value)
     assert "line 3" in msg and "P5" in msg and "not mapped" in msg
+    assert client.call("status")["pose_cmd"] == before
+
+
+def _node_of(daemon, tmp_path, strut: int) -> int:
+    path = str(tmp_path / "nodes.json")
+    daemon.sim.iolog(path)
+    t_end = time.monotonic() + 10.0
+    while not os.path.exists(path):
+        assert time.monotonic() < t_end
+        time.sleep(0.02)
+    return next(int(k) for k, v in json.loads(open(path).read()).items() if v["strut"] == strut)
+
+
+def test_m66_waits_on_the_drive_input_and_sets_5399(machine, client, tmp_path):
+    import threading
+    daemon = machine[0]
+    node = _node_of(daemon, tmp_path, 2)          # [io] digital_in_2 = drive 3, bit 5
+    daemon.sim.inject("dinput", node, 0)
+    x0 = wait_standstill(client, 30.0, polls=3)["pose_cmd"][0]
+    # L3: wait for high (set 0.4 s after the wait began); L4 Q0.2: low never comes: -1; L0: reads 1
+    text = ("G21 G91 G94\nG1 X1 F600\nM66 P2 L3 Q20\nG1 X[#5399 * 2]\nM66 P2 L4 Q0.2\n"
+            "G1 X[#5399 + 4]\nM66 P2 L0\nG1 X[#5399 * 0.5]\nG1 X-6.5\nM2\n")
+    timer = threading.Timer(1.5, daemon.sim.inject, ("dinput", node, 1 << 5))
+    timer.start()
+    t0 = time.monotonic()
+    try:
+        r = client.call("program", text=text, name="m66.ngc", reply_timeout_s=120.0)
+    finally:
+        timer.cancel()
+    assert time.monotonic() - t0 >= 1.5                     # it did wait for the input
+    assert [(e["line"], e["mode"], e["value"]) for e in r["inputs"]] == [(3, "high", 1), (5, "low", -1),
+                                                                          (7, "immediate", 1)]
+    st = wait_standstill(client, 30.0, polls=3)
+    # X: +1, +2 (#5399 = 1), +3 (-1 + 4), +0.5, -6.5: back where it started
+    assert st["pose_cmd"][0] == pytest.approx(x0, abs=1e-6)
+    daemon.sim.inject("dinput", node, 0)
+
+
+def test_m66_on_an_unmapped_input_refused_before_motion(machine, client):
+    before = wait_standstill(client, 30.0, polls=3)["pose_cmd"]
+    with pytest.raises(P.DaemonError) as ei:
+        client.call("program", text="G21 G91 G94\nM66 P4 L3 Q1\nG1 X1 F600\nM2\n", name="bad66.ngc",
+                    reply_timeout_s=60.0)
+    assert "line 2" in str(ei.value) and "P4" in str(ei.value)
     assert client.call("status")["pose_cmd"] == before

@@ -155,12 +155,35 @@ def test_sim_drive_digital_io_objects():
     assert dr.hooks.read[0x60FD](0) == 0b100
 
 
-def test_output_without_motion_refused_where_nothing_would_run():
-    from hexacnc.daemon.ioprog import check_io_needs_motion
-    from hexacnc.gcode import program_from_config
+
+def test_m66_is_a_synchronisation_point_of_the_interpreter():
+    from hexacnc.daemon.probeprog import has_probe_words
+    from hexacnc.gcode.probesync import InputResult, ProbeSync, make_sync_interpreter, segment_after
+    text = "G21 G90\nG1 X1 F600\nM66 P3 L3 Q2\nG1 X[#5399 * 5 + 10]\nM66 P3 L0\nG1 Y[#5399 * 3]\nM2\n"
+    assert has_probe_words(text) and not has_probe_words("M6 T1\nM2\n") and not has_probe_words("M660\n")
+    kw = {"start_pose": [0.0] * 6}
+    with pytest.raises(ProbeSync) as ei:
+        make_sync_interpreter([])(text, "t", **kw).run()
+    seg, wait = segment_after(ei.value.interpreter.blocks, 0)
+    assert [b.kind for b in seg] == ["line"] and wait.line == 3 and wait.extra["mode"] == "high"
+    with pytest.raises(ProbeSync) as ei:
+        make_sync_interpreter([InputResult(-1.0)])(text, "t", **kw).run()
+    seg, wait = segment_after(ei.value.interpreter.blocks, 1)
+    assert seg[0].end[0] == pytest.approx(5.0) and wait.line == 5 and wait.extra["mode"] == "immediate"
+    prog = make_sync_interpreter([InputResult(1.0), InputResult(1.0)])(text, "t", **kw).run()
+    seg, wait = segment_after(prog.blocks, 2)
+    assert wait is None and seg[0].end[:2].tolist() == [15.0, 3.0]
+
+
+def test_m66_needs_a_mapped_digital_input():
+    from hexacnc.daemon.ioprog import check_io
+    from hexacnc.gcode import blocks as Bk
     cfg = _cfg(IO)
-    prog = program_from_config("M64 P0\n", "mdi", cfg)
-    with pytest.raises(GcodeError) as ei:
-        check_io_needs_motion(prog.blocks)
-    assert ei.value.line == 1 and "M64 P0" in str(ei.value) and ei.value.code == "unsupported"
-    check_io_needs_motion(program_from_config("G91 G1 X1 F600\nM64 P0\n", "mdi", cfg).blocks)
+    b = Bk.Block(Bk.IO, 4, extra={"op": "wait_input", "input": "digital", "index": 2, "mode": "high"})
+    with pytest.raises(GcodeError, match="digital input 2 is not mapped") as ei:
+        check_io(cfg, [b], waits=True)
+    assert ei.value.line == 4
+    b.extra["index"] = 3
+    check_io(cfg, [b], waits=True)
+    with pytest.raises(GcodeError, match="M66 P3"):
+        check_io(cfg, [b])

@@ -11,6 +11,8 @@ the touch-probe latch, :mod:`.probelatch`), writes the changed words with expedi
 cyclic I/O's ``poll``.  The critical path (feedback, transform, frames out) never waits for it.
 
 The SDO channel is shared with homing and the touch-probe latch: while either is busy, writes wait.
+It also reads a drive's 0x60FD (digital inputs) on request of the supervisor (M66,
+:mod:`.dioread`): ``S_DIN_DRIVE``, ``S_DIN_REQ`` in, ``S_DIN_VAL``, ``S_DIN_ACK`` out.
 Status slots (:mod:`.shm`): ``S_IO_OUT`` (6: the word each drive acknowledged), ``S_IO_WRITES``
 (writes acknowledged), ``S_IO_ERR`` (0, or < 0: last error, :data:`ERROR_TEXT`).
 """
@@ -30,6 +32,7 @@ ERROR_TEXT = {E_SDO_ABORT: "a drive refused the 0x60FE:1 write (SDO abort)",
               E_SDO_TIMEOUT: "no SDO answer to the 0x60FE:1 write",
               E_UNSUPPORTED: "this bus has no SDO channel: digital outputs cannot be written"}
 _DL = struct.Struct("<BHBI")
+_UL = _DL
 
 
 def encode(drive: int, bit: int, value: bool) -> int:
@@ -64,6 +67,9 @@ class DigitalOut:
         self.count0 = [0] * 6
         self.active = False
         self.has_sdo = hasattr(self.io, "send_sdo")
+        self.din_seen = self.s[S.S_DIN_REQ]      # input reads (M66, hexacnc.daemon.dioread)
+        self.din_drive = -1                      #: drive whose 0x60FD is still to be asked for
+        self.reading = [0.0] * 6                 #: request number of an upload in flight, 0 none
 
     def take(self, flags: int) -> int:
         """Apply the changes packed in a consumed row's ``flags`` to the shadow words; returns ``flags``."""
@@ -80,8 +86,19 @@ class DigitalOut:
             c >>= WIDTH
         return flags
 
+    def _failed(self, i: int, code: int) -> None:
+        self.s[S.S_IO_ERR] = code
+        if self.reading[i]:                      # the read is answered: with an error (value -1)
+            self.s[S.S_DIN_VAL] = -1.0
+            self.s[S.S_DIN_ACK] = self.reading[i]
+            self.reading[i] = 0.0
+
     def step(self, now: int) -> None:
-        """Once per cycle after the frames went out: collect answers, send changed words."""
+        """Once per cycle after the frames went out: collect answers, send changed words, read inputs."""
+        if self.s[S.S_DIN_REQ] != self.din_seen:
+            self.din_seen = self.s[S.S_DIN_REQ]
+            self.din_drive = int(self.s[S.S_DIN_DRIVE])
+            self.active = True
         if not self.active:
             return
         if not self.has_sdo:
@@ -98,13 +115,17 @@ class DigitalOut:
                 if io.sdo_count[i] == self.count0[i]:
                     if now - self.sent_at[i] > SDO_TIMEOUT_NS:
                         self.sent_at[i] = 0
-                        self.s[S.S_IO_ERR] = E_SDO_TIMEOUT
+                        self._failed(i, E_SDO_TIMEOUT)
                     else:
                         busy = True
                     continue
                 self.sent_at[i] = 0
                 if io.sdo_resp[i][0] == 0x80:
-                    self.s[S.S_IO_ERR] = E_SDO_ABORT
+                    self._failed(i, E_SDO_ABORT)
+                elif self.reading[i]:
+                    self.s[S.S_DIN_VAL] = float(int.from_bytes(bytes(io.sdo_resp[i][4:8]), "little"))
+                    self.s[S.S_DIN_ACK] = self.reading[i]
+                    self.reading[i] = 0.0
                 else:
                     self.s[S.S_IO_OUT + i] = float(self.sent[i])
                     self.s[S.S_IO_WRITES] += 1.0
@@ -114,5 +135,12 @@ class DigitalOut:
                     self.sent[i] = self.word[i]
                     self.sent_at[i] = now or 1
                     self.dirty[i] = False
+                busy = True
+            elif i == self.din_drive:
+                self.count0[i] = io.sdo_count[i]
+                if io.send_sdo(i, _UL.pack(0x40, 0x60FD, 0, 0)):
+                    self.reading[i] = self.din_seen
+                    self.sent_at[i] = now or 1
+                    self.din_drive = -1
                 busy = True
         self.active = busy

@@ -43,8 +43,9 @@ def _mcode(ex: dict) -> str:
     return "M66"
 
 
-def check_io(cfg, blocks) -> None:
-    """Refuse (``GcodeError`` with the line) I/O the machine description does not map."""
+def check_io(cfg, blocks, waits: bool = False) -> None:
+    """Refuse (``GcodeError`` with the line) I/O the machine description does not map; M66 only
+    where the caller synchronises on it (``waits``: :mod:`.probeprog`) and on a mapped digital input."""
     io = cfg.io
     for b in blocks:
         if b.kind != B.IO:
@@ -52,9 +53,16 @@ def check_io(cfg, blocks) -> None:
         ex = b.extra or {}
         m, n = _mcode(ex), int(ex.get("index", -1))
         if ex.get("op") == "wait_input":
-            letter = "P" if ex.get("input") == "digital" else "E"
-            raise GcodeError(f"{m} {letter}{n} (wait on an input) is not supported by hexacnc yet",
-                             line=int(b.line), code="unsupported")
+            if ex.get("input") != "digital":
+                raise GcodeError(f"{m} E{n}: analog inputs are not supported (no [io] mapping for them)",
+                                 line=int(b.line), code="unsupported")
+            if not waits:
+                raise GcodeError(f"{m} P{n} (wait on an input) outside a synchronised program run",
+                                 line=int(b.line), code="unsupported")
+            if n not in io.digital_in:
+                raise GcodeError(f"{m} P{n}: digital input {n} is not mapped ([io] digital_in_{n} is missing)",
+                                 line=int(b.line), code="io")
+            continue
         if ex.get("op") == "analog_out":
             raise GcodeError(f"{m} E{n}: analog outputs are not supported (no [io] mapping for them)",
                              line=int(b.line), code="unsupported")
@@ -64,19 +72,6 @@ def check_io(cfg, blocks) -> None:
         if n not in io.digital_out:
             raise GcodeError(f"{m} P{n}: digital output {n} is not mapped ([io] digital_out_{n} is missing)",
                              line=int(b.line), code="io")
-
-
-def check_io_needs_motion(blocks) -> None:
-    """Paths that run nothing without motion (the operator's MDI/program, a probe program's segment):
-    an output change there would be dropped silently, so it is refused."""
-    blocks = list(blocks)
-    if any(b.kind in B.MOTION_KINDS for b in blocks):
-        return
-    for b in blocks:
-        if b.kind == B.IO:
-            raise GcodeError(f"{_mcode(b.extra or {})} P{int((b.extra or {}).get('index', -1))}: an output change "
-                             "without any motion after the last probe / in this MDI is not supported yet",
-                             line=int(b.line), code="unsupported")
 
 
 @dataclass(frozen=True)
