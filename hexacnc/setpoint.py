@@ -40,6 +40,9 @@ FLAG_PAUSED = 16           #: standing still in a feed hold
 FLAG_STOPPING = 32         #: decelerating for a stop
 FLAG_END = 64              #: last row of a stream, at rest
 FLAG_EVENT = 128           #: a program event (spindle, coolant, tool change, message) happens here
+#: program digital-output changes (M62-M65) happen here, packed above bit 16 of the flags
+#: (hexacnc.daemon.dioloop: up to 3 changes of 10 bits each; the float stays an exact integer)
+FLAG_IO = 256
 
 
 def flags_of(row: np.ndarray) -> int:

@@ -17,6 +17,7 @@ from .models import (CalibrationConfig, DynamicsConfig, KinematicsConfig, Spindl
 from .planning import (GcodeConfig, PlannerConfig, ToolTableConfig, _parse_gcode, _simulation_truth,
                        parse_planner, parse_tools)
 from .runtime import BusConfig, CycleConfig, DaemonConfig, _daemon_config, parse_bus, parse_cycle
+from .iomap import IoConfig, parse_io
 from .section import Section, Sections, _freeze
 
 @dataclass(frozen=True)
@@ -62,6 +63,7 @@ class MachineConfig:
     calibration: CalibrationConfig = field(default_factory=CalibrationConfig)
     operator: OperatorConfig = field(default_factory=OperatorConfig)   #: see hexacnc/config/operator.py
     gcode: GcodeConfig = field(default_factory=GcodeConfig)
+    io: IoConfig = field(default_factory=IoConfig)     #: ``[io]`` (hexacnc/config/iomap.py)
     #: ``[simulation] truth``: true machine the simulated plant follows (path, "" = none); the
     #: controller's model never reads it (hexacnc.sim.truth)
     simulation_truth: str = ""
@@ -82,7 +84,7 @@ class MachineConfig:
 _KNOWN_SECTIONS = ("machine", "geometry", "struts", "joints", "carrier", "tool", "spindle",
                    "workspace", "thermal", "kinematics", "cycle", "bus", "daemon", "planner", "tools",
                    "homing", "jog",
-                   "dynamics", "calibration", "gcode", "simulation")
+                   "dynamics", "calibration", "gcode", "simulation", "io")
 
 
 def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
@@ -110,12 +112,13 @@ def parse_config(doc: dict, path: str = "<config>") -> MachineConfig:
     operator = parse_operator(sec["workspace"], sec["planner"], sec["daemon"], sec("homing"), sec("jog"))
     gcode = _parse_gcode(sec("gcode"), path)
     simulation_truth = _simulation_truth(sec("simulation"), path)
+    io = parse_io(sec("io"))
     sec.finish()
     cfg = MachineConfig(
         path=path, name=name, **frame,
         tool=tool, spindle=spindle, thermal=thermal, kinematics=kin, cycle=cycle, bus=bus,
         daemon=daemon, planner=planner, tools=tools, dynamics=dynamics, calibration=calibration, operator=operator,
-        gcode=gcode, simulation_truth=simulation_truth, max_following_error_mm=ferr, raw=doc,
+        gcode=gcode, io=io, simulation_truth=simulation_truth, max_following_error_mm=ferr, raw=doc,
     )
     _check_geometry(cfg)
     _check_calibration(cfg)

@@ -143,6 +143,11 @@ class PipeSim:
         with open(path) as f:
             return {int(k): v for k, v in json.load(f).items()}
 
+    def iolog(self, path: str) -> None:
+        """Ask the simulated drives to write their digital I/O and its log to ``path`` (JSON; tests)."""
+        if not self._line(f"iolog {path}"):
+            raise BusError("the simulated drives process is not running")
+
     def terminate(self) -> None:
         """Ask the simulated drives to end (they ignore SIGTERM: they stand for hardware)."""
         if self.proc.poll() is None:

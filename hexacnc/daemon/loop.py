@@ -31,6 +31,7 @@ from .faults import F_BUS, F_DEADLINE, F_ENABLE, F_LIMIT, F_NONE, F_SETPOINT, F_
 from .faults import fault_message  # noqa: F401 (re-export)
 from .homeloop import HomingCycle, home_command, home_step
 from .probelatch import ProbeLatch
+from .dioloop import FLAG_IO, DigitalOut
 from .cyclestats import CycleStats, publish_status
 from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
 from .enablewalk import ENABLE_TIMEOUT_NS, EnableWalk, op_enabled  # noqa: F401 (re-export)
@@ -156,7 +157,7 @@ class HotLoop:
         self.sends = 0
         self.homer: HomingCycle | None = None
         self.home_then = S.ST_IDLE    # state after a homing that was stopped
-        self.latch = ProbeLatch(self)  # touch-probe latch over SDO, stepped after the frames went out
+        self.latch, self.dio = ProbeLatch(self), DigitalOut(self)  # SDO after the frames: probe latch, M62-M65
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -451,8 +452,8 @@ class HotLoop:
             hold[3] = ring[b + 3]
             hold[4] = ring[b + 4]
             hold[5] = ring[b + 5]
-            self.line = int(ring[b + 6])
-            self.streaming = not (int(ring[b + 7]) & S.FLAG_END)
+            self.line, fl = int(ring[b + 6]), int(ring[b + 7])
+            self.streaming = not ((self.dio.take(fl) if fl >= FLAG_IO else fl) & S.FLAG_END)
             h[S.H_RING_R] = r + 1
             self.starve_ns = 0
             if st == S.ST_IDLE:
@@ -562,21 +563,20 @@ class HotLoop:
             self._fault(F_BUS, 0, 1)
 
     def account(self, t0: int, t1: int, deadline: int) -> int:
-        """Statistics of this cycle; a burst of overruns while moving is a fault (holding still,
-        the drives keep the position). Returns the next deadline."""
+        """Cycle statistics; an overrun burst while moving is a fault. Returns the next deadline."""
         resync = self.resync
         self.resync = False
         stats = self.stats
         before = stats.overruns
         self.latch.step(t0)
+        self.dio.step(t0)
         deadline = stats.account(t0, t1, deadline, resync)
         if stats.overruns != before and stats.in_row > self.max_in_row and self.state == S.ST_RUNNING:
             self._fault(F_DEADLINE, 0, stats.in_row)
         return deadline
 
     def _check_signals(self, now: int, ppid: int) -> None:
-        """A stop signal (SIGTERM/SIGHUP) or the supervisor's death (parent-death signal, or we
-        were re-parented): controlled stop, drives disabled, exit.
+        """A stop signal (SIGTERM/SIGHUP) or the supervisor's death: controlled stop, drives disabled, exit.
 
         A live but slow supervisor is not a fault by itself: while streaming, an empty ring is
         (dead setpoint source); at rest the drives just hold.

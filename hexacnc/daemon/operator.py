@@ -488,9 +488,13 @@ def interpret_and_plan(cfg, text: str, name: str, start_rad, period_s: float, ti
     prog, new_state = interpret(text, name, cfg, tip0, state)
     if mdi:
         _check_tip_limits(cfg, prog)
+    from .ioprog import check_io, plan_with_io
+    from .program import tool_tip_pose_deg
+    check_io(cfg, prog.blocks)      # I/O the machine does not map: refused before motion, with the line
     plan = None
-    if prog.motion_blocks:
-        plan = planner_plan(prog.blocks, cfg, hexapod=Hexapod(cfg), period_s=period_s)
+    if prog.motion_blocks or any(b.kind == "io" for b in prog.blocks):    # outputs alone: a standstill plan
+        plan = plan_with_io(prog.blocks, cfg, planner_plan, hexapod=Hexapod(cfg), period_s=period_s,
+                            start_pose=tool_tip_pose_deg(cfg, start_rad))
     return plan, prog, new_state
 
 

@@ -34,12 +34,12 @@ from ..errors import HexacncError, PlanError
 
 log = logging.getLogger("hexacnc.probeprog")
 
-_G38 = re.compile(r"g\s*0*38\s*\.\s*[2-5]", re.IGNORECASE)
+_G38 = re.compile(r"g\s*0*38\s*\.\s*[2-5]|m\s*0*66(?![\d.])", re.IGNORECASE)
 MAX_PROBES = 10_000
 
 
 def has_probe_words(text: str) -> bool:
-    """Does the program text contain a G38.2..G38.5 word (it then runs probe-synchronised)?"""
+    """Does the program text contain a G38.2..G38.5 or an M66 word (it then runs synchronised)?"""
     return _G38.search(text) is not None
 
 
@@ -68,11 +68,21 @@ def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, st
     seg, probe = segment_after(blocks, len(known))
     if tip_check is not None:
         tip_check(cfg, type("Segment", (), {"motion_blocks": [b for b in seg if b.kind in B.MOTION_KINDS]}))
+    from .ioprog import check_io, plan_with_io
+    from .program import tool_tip_pose_deg
+    check_io(cfg, seg)
     plan = None
-    if any(b.kind in B.MOTION_KINDS for b in seg):
-        plan = planner_plan(seg, cfg, hexapod=Hexapod(cfg), period_s=period_s)
+    if any(b.kind in B.MOTION_KINDS or b.kind == B.IO for b in seg):   # outputs alone: a standstill plan
+        plan = plan_with_io(seg, cfg, planner_plan, hexapod=Hexapod(cfg), period_s=period_s,
+                            start_pose=tool_tip_pose_deg(cfg, start_rad))
     info = None
-    if probe is not None:
+    if probe is not None and probe.kind == B.IO:             # M66: wait on a digital input
+        check_io(cfg, [probe], waits=True)
+        ex = probe.extra
+        drive, bit = cfg.io.digital_in[int(ex["index"])]
+        info = {"line": int(probe.line), "code": "M66", "wait": True, "input": int(ex["index"]),
+                "drive": drive, "bit": bit, "mode": ex["mode"], "timeout_s": float(ex["timeout_s"])}
+    elif probe is not None:
         ex = probe.extra
         info = {"line": int(probe.line), "code": ex["code"], "toward": bool(ex["toward"]),
                 "must": bool(ex["error_if_no_contact"]), "start": [float(v) for v in probe.start],
@@ -107,6 +117,7 @@ class _Run:
                      else _tip_deg(daemon.cfg, self.start, 0.0))
         self.known: list = []
         self.probes: list = []
+        self.inputs: list = []          #: M66: one entry per wait (line, input, mode, value = #5399)
         self.blocks = 0
         self.duration_s = 0.0
 
@@ -188,6 +199,19 @@ class _Run:
         self.probes.append({"line": info["line"], "code": info["code"], "contact": bool(r.get("contact")),
                             "tip_mm": contact.tolist(), "log_index": r.get("log_index")})
 
+    def _wait_input(self, info: dict) -> None:
+        from ..gcode.probesync import InputResult
+        from .dioread import wait_input
+        with self.d.lock:
+            self.start = self.d._planned_start()      # the next segment starts where the last one ended
+        try:
+            v = wait_input(self.d, info["drive"], info["bit"], info["mode"], info["timeout_s"], self._check_stop)
+        except HexacncError as exc:
+            self._check_stop()
+            raise HexacncError(f"{self.name}: line {info['line']}: M66 P{info['input']}: {exc}") from None
+        self.known.append(InputResult(float(v)))
+        self.inputs.append({"line": info["line"], "input": info["input"], "mode": info["mode"], "value": v})
+
     def run(self) -> dict:
         while True:
             self._check_stop()
@@ -198,10 +222,14 @@ class _Run:
                 break
             if len(self.known) >= MAX_PROBES:
                 raise HexacncError(f"{self.name}: more than {MAX_PROBES} probes (endless loop?)")
-            self._probe(info)
+            if info.get("wait"):
+                self._wait_input(info)
+            else:
+                self._probe(info)
         if self.op is not None and new_state is not None:
             self.op.store.commit(new_state)
-        return {"blocks": self.blocks, "duration_s": self.duration_s, "probes": self.probes, "messages": messages}
+        return {"blocks": self.blocks, "duration_s": self.duration_s, "probes": self.probes, "messages": messages,
+                "inputs": self.inputs}
 
 
 def run_probe_program(daemon: Any, text: str, name: str, operator: Any = None, tip_check=None) -> dict:

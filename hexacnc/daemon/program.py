@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import PlanError
 from ..planner.window import tool_tip_pose_deg  # noqa: F401 (re-exported: the daemon's callers use it here)
+from .ioprog import IoCursor, plan_with_io
 from .shm import FLAG_END, ROW
 
 
@@ -42,6 +43,8 @@ class ProgramSource:
         self.finished = False
         self.stopping = False
         self._last = None
+        acts = getattr(plan, "io_actions", None)      # M62-M65 (hexacnc.daemon.ioprog)
+        self.io = IoCursor(acts) if acts is not None and len(acts.index) else None
 
     # -- control --------------------------------------------------------------------------
     def pause(self) -> None:
@@ -94,11 +97,14 @@ class ProgramSource:
     # -- rewind ----------------------------------------------------------------------------
     def snapshot(self) -> tuple:
         """State before the next row (see :meth:`Daemon._rewind`)."""
-        return (self.sampler.snapshot(), self.finished, self.stopping, self._last)
+        return (self.sampler.snapshot(), self.finished, self.stopping, self._last,
+                self.io.pos if self.io is not None else 0)
 
     def restore(self, snap: tuple) -> None:
-        s, self.finished, self.stopping, self._last = snap
+        s, self.finished, self.stopping, self._last, io_pos = snap
         self.sampler.restore(s)
+        if self.io is not None:
+            self.io.pos = io_pos
 
     # -- rows ------------------------------------------------------------------------------
     def next_rows(self, count: int) -> np.ndarray:
@@ -107,6 +113,8 @@ class ProgramSource:
         out = np.empty((count, ROW))
         n = self.sampler.next_rows(out)
         rows = out[:n]
+        if n and self.io is not None:
+            self.io.mark(rows, self.sampler.last_idx)
         if n:
             self._last = rows[-1].copy()
         if self.sampler.done:
@@ -124,7 +132,7 @@ def plan_program(cfg, hx, text: str, name: str, start_rad, period_s: float) -> P
     from ..planner import plan_program as planner_plan
     start = tool_tip_pose_deg(cfg, start_rad)
     prog = program_from_config(text, name, cfg, start_pose=start)
-    plan = planner_plan(prog.blocks, cfg, hexapod=hx, period_s=period_s, start_pose=start)
+    plan = plan_with_io(prog.blocks, cfg, planner_plan, hexapod=hx, period_s=period_s, start_pose=start)
     p0 = np.asarray(plan.start_pose_platform, dtype=float)
     if float(np.max(np.abs(p0 - np.asarray(start_rad, dtype=float)))) > 1e-6:
         raise PlanError(f"program {name!r} does not start where the machine is "

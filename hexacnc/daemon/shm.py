@@ -93,6 +93,13 @@ S_PROBE_ACK = 68        #: last request the hot loop took
 S_PROBE_STATE = 69      #: latch state (hexacnc.daemon.probelatch OFF/ARMING/ARMED/LATCHED, < 0 error)
 S_PROBE_MASK = 70       #: bit per drive whose latched position is read
 S_PROBE_POS = 72        #: 6: latched drive positions at the edge, increments
+S_DIN_DRIVE = 84        #: M66: drive (0..5) whose 0x60FD the supervisor asks for (hexacnc.daemon.dioread)
+S_DIN_REQ = 85          #: supervisor increments after writing S_DIN_DRIVE
+S_DIN_ACK = 86          #: the request the hot loop answered (S_DIN_VAL holds its value)
+S_DIN_VAL = 87          #: 0x60FD of S_DIN_DRIVE as read
+S_IO_OUT = 88           #: 6: program digital outputs: 0x60FE:1 word each drive acknowledged (.dioloop)
+S_IO_ERR = 94           #: 0, or < 0: last digital-output write error (hexacnc.daemon.dioloop.ERROR_TEXT)
+S_IO_WRITES = 95        #: digital-output writes acknowledged by the drives
 N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)

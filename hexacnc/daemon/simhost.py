@@ -35,7 +35,7 @@ MASTER_SILENT_S = 1.0
 
 log = logging.getLogger("hexacnc.simhost")
 
-INJECTIONS = ("nmt", "emcy", "silent", "offset", "drop", "stuck")
+INJECTIONS = ("nmt", "emcy", "silent", "offset", "drop", "stuck", "dinput")
 
 
 def inject(sim, kind: str, node: int, value: float = 0.0) -> None:
@@ -46,7 +46,8 @@ def inject(sim, kind: str, node: int, value: float = 0.0) -> None:
     * ``silent NODE``: NODE stops sending PDOs (position and statusword); its heartbeat goes on;
     * ``offset NODE MM``: NODE reports its position MM off (a following error the drive hides);
     * ``drop 0 FRACTION``: that fraction of every drive's position frames (TPDO1) is lost;
-    * ``stuck NODE``: NODE's strut stops moving whatever the demand.
+    * ``stuck NODE``: NODE's strut stops moving whatever the demand;
+    * ``dinput NODE BITS``: NODE's digital inputs (0x60FD) become BITS (:mod:`drivers.simdio`).
     """
     if kind == "drop":
         frac = float(value)
@@ -78,6 +79,8 @@ def inject(sim, kind: str, node: int, value: float = 0.0) -> None:
                     tp.getters = [lambda: d.pos_inc + off]
         elif kind == "stuck":
             d.stuck = True
+        elif kind == "dinput":
+            d.dio.inputs = int(value) & 0xFFFFFFFF
         else:
             raise ValueError(f"inject: unknown kind {kind!r} (one of {', '.join(INJECTIONS)})")
 
@@ -109,6 +112,20 @@ def _number(text: str) -> float:
         return float(text)
 
 
+def _write_iolog(sim, path: str) -> None:
+    """``iolog PATH``: every drive's digital I/O (:mod:`drivers.simdio`) as JSON ``{node: {...}}``,
+    written to PATH.tmp then renamed (a reader never sees half a file)."""
+    import json
+    with sim.lock:
+        doc = {str(node): {**d.dio.snapshot(), "strut": int(d.strut)} for node, d in sim.by_node.items()}
+    try:
+        with open(path + ".tmp", "w") as f:
+            json.dump(doc, f)
+        os.replace(path + ".tmp", path)
+    except OSError as exc:
+        log.error("iolog %s: %s", path, exc)
+
+
 def _serve_stdin(sim) -> bool:
     """Read the supervisor's lines until STOP (True) or end of file (False: the supervisor died)."""
     for raw in sys.stdin.buffer:
@@ -122,6 +139,9 @@ def _serve_stdin(sim) -> bool:
                 write_truth(sim, parts[1])
             except OSError as exc:
                 log.error("truth %r: %s", parts[1], exc)
+            continue
+        if parts[0] == "iolog" and len(parts) == 2:
+            _write_iolog(sim, parts[1])
             continue
         if parts[0] == "inject" and len(parts) >= 3:
             try:

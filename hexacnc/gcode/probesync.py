@@ -49,8 +49,8 @@ class SyncInterpreter(Interpreter):
     known: tuple = ()
 
     def _probe(self, ln, vals: dict, motion: int) -> None:
-        n = getattr(self, "probes_done", 0)
-        self.probes_done = n + 1
+        n = getattr(self, "syncs_done", 0)
+        self.syncs_done = n + 1
         super()._probe(ln, vals, motion)
         if n >= len(self.known):
             raise ProbeSync(self, n)
@@ -68,22 +68,48 @@ class SyncInterpreter(Interpreter):
         self.pos_arr = a
 
 
+    def _io(self, ln, vals: dict, m: int) -> None:
+        """M66 (wait on an input) is a synchronisation point too: #5399 from ``known`` (an
+        :class:`InputResult`), else :class:`ProbeSync` after its block."""
+        super()._io(ln, vals, m)
+        if m != 66:
+            return
+        n = getattr(self, "syncs_done", 0)
+        self.syncs_done = n + 1
+        if n >= len(self.known):
+            raise ProbeSync(self, n)
+        self.P[5399] = float(self.known[n].value)
+        self.runtime_pending.discard(5399)
+
+
+@dataclass(frozen=True)
+class InputResult:
+    """What an M66 read: #5399 (the input's state 0/1, or -1: the wait timed out)."""
+    value: float
+
+
+def is_sync_block(b) -> bool:
+    """A block the interpreter stops reading ahead at: a probe, or an M66 input wait."""
+    return b.kind == B.PROBE or (b.kind == B.IO and (b.extra or {}).get("op") == "wait_input")
+
+
 def make_sync_interpreter(known) -> type:
     """A :class:`SyncInterpreter` subclass bound to the probe results ``known`` (a sequence)."""
     return type("BoundSyncInterpreter", (SyncInterpreter,), {"known": tuple(known)})
 
 
 def segment_after(blocks: list, n_known: int) -> tuple[list, object | None]:
-    """Blocks after the ``n_known``-th probe block, split off a trailing probe block (the next probe)."""
+    """Blocks after the ``n_known``-th synchronisation block (probe or M66), split off a trailing one
+    (the next)."""
     seen = 0
     start = 0
     if n_known:
         for k, b in enumerate(blocks):
-            if b.kind == B.PROBE:
+            if is_sync_block(b):
                 seen += 1
                 if seen == n_known:
                     start = k + 1
                     break
     seg = list(blocks[start:])
-    probe = seg.pop() if seg and seg[-1].kind == B.PROBE else None
+    probe = seg.pop() if seg and is_sync_block(seg[-1]) else None
     return seg, probe

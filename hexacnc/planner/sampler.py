@@ -355,6 +355,7 @@ class PlanSampler:
         s = self._interp(k)
         X = self.plan.platform_at(s)
         idx = np.clip(np.rint(k).astype(np.int64), 0, self.n - 1)
+        self.last_idx = idx          #: table index of each row of the last batch (hexacnc.daemon.ioprog)
         out[:n, :6] = X
         out[:n, COL_LINE] = self.plan.line_tab[idx]
         out[:n, COL_FLAGS] = (self.plan.flag_tab[idx] & ~FLAG_END) | extra
