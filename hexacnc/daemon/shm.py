@@ -91,6 +91,12 @@ S_PROBE_ACK = 68        #: last request the hot loop took
 S_PROBE_STATE = 69      #: latch state (hexacnc.daemon.probelatch OFF/ARMING/ARMED/LATCHED, < 0 error)
 S_PROBE_MASK = 70       #: bit per drive whose latched position is read
 S_PROBE_POS = 72        #: 6: latched drive positions at the edge, increments
+S_TORQUE = 78           #: 6: drive torque actual value 0x6077, per mille of rated torque (NaN: none) (.torqueread)
+S_CURRENT = 84          #: 6: drive current actual value 0x6078, per mille of rated current (NaN: none)
+S_TORQUE_T = 90         #: monotonic s of the oldest of the six torque samples (NaN: not yet)
+S_CURRENT_T = 91        #: monotonic s of the oldest of the six current samples (NaN: not yet)
+S_TORQUE_MASK = 92      #: bit per drive with a torque value
+S_CURRENT_MASK = 93     #: bit per drive with a current value
 N_STATUS = 96
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)
