@@ -24,7 +24,7 @@ N_PER_PERMILLE = 2 * math.pi * RATED_TORQUE_MNM / LEAD_MM / 1000.0
 @pytest.fixture(scope="module")
 def loaded(cfg, tmp_path_factory):  # noqa: F811
     rng = np.random.default_rng()
-    payload_kg = float(rng.uniform(20.0, 60.0))          # chosen at test time
+    payload_kg = float(rng.uniform(80.0, 150.0))          # chosen at test time
     doc = synth_truth_doc(cfg, 5, magnitude=0.0)
     doc["truth"]["payload_kg"] = round(payload_kg, 3)
     path = tmp_path_factory.mktemp("truth") / "truth.toml"
@@ -61,8 +61,8 @@ def _rest_torques(daemon, pose, timeout_s: float = 60.0) -> np.ndarray:
 def test_rest_torques_at_two_poses_match_the_static_model_of_the_payload(cfg, loaded):  # noqa: F811
     daemon, truth = loaded
     home = np.asarray(cfg.home_pose, dtype=float)
-    a = home + np.array([20.0, -15.0, 10.0, 0.0, 0.0, 0.0])
-    b = home + np.array([-25.0, 20.0, -10.0, 2.0, -3.0, 5.0])
+    a = home + np.array([40.0, -20.0, 10.0, 0.0, 6.0, 0.0])
+    b = home + np.array([-40.0, 20.0, -10.0, -4.0, -6.0, 5.0])
     ta, tb = _rest_torques(daemon, a), _rest_torques(daemon, b)
     hx = Hexapod(truth.cfg)
     p = truth.extras.payload_kg
@@ -71,9 +71,8 @@ def test_rest_torques_at_two_poses_match_the_static_model_of_the_payload(cfg, lo
     f0 = rest_forces(hx, np.vstack([a, b]), 0.0) / N_PER_PERMILLE
     d_meas, d_model, d_empty = tb - ta, f[1] - f[0], f0[1] - f0[0]
     tol = 1.0 + 0.03 * np.abs(d_model)                   # 1 per mille quantisation + 3 %
-    print("payload", p, "measured", d_meas, "model", d_model, "empty", d_empty)
     assert np.all(np.abs(d_meas - d_model) <= tol), (d_meas, d_model, p)
     # the payload is visible: the carrier alone would not explain the difference
-    assert np.max(np.abs(d_meas - d_empty)) > 3.0, (d_meas, d_empty, p)
+    assert np.max(np.abs(d_meas - d_empty)) > 3.0 + 0.03 * np.max(np.abs(d_empty)), (d_meas, d_empty, p)
     # the absolute readings too (the simulated drives have no offset)
     assert np.all(np.abs(ta - f[0]) <= 1.0 + 0.03 * np.abs(f[0])), (ta, f[0])
