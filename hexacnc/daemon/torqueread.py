@@ -7,6 +7,14 @@ by the cyclic I/O's ``poll``.  With six drives and two objects each drive's pair
 ``12 * GAP_NS`` (~100 ms); the bus carries at most one request and one answer per ``GAP_NS`` more, no
 PDO changes (the cyclic frames' budget is untouched).
 
+Bus budget (``hexacnc bus load`` counts one 2-byte asynchronous frame per cycle; an SDO frame has 8):
+at rest (idle) the sampler runs every ``GAP_NS``; in motion (running, stopping) only when the layout's
+worst case still fits ``[bus] max_load`` with an 8-byte frame in place of the 2-byte reserve
+(:func:`motion_room`), and then every ``GAP_MOTION_NS`` (``hexacnc bus demand --torque-sdo-ms``: p99
+unchanged).  The default layout (0.5 ms, paired, load 0.93) has no such room: no sampling in motion.
+At rest the cycle's frames carry constant targets, so a cycle whose frames end late behind an SDO
+frame (simulated: at most ~60 us past the period) changes nothing for the drives.
+
 The SDO channel is shared with homing (:mod:`.homeloop`) and the probe latch: the sampler sends only in
 idle/running/stopping, never while the latch is busy or asked for, and those wait while a sample request
 of the same drive is outstanding (:meth:`TorqueSampler.holds`).
@@ -28,7 +36,8 @@ import struct
 
 from . import shm as S
 
-GAP_NS = 8_000_000                  #: at most one sample request on the bus every 8 ms
+GAP_NS = 8_000_000                  #: at rest: at most one sample request on the bus every 8 ms
+GAP_MOTION_NS = 250_000_000         #: in motion (only with room in the worst-case budget): every 250 ms
 SDO_TIMEOUT_NS = 100_000_000
 MAX_TIMEOUTS = 3
 OBJECTS = (0x6077, 0x6078)
@@ -37,7 +46,22 @@ _T_SLOT = (S.S_TORQUE_T, S.S_CURRENT_T)
 _MASK = (S.S_TORQUE_MASK, S.S_CURRENT_MASK)
 _UL = struct.Struct("<BHBI")
 _REQ = tuple(_UL.pack(0x40, idx, 0, 0) for idx in OBJECTS)
-_RUN_STATES = (S.ST_IDLE, S.ST_RUNNING, S.ST_STOPPING)
+_MOTION_STATES = (S.ST_RUNNING, S.ST_STOPPING)
+
+
+def motion_room(cfg) -> bool:
+    """True when the worst cycle of the layout fits ``[bus] max_load`` with an 8-byte SDO frame in place
+    of the 2-byte asynchronous reserve of :func:`drivers.busload.bus_time`."""
+    from drivers.busload import ASYNC_RESERVE_BYTES, bus_time, frame_time_us
+    from drivers.description import bus_period_s
+    try:
+        bus_cfg = cfg.bus
+        period = bus_period_s(bus_cfg, cfg.cycle.period_s)
+        rep = bus_time(bus_cfg, period)
+    except Exception:               # no layout figures (test doubles): no sampling in motion
+        return False
+    extra = frame_time_us(8, bus_cfg.bitrate)[1] - frame_time_us(ASYNC_RESERVE_BYTES, bus_cfg.bitrate)[1]
+    return rep["max_us"] + extra <= bus_cfg.max_load * rep["period_us"]
 
 
 class TorqueSampler:
@@ -56,6 +80,7 @@ class TorqueSampler:
         self.t_sample = [[math.nan] * 6, [math.nan] * 6]
         self.cursor = 0
         self.next_ns = 0
+        self.in_motion = motion_room(loop.cfg)        #: sample while running / stopping too
         s = self.s
         for k in range(2):
             for i in range(6):
@@ -87,6 +112,7 @@ class TorqueSampler:
                     pending = True
         if pending or now < self.next_ns or not self._channel_free():
             return
+        gap = GAP_MOTION_NS if self.loop.state in _MOTION_STATES else GAP_NS
         for _ in range(12):
             c = self.cursor
             self.cursor = (c + 1) % 12
@@ -96,13 +122,14 @@ class TorqueSampler:
                 if io.send_sdo(i, _REQ[k]):
                     self.obj[i] = k
                     self.sent_at[i] = now or 1
-                self.next_ns = now + GAP_NS
+                self.next_ns = now + gap
                 return
-        self.next_ns = now + GAP_NS
+        self.next_ns = now + gap
 
     def _channel_free(self) -> bool:
         loop = self.loop
-        if loop.state not in _RUN_STATES:
+        st = loop.state
+        if st != S.ST_IDLE and not (self.in_motion and st in _MOTION_STATES):
             return False
         latch = loop.latch
         return not latch.active and self.s[S.S_PROBE_REQ] == latch.seen
