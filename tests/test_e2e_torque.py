@@ -37,8 +37,13 @@ def loaded(cfg, tmp_path_factory):  # noqa: F811
 
 
 def _rest_torques(daemon, pose, timeout_s: float = 60.0) -> np.ndarray:
-    daemon.move_to(pose, 40.0)
-    st = daemon.wait(timeout_s)
+    for attempt in range(3):     # a stall of the loaded 2-core test VM can fault the move: reset, again
+        if daemon.status()["state"] == "fault":
+            daemon.reset(timeout_s=30.0)
+        daemon.move_to(pose, 40.0)
+        st = daemon.wait(timeout_s)
+        if st["state"] == "idle" or attempt == 2:
+            break
     assert st["state"] == "idle", st.get("fault")
     time.sleep(0.4)                                      # samples taken after the motion ended
     t0 = time.monotonic()
