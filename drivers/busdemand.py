@@ -55,8 +55,13 @@ def frame_bits(can_id: int, data: bytes) -> int:
     return len(bits) + stuff + 1 + 2 + 7 + 3     # CRC delimiter, ACK slot + delimiter, EOF, IFS
 
 
-def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: int = 1) -> dict:
-    """Per-cycle demand on the busiest bus (us): median, p99, max, p99/median."""
+def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: int = 1,
+             sdo_gap_s: float = 0.0) -> dict:
+    """Per-cycle demand on the busiest bus (us): median, p99, max, p99/median.
+
+    ``sdo_gap_s`` > 0: also the master's decimated SDO uploads (torque sampling,
+    ``hexacnc.daemon.torqueread``): one 8-byte request every ``sdo_gap_s`` over all buses, round robin,
+    answered (8 bytes) in the next cycle."""
     rng = random.Random(seed)
     plan = plan_layout(bus_cfg)
     us_per_bit = 1e6 / bus_cfg.bitrate
@@ -99,6 +104,8 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
             periodic(start + hb * 1e-3, hb * 1e-3, lambda k, nd=nd: add(k, 0x700 + nd.node_id, b"\x05"))
         mhb = master_heartbeat_s(bus_cfg)          # as drivers.cyclic sends it while cycling
         periodic(rng.uniform(0, mhb), mhb, lambda k: add(k, 0x77F, b"\x05"))
+        if sdo_gap_s > 0:
+            _sdo_traffic(add, periodic, rng, nodes, sdo_gap_s * bus_cfg.buses, seconds)
         q = statistics.quantiles(demand, n=100)
         rep = {"bus": b, "median_us": round(statistics.median(demand), 1), "p99_us": round(q[98], 1),
                "p999_us": round(statistics.quantiles(demand, n=1000)[998], 1), "max_us": round(max(demand), 1),
@@ -110,9 +117,23 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
     return worst
 
 
-def demand_report(bus_cfg, period_s: float, seconds: float = 10.0) -> dict:
+def _sdo_traffic(add, periodic, rng, nodes, every_s: float, seconds: float) -> None:
+    """Sample requests (0x600 + node) every ``every_s`` on this bus, each answered (0x580 + node) a cycle later."""
+    turn = [0]
+
+    def emit(k: int) -> None:
+        nd = nodes[turn[0] % len(nodes)]
+        turn[0] += 1
+        add(k, 0x600 + nd.node_id, bytes([0x40, 0x77, 0x60, 0, 0, 0, 0, 0]))
+        add(k + 1, 0x580 + nd.node_id, bytes([0x4B, 0x77, 0x60, 0, rng.randrange(256), 0, 0, 0]))
+    periodic(rng.uniform(0, every_s), every_s, emit)
+
+
+def demand_report(bus_cfg, period_s: float, seconds: float = 10.0, sdo_gap_s: float = 0.0) -> dict:
     """``hexacnc bus demand``: the layout, the bus period and :func:`simulate` for the configured (staggered)
     timers and for the former uniform ones."""
     return {"layout": plan_layout(bus_cfg).layout, "bus_period_us": period_s * 1e6, "seconds": seconds,
             "staggered": simulate(bus_cfg, period_s, seconds, True),
-            "uniform_timers": simulate(bus_cfg, period_s, seconds, False)}
+            "uniform_timers": simulate(bus_cfg, period_s, seconds, False),
+            **({"staggered_with_torque_sdo": simulate(bus_cfg, period_s, seconds, True, sdo_gap_s=sdo_gap_s),
+                "torque_sdo_gap_s": sdo_gap_s} if sdo_gap_s > 0 else {})}

@@ -49,6 +49,7 @@ from .simreact import TICK_S
 from .simnode import FaultSpec, SimDrive
 from . import simhoming  # noqa: F401  (registers homing mode 6 in simhooks.EXTENSIONS)
 from . import simdio  # noqa: F401  (registers 0x60FD/0x60FE digital I/O in simhooks.EXTENSIONS)
+from . import simtorque  # noqa: F401  (registers 0x6077 / 0x6078 in simhooks.EXTENSIONS)
 from .strutmodel import ModelFactory, SecondOrderStrut, StrutModel, default_model_factory, load_model_factory
 
 __all__ = ["SimDrives", "SimDrive", "FaultSpec", "StrutModel", "SecondOrderStrut", "ModelFactory",

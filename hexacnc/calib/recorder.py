@@ -69,9 +69,17 @@ def _vec(v, n: int = 6) -> np.ndarray:
     return a[:n] if a.size >= n else np.full(n, np.nan)
 
 
+#: drive torques / currents older than this (s, status ``*_actual_age_s``) are recorded as NaN: the daemon
+#: samples them at rest only on layouts without bus room in motion (hexacnc.daemon.torqueread)
+MAX_SAMPLE_AGE_S = 0.5
+
+
 def _first(st: dict, keys) -> np.ndarray:
     for k in keys:
         if st.get(k) is not None:
+            age = st.get(k.replace("_permille", "_age_s"))
+            if isinstance(age, (int, float)) and age > MAX_SAMPLE_AGE_S:
+                return np.full(6, np.nan)
             return _vec(st[k])
     return np.full(6, np.nan)
 

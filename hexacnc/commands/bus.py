@@ -34,6 +34,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p = sub.add_parser("demand", help="bus demand per cycle over simulated seconds: median, p99, max (JSON)")
     p.add_argument("--config", metavar="F", help="machine description (TOML); default: the embedded default")
     p.add_argument("--seconds", type=float, default=10.0, metavar="S", help="simulated seconds (default 10)")
+    p.add_argument("--torque-sdo-ms", type=float, default=0.0, metavar="MS",
+                   help="also with the hot loop's torque sampling: one SDO upload every MS over all drives "
+                        "(hexacnc.daemon.torqueread: 8 at rest, 250 in motion); default 0: without")
 
 
 def _with_simulation(cfg, channel, fn):
@@ -90,9 +93,13 @@ def _demand(args: argparse.Namespace) -> int:
     if not 0.01 <= args.seconds <= 600:
         print(f"hexacnc bus demand: --seconds {args.seconds} must be 0.01..600", file=sys.stderr)
         return 2
+    if not (args.torque_sdo_ms == 0 or 0.5 <= args.torque_sdo_ms <= 60000):
+        print(f"hexacnc bus demand: --torque-sdo-ms {args.torque_sdo_ms} must be 0 or 0.5..60000", file=sys.stderr)
+        return 2
     try:
         cfg = load_config(args.config)
-        out = demand_report(cfg.bus, bus_period_s(cfg.bus, cfg.cycle.period_s), args.seconds)
+        out = demand_report(cfg.bus, bus_period_s(cfg.bus, cfg.cycle.period_s), args.seconds,
+                            sdo_gap_s=args.torque_sdo_ms * 1e-3)
     except HexacncError as exc:
         print(f"hexacnc bus demand: {exc}", file=sys.stderr)
         return 2

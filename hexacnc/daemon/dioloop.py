@@ -10,7 +10,7 @@ the touch-probe latch, :mod:`.probelatch`), writes the changed words with expedi
 (0x23, 0x60FE:1, 4 bytes, hand-packed), at most one outstanding per drive, answers collected by the
 cyclic I/O's ``poll``.  The critical path (feedback, transform, frames out) never waits for it.
 
-The SDO channel is shared with homing and the touch-probe latch: while either is busy, writes wait.
+The SDO channel is shared with homing, the touch-probe latch and the torque sampler (.torqueread): while one is busy, writes wait.
 It also reads a drive's 0x60FD (digital inputs) on request of the supervisor (M66,
 :mod:`.dioread`): ``S_DIN_DRIVE``, ``S_DIN_REQ`` in, ``S_DIN_VAL``, ``S_DIN_ACK`` out.
 Status slots (:mod:`.shm`): ``S_IO_OUT`` (6: the word each drive acknowledged), ``S_IO_WRITES``
@@ -110,7 +110,11 @@ class DigitalOut:
             return                   # the SDO channel is someone else's now: wait
         io = self.io
         busy = False
+        torque = getattr(lp, "torque", None)      # a torque sample (.torqueread) in flight: wait for its answer
         for i in range(6):
+            if torque is not None and not self.sent_at[i] and torque.holds(i) and (self.dirty[i] or i == self.din_drive):
+                busy = True
+                continue
             if self.sent_at[i]:
                 if io.sdo_count[i] == self.count0[i]:
                     if now - self.sent_at[i] > SDO_TIMEOUT_NS:

@@ -181,6 +181,9 @@ class HomingCycle:
             else:
                 return True
         if self.queue[i]:
+            tq = getattr(self.loop, "torque", None)
+            if tq is not None and tq.holds(i):       # a torque sample's answer is due first (.torqueread)
+                return True
             self.count0[i] = io.sdo_count[i]
             if io.send_sdo(i, self.queue[i][0]):
                 self.sent_at[i] = now or 1

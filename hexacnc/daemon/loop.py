@@ -32,6 +32,7 @@ from .faults import fault_message  # noqa: F401 (re-export)
 from .homeloop import HomingCycle, home_command, home_step
 from .probelatch import ProbeLatch
 from .dioloop import FLAG_IO, DigitalOut
+from .torqueread import TorqueSampler
 from .cyclestats import CycleStats, publish_status
 from .hotsig import SIGNALS, install_signal_handlers, set_parent_death_signal  # noqa: F401 (re-export)
 from .enablewalk import ENABLE_TIMEOUT_NS, EnableWalk, op_enabled  # noqa: F401 (re-export)
@@ -142,22 +143,20 @@ class HotLoop:
         self.settle_t0 = 0            # when the commands of a stop that ends disabled came to rest
         self.state = S.ST_BOOT
         self.fault = F_NONE
-        self.fault_strut = 0
-        self.fault_arg = 0
+        self.fault_strut = self.fault_arg = 0
         self.fault_text = ""
         self.after_stop = S.ST_IDLE   # state once the controlled stop is done
         self.streaming = False
-        self.starve_ns = 0
-        self.line = 0
+        self.starve_ns = self.line = 0
         self.cmd_seen = sh.h[S.H_CMD_SEQ]
         self.exit_after = -1
-        self.resync = False
-        self.stats_reset = False
+        self.resync = self.stats_reset = False
         self.travel = [0.0] * 6
         self.sends = 0
         self.homer: HomingCycle | None = None
         self.home_then = S.ST_IDLE    # state after a homing that was stopped
         self.latch, self.dio = ProbeLatch(self), DigitalOut(self)  # SDO after the frames: probe latch, M62-M65
+        self.torque = TorqueSampler(self)  # 0x6077/0x6078 over SDO, decimated, after the frames went out
 
     # ------------------------------------------------------------------ slow path helpers
     def _lengths_from_pos(self, out) -> None:
@@ -570,6 +569,7 @@ class HotLoop:
         before = stats.overruns
         self.latch.step(t0)
         self.dio.step(t0)
+        self.torque.step(t0)
         deadline = stats.account(t0, t1, deadline, resync)
         if stats.overruns != before and stats.in_row > self.max_in_row and self.state == S.ST_RUNNING:
             self._fault(F_DEADLINE, 0, stats.in_row)

@@ -126,7 +126,8 @@ class ProbeLatch:
                 else:
                     self._answer(i, r, now)
             if self.queue[i]:
-                if now >= self.next_poll[i]:
+                tq = getattr(self.loop, "torque", None)     # a torque sample's answer is due first
+                if now >= self.next_poll[i] and (tq is None or not tq.holds(i)):
                     self.count0[i] = io.sdo_count[i]
                     if io.send_sdo(i, self.queue[i][0]):
                         self.sent_at[i] = now or 1

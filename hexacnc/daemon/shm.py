@@ -93,6 +93,7 @@ S_PROBE_ACK = 68        #: last request the hot loop took
 S_PROBE_STATE = 69      #: latch state (hexacnc.daemon.probelatch OFF/ARMING/ARMED/LATCHED, < 0 error)
 S_PROBE_MASK = 70       #: bit per drive whose latched position is read
 S_PROBE_POS = 72        #: 6: latched drive positions at the edge, increments
+S_TORQUE = 78           #: 6: drive torque actual value 0x6077, per mille of rated torque (NaN: none) (.torqueread)
 S_DIN_DRIVE = 84        #: M66: drive (0..5) whose 0x60FD the supervisor asks for (hexacnc.daemon.dioread)
 S_DIN_REQ = 85          #: supervisor increments after writing S_DIN_DRIVE
 S_DIN_ACK = 86          #: the request the hot loop answered (S_DIN_VAL holds its value)
@@ -100,7 +101,12 @@ S_DIN_VAL = 87          #: 0x60FD of S_DIN_DRIVE as read
 S_IO_OUT = 88           #: 6: program digital outputs: 0x60FE:1 word each drive acknowledged (.dioloop)
 S_IO_ERR = 94           #: 0, or < 0: last digital-output write error (hexacnc.daemon.dioloop.ERROR_TEXT)
 S_IO_WRITES = 95        #: digital-output writes acknowledged by the drives
-N_STATUS = 96
+S_CURRENT = 96          #: 6: drive current actual value 0x6078, per mille of rated current (NaN: none)
+S_TORQUE_T = 102        #: monotonic s of the oldest of the six torque samples (NaN: not yet)
+S_CURRENT_T = 103       #: monotonic s of the oldest of the six current samples (NaN: not yet)
+S_TORQUE_MASK = 104     #: bit per drive with a torque value
+S_CURRENT_MASK = 105    #: bit per drive with a current value
+N_STATUS = 112
 
 HIST_BINS = 4096        #: 1 us bins, last one is overflow (>= 4.095 ms)
 RING_ROWS = 1 << 15     #: 16 s at 0.5 ms

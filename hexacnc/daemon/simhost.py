@@ -200,7 +200,8 @@ def main() -> int:
         buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     truth = _truth(cfg)
-    sim = sim_drives(cfg, buses, faults=faults, model_factory=_plant_factory(truth))
+    sim = sim_drives(cfg, buses, faults=faults, model_factory=_plant_factory(truth),
+                     load_cfg=None if truth is None else truth.plant_config())
     if truth is not None:        # touch-probe input from the true machine (hexacnc.sim.probesignal)
         from ..sim.probesignal import attach_probe_signal
         attach_probe_signal(sim, truth)

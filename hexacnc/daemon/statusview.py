@@ -10,6 +10,7 @@ import time
 
 from .. import __version__
 from . import shm as S
+from .torqueread import status_keys
 from .faults import F_EMCY, F_LIMIT, F_NONE, fault_code_name, fault_message
 
 
@@ -153,6 +154,7 @@ class StatusMixin:
             "program": prog,
             "dropped_programs": list(self.dropped),
             "thermal": self.thermal.status(s, h) if self.thermal is not None else {"source": "none", "state": "off"},
+            **status_keys(s, time.monotonic()),       # drive torque / current (0x6077 / 0x6078), when sampled
         }
 
     def wait(self, timeout_s: float) -> dict:

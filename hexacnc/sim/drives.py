@@ -59,13 +59,18 @@ def strut_model_factory(cfg) -> ModelFactory:
 
 
 def sim_drives(cfg, buses, *, faults: Sequence[FaultSpec] = (), model_factory: ModelFactory | None = None,
-               start_positions_inc: Sequence[int] | None = None, eds_path=None) -> SimDrives:
+               start_positions_inc: Sequence[int] | None = None, eds_path=None, load_cfg=None) -> SimDrives:
     """:class:`drivers.simdrive.SimDrives` for ``cfg`` on ``buses`` (not started): the strut model of
-    ``[dynamics] simulated_drives`` and the drives at the home pose unless given."""
-    return SimDrives(cfg, buses, faults=faults, eds_path=eds_path,
-                     model_factory=model_factory or strut_model_factory(cfg),
-                     start_positions_inc=home_positions_inc(cfg) if start_positions_inc is None
-                     else start_positions_inc)
+    ``[dynamics] simulated_drives`` and the drives at the home pose unless given; their torque and
+    current actual values (0x6077 / 0x6078) from the strut load of ``load_cfg`` (default ``cfg``; a
+    true machine's plant config carries its payload), :mod:`hexacnc.sim.torque`."""
+    from .torque import attach_strut_load
+    sim = SimDrives(cfg, buses, faults=faults, eds_path=eds_path,
+                    model_factory=model_factory or strut_model_factory(cfg),
+                    start_positions_inc=home_positions_inc(cfg) if start_positions_inc is None
+                    else start_positions_inc)
+    attach_strut_load(sim, cfg if load_cfg is None else load_cfg)
+    return sim
 
 
 def spawn(config_path: str | os.PathLike | None, *, interface: str | None = None, channel: str | None = None,
