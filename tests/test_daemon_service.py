@@ -144,8 +144,10 @@ def test_supervisor_killed_hot_loop_stops_disables_and_exits():
             time.sleep(0.05)
         assert os.path.exists(sock)
         kids = [int(p) for p in os.listdir("/proc") if p.isdigit() and _ppid(int(p)) == proc.pid
-                and "hexacnc.daemon" in _cmdline(int(p))]
-        assert len(kids) == 2                        # hot loop + simulated drives
+                and " -m hexacnc.daemon." in _cmdline(int(p))]
+        assert len(kids) == 2                        # hot loop + simulated drives (not the planning forkserver)
+        kids += [int(p) for p in os.listdir("/proc") if p.isdigit() and _ppid(int(p)) == proc.pid
+                 and "multiprocessing.forkserver" in _cmdline(int(p))]
         proc.send_signal(signal.SIGKILL)
         proc.wait(5)
         t_end = time.monotonic() + 10
