@@ -126,12 +126,15 @@ def test_injected_faults_across_processes(request):
         assert (1, 0x2310) in codes, [cia402.emcy_text(e[1]) for e in io.emcy]
         assert (5, 0x8611) in codes, [cia402.emcy_text(e[1]) for e in io.emcy]
         assert io.heartbeat_lost() == 1 << 3
-        for _ in range(50):
+        t_end = time.monotonic() + 2.0       # a following-error fault ramps down first (0x605E: Fault reaction active)
+        while time.monotonic() < t_end:
             io.send([s + 40 * k for s in start])
             time.sleep(0.001)
             io.poll()
-        states = io.states()
-        assert states[1] == cia402.FAULT and states[5] == cia402.FAULT
+            states = io.states()
+            if states[1] == cia402.FAULT and states[5] == cia402.FAULT:
+                break
+        assert states[1] == cia402.FAULT and states[5] == cia402.FAULT, states
         assert states[0] == states[2] == states[4] == cia402.OPERATION_ENABLED
     finally:
         proc.terminate()
