@@ -27,7 +27,7 @@ from __future__ import annotations
 import struct
 import time
 
-from drivers.cia402 import CW_ENABLE_OPERATION, SW_FAULT
+from drivers.cia402 import CW_ENABLE_OPERATION, SW_DRIVE_FOLLOWS, SW_FAULT
 
 from . import shm as S
 from .faults import F_HOMING, F_NONE
@@ -77,6 +77,7 @@ class HomingCycle:
         self.sent_at = [0] * 6            #: ns of the outstanding request (0: none)
         self.count0 = [0] * 6             #: sdo_count when it was sent
         self.phase = [_P_DONE] * 6
+        self.back_ns = [0] * 6       #: when each drive's mode 8 was acknowledged (statusword bit 12 awaited)
         self.t0 = 0
         self.error = 0
         self.strut = 0
@@ -194,6 +195,7 @@ class HomingCycle:
             if sw >= 0 and sw & SW_TARGET_REACHED or now - self.abort_t0 > SDO_TIMEOUT_S * 1e9:
                 self.queue[i] = [sdo_download(0x6060, 0, 1, MODE_CSP)]
                 self.phase[i] = _P_BACK
+                self.back_ns[i] = 0
             return True
         if ph == _P_SDO:                              # mode 6 written: its statusword, then bit 4
             self.phase[i] = _P_WAIT_MODE
@@ -210,9 +212,15 @@ class HomingCycle:
                 io.set_controlword(i, CW_ENABLE_OPERATION)
                 self.queue[i] = [sdo_download(0x6060, 0, 1, MODE_CSP)]
                 self.phase[i] = _P_BACK
+                self.back_ns[i] = 0
             return True
-        if ph == _P_BACK:
-            self.phase[i] = _P_DONE
+        if ph == _P_BACK:       # mode 8 acknowledged: wait (bounded) until the statusword shows CSP following
+            if not self.back_ns[i]:
+                self.back_ns[i] = now or 1
+            if sw >= 0 and sw & SW_DRIVE_FOLLOWS or now - self.back_ns[i] > SDO_TIMEOUT_S * 1e9:
+                self.phase[i] = _P_DONE
+                return False
+            return True
         return False
 
 
