@@ -9,7 +9,7 @@ import os
 import time
 
 import pytest
-from e2e_fixtures import cfg, running_machine, wait_standstill  # noqa: F401
+from e2e_fixtures import cfg, client, running_machine, wait_standstill  # noqa: F401
 
 from hexacnc.config.iomap import IoConfig
 from hexacnc.daemon import protocol as P
@@ -21,15 +21,6 @@ pytestmark = [pytest.mark.e2e]
 def machine(cfg):  # noqa: F811
     io = IoConfig(digital_out={0: (0, 16), 1: (1, 17)}, digital_in={2: (2, 5)})
     yield from running_machine(dataclasses.replace(cfg, io=io), name="dio")
-
-
-@pytest.fixture
-def client(machine):
-    c = P.Client.unix(machine[1].socket_path)
-    if c.call("status")["state"] == "fault":
-        c.call("reset", reply_timeout_s=30.0)
-    yield c
-    c.close()
 
 
 def _iolog(daemon, tmp_path) -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from e2e_fixtures import cfg, running_machine  # noqa: F401
+from e2e_fixtures import cfg, client, running_machine  # noqa: F401
 
 from hexacnc.calib.output import dumps_toml
 from hexacnc.daemon import calibops
@@ -34,15 +34,6 @@ def machine(cfg, tmp_path_factory):  # noqa: F811
     yield daemon, srv
     srv.daemon.calib_history.stop_event.set()
     next(gen, None)
-
-
-@pytest.fixture
-def client(machine):
-    c = P.Client.unix(machine[1].socket_path)
-    if c.call("status")["state"] == "fault":
-        c.call("reset", reply_timeout_s=30.0)
-    yield c
-    c.close()
 
 
 def _run(client, text, name="probe.ngc"):
