@@ -5,6 +5,7 @@ Import them into a test module with ``from e2e_fixtures import cfg, machine, cli
 """
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
 import shutil
@@ -57,6 +58,10 @@ def running_machine(cfg, realtime: bool = False, name: str = "e2e"):
         srv.close()
         daemon.close()
         shutil.rmtree(d, ignore_errors=True)
+
+
+#: ``with machine_running(cfg, name=...) as (daemon, server):`` -- the same, for one test
+machine_running = contextlib.contextmanager(running_machine)
 
 
 @pytest.fixture(scope="module")

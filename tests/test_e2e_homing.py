@@ -15,7 +15,7 @@ from hexacnc.daemon import protocol as P
 from hexacnc.kinematics import Hexapod
 from hexacnc.config.operator import HomingConfig
 
-from e2e_fixtures import cfg, running_machine  # noqa: F401
+from e2e_fixtures import cfg, machine_running  # noqa: F401
 
 pytestmark = pytest.mark.e2e
 
@@ -53,9 +53,7 @@ def test_home_method_35_sets_the_offsets_and_unlocks_motion(cfg, capsys):  # noq
     start = start_positions_mm(cfg)
     delta = np.array([0.3, -0.25, 0.2, -0.15, 0.35, -0.3])
     mc = homing_machine(cfg, 35, start + delta)
-    gen = running_machine(mc, name="hm35")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="hm35") as (daemon, srv):
         sock = srv.socket_path
         st = status(sock)
         assert st["referenced"] is False
@@ -88,8 +86,6 @@ def test_home_method_35_sets_the_offsets_and_unlocks_motion(cfg, capsys):  # noq
         assert rc == 0, err
         with P.Client.unix(sock) as c:
             assert c.call("wait", timeout_s=30.0)["state"] == "idle"
-    finally:
-        next(gen, None)
 
 
 def test_home_on_the_limit_switches_moves_each_strut_there(cfg, capsys):  # noqa: F811
@@ -98,9 +94,7 @@ def test_home_on_the_limit_switches_moves_each_strut_there(cfg, capsys):  # noqa
     # makes the position value there read the true distance again
     offsets = start + simhoming.SWITCH_FROM_START_MM
     mc = homing_machine(cfg, 18, offsets)
-    gen = running_machine(mc, name="hm18")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="hm18") as (daemon, srv):
         sock = srv.socket_path
         act0 = np.array(status(sock)["struts_act_mm"])
         result = {}
@@ -130,16 +124,12 @@ def test_home_on_the_limit_switches_moves_each_strut_there(cfg, capsys):  # noqa
         assert np.all(np.abs(act - want) < 0.1), act - want
         assert np.all(np.abs(np.array(st["struts_cmd_mm"]) - act) < 0.01)
         assert st["referenced"] is True
-    finally:
-        next(gen, None)
 
 
 def test_stop_and_disable_during_homing_leave_it_unreferenced(cfg, capsys):  # noqa: F811
     start = start_positions_mm(cfg)
     mc = homing_machine(cfg, 17, start - simhoming.SWITCH_FROM_START_MM, speed_search_mm_s=0.5)   # ~4 s
-    gen = running_machine(mc, name="hmst")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="hmst") as (daemon, srv):
         sock = srv.socket_path
         for how in ("stop", "disable"):
             result = {}
@@ -171,5 +161,3 @@ def test_stop_and_disable_during_homing_leave_it_unreferenced(cfg, capsys):  # n
                 assert st["loop_state"] == "disabled" and not st["drives_enabled"]
             rc, out, err = run(capsys, "mdi", "G91 G1 Z-0.5 F300", "--socket", sock)
             assert rc != 0 and ("not referenced" in err or "disabled" in err), err
-    finally:
-        next(gen, None)

@@ -12,7 +12,7 @@ import pytest
 
 from hexacnc.daemon import protocol as P
 
-from e2e_fixtures import cfg, running_machine  # noqa: F401
+from e2e_fixtures import cfg, machine_running  # noqa: F401
 from test_e2e_homing import homing_machine, run, start_positions_mm, status
 
 pytestmark = pytest.mark.e2e
@@ -38,9 +38,7 @@ def _fault_and_reset(daemon, sock, kind, node, value) -> dict:
 
 def test_incremental_reference_is_lost_on_a_fault_and_motion_refused_until_homed(cfg, capsys):  # noqa: F811
     mc = homing_machine(cfg, 35, start_positions_mm(cfg))
-    gen = running_machine(mc, name="rfi")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="rfi") as (daemon, srv):
         sock = srv.socket_path
         rc, out, err = run(capsys, "home", "--socket", sock)
         assert rc == 0, err
@@ -71,15 +69,11 @@ def test_incremental_reference_is_lost_on_a_fault_and_motion_refused_until_homed
             rc, out, err = run(capsys, cmd, "--socket", sock)
             assert rc == 0, err
         assert status(sock)["referenced"] is True
-    finally:
-        next(gen, None)
 
 
 def test_a_homing_error_leaves_it_unreferenced_naming_the_drive(cfg, capsys):  # noqa: F811
     mc = homing_machine(cfg, 99, start_positions_mm(cfg))                 # a method the drives do not have
-    gen = running_machine(mc, name="rfh")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="rfh") as (daemon, srv):
         sock = srv.socket_path
         rc, out, err = run(capsys, "home", "--socket", sock)
         assert rc != 0 and "homing error" in err and len(err.strip().splitlines()) == 1, err
@@ -87,17 +81,13 @@ def test_a_homing_error_leaves_it_unreferenced_naming_the_drive(cfg, capsys):  #
         assert st["referenced"] is False and "homing error" in st["reference_lost"]["reason"]
         rc, out, err = run(capsys, "mdi", "G91 G1 Z-0.2 F300", "--socket", sock)
         assert rc != 0
-    finally:
-        next(gen, None)
 
 
 def test_a_drive_power_cycle_restarts_its_counter_and_drops_the_reference(cfg, capsys):  # noqa: F811
     start = start_positions_mm(cfg)
     delta = np.full(6, 0.25)
     mc = homing_machine(cfg, 35, start + delta)
-    gen = running_machine(mc, name="rfb")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="rfb") as (daemon, srv):
         sock = srv.socket_path
         rc, out, err = run(capsys, "home", "--socket", sock)
         assert rc == 0, err
@@ -108,8 +98,6 @@ def test_a_drive_power_cycle_restarts_its_counter_and_drops_the_reference(cfg, c
         _wait(sock, lambda st: st["state"] == "fault")
         rc, out, err = run(capsys, "mdi", "G91 G1 Z-0.2 F300", "--socket", sock)
         assert rc != 0 and len(err.strip().splitlines()) == 1, err
-    finally:
-        next(gen, None)
 
 
 def test_absolute_encoders_keep_the_reference_through_faults_but_not_an_encoder_error(cfg, capsys):  # noqa: F811
@@ -117,9 +105,7 @@ def test_absolute_encoders_keep_the_reference_through_faults_but_not_an_encoder_
     from hexacnc.config.operator import HomingConfig
     mc = cfg.replace(operator=dataclasses.replace(cfg.operator, homing=HomingConfig(method="absolute",
                                                                                      required=True)))
-    gen = running_machine(mc, name="rfa")
-    daemon, srv = next(gen)
-    try:
+    with machine_running(mc, name="rfa") as (daemon, srv):
         sock = srv.socket_path
         assert status(sock)["referenced"] is True
         st = _fault_and_reset(daemon, sock, "emcy", 1, 0x2310)
@@ -135,8 +121,6 @@ def test_absolute_encoders_keep_the_reference_through_faults_but_not_an_encoder_
         rc, out, err = run(capsys, "home", "--socket", sock)           # absolute: acknowledged
         assert rc == 0, err
         assert status(sock)["referenced"] is True
-    finally:
-        next(gen, None)
 
 
 def test_bench_homing_finds_the_switch_edge_within_a_cycle_of_travel(cfg, capsys):  # noqa: F811
