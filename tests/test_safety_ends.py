@@ -175,6 +175,7 @@ def test_supervisor_killed_the_hot_loop_stops_and_disables(tmp_path):
     try:
         run.send()
         run.moving()
+        time.sleep(0.5)                                  # on the circles, past the rapid's end
         t_sig = time.monotonic()
         os.kill(run.proc.pid, signal.SIGKILL)
         hot = run.kids["hot"]
