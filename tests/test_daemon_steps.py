@@ -121,3 +121,103 @@ def test_frames_out_clamps_to_the_strut_range_and_records_the_sync(shared):
     assert io.target[0] == lp.hi_inc[0]
     assert lp.sends == n + 1
     assert lp.sup.hist[0][lp.sends & lp.sup.mask] == lp.out[0]
+
+
+class _AliasedDrive:
+    """IO whose drive (the CiA 402 state machine of :mod:`drivers.cia402`) receives the controlword
+    only on every ``every``-th cycle, phase ``phase`` (a bus at n loop periods, ``sync_every``), and
+    answers with its statusword one bus cycle later."""
+
+    def __init__(self, every: int, phase: int, fault_state: int):
+        from drivers import cia402
+        self.c = cia402
+        self.every, self.phase = every, phase
+        self.state = [cia402.OPERATION_ENABLED] * 6
+        self.state[2] = fault_state
+        self.seen = [0] * 6                 # the controlword the drive last received
+        self.cw = [0] * 6
+        self.statusword = [cia402.drive_statusword(s) | cia402.SW_DRIVE_FOLLOWS for s in self.state]
+        self.pos_count = [1] * 6
+        self.n = 0
+
+    def set_controlword(self, i, cw):
+        self.cw[i] = cw
+
+    def bus_cycle(self):
+        self.n += 1
+        if self.n % self.every != self.phase:
+            return
+        c = self.c
+        self.statusword = [c.drive_statusword(s) | c.SW_DRIVE_FOLLOWS for s in self.state]
+        for i in range(6):
+            for _ in range(2):
+                new, num = c.drive_step(self.state[i], self.cw[i], self.seen[i])
+                self.seen[i] = self.cw[i]
+                if not num:
+                    break
+                self.state[i] = new
+
+
+@pytest.mark.parametrize("phase", [0, 1])
+def test_enable_walk_fault_reset_edge_reaches_a_drive_on_a_bus_at_two_loop_periods(phase):
+    """Fault reset (15) on a bus running every 2nd loop cycle: bit 7 is held long enough that the
+    drive sees the rising edge whatever the phase (it used to toggle every loop cycle and, in one
+    phase, the drive received bit 7 low in every bus cycle: the drive stayed in Fault)."""
+    from drivers import cia402
+    from hexacnc.daemon.enablewalk import RESET_HOLD_NS
+    io = _AliasedDrive(2, phase, cia402.FAULT)
+    w = EnableWalk(io, [700.0] * 6, [1350.0] * 6)
+    period_ns = 500_000
+    w.begin(0)
+    act, out = [1000.0] * 6, [0.0] * 6
+    for k in range(1, 200):
+        r = w.step(k * period_ns, act, out)
+        io.bus_cycle()
+        if r:
+            break
+    assert r == 1 and io.state == [cia402.OPERATION_ENABLED] * 6
+    assert w.edges[2] == 1 and k * period_ns < RESET_HOLD_NS
+
+
+def test_enable_walk_waits_for_the_fault_reaction_then_sends_a_fresh_edge():
+    """A drive in Fault reaction active gets bit 7 low; once it shows Fault the edge comes."""
+    from drivers import cia402
+    io = _AliasedDrive(1, 0, cia402.FAULT_REACTION_ACTIVE)
+    w = EnableWalk(io, [700.0] * 6, [1350.0] * 6)
+    w.cw[2] = cia402.CW_FAULT_RESET                 # bit 7 already high from an earlier attempt
+    w.begin(0)
+    act, out = [1000.0] * 6, [0.0] * 6
+    for k in range(1, 20):
+        assert w.step(k * 500_000, act, out) == 0
+        io.bus_cycle()
+    assert io.state[2] == cia402.FAULT_REACTION_ACTIVE and io.cw[2] == 0 and w.edges[2] == 0
+    io.state[2] = cia402.FAULT                      # transition 14: the reaction ended
+    for k in range(20, 400):
+        r = w.step(k * 500_000, act, out)
+        io.bus_cycle()
+        if r:
+            break
+    assert r == 1 and w.edges[2] == 1
+
+
+def test_enable_walk_names_a_drive_that_stays_in_fault_and_counts_the_edges():
+    """A drive whose fault persists: bounded by the walk's time-out, edge after edge, then named."""
+    from drivers import cia402
+    from hexacnc.daemon.enablewalk import RESET_HOLD_NS, RESET_LOW_NS
+    from hexacnc.daemon.faults import F_ENABLE, fault_message
+    io = _IO()
+    io.pos_count = [1] * 6
+    io.statusword = [0x1237] * 6
+    io.statusword[2] = 0x0208
+    w = EnableWalk(io, [700.0] * 6, [1350.0] * 6)
+    w.begin(0)
+    act, out = [1000.0] * 6, [0.0] * 6
+    t = 0
+    while (r := w.step(t, act, out)) == 0:
+        t += 1_000_000
+    edges = [cw for i, cw in io.sent if i == 2]
+    n = edges.count(cia402.CW_FAULT_RESET)
+    assert r == -1 and w.bad == 3 and n == w.edges[2] == ENABLE_TIMEOUT_NS // (RESET_HOLD_NS + RESET_LOW_NS) + 1
+    assert all(a != b for a, b in zip(edges, edges[1:]))             # low and high alternate
+    text = fault_message(F_ENABLE, w.bad, w.arg)
+    assert "drive 3" in text and "still in Fault (statusword 0x0208)" in text and f"after {n} fault reset" in text

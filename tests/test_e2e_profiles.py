@@ -20,13 +20,7 @@ from test_e2e_socket import expected_struts_cmd_mm, programmed_end_platform_pose
 pytestmark = pytest.mark.e2e
 
 
-#: known intermittent failure (issue 14, open): a reset after the injected EMCY once left a strict drive in
-#: Fault ("drive 3 did not reach Operation Enabled (statusword 0x0208)"), in 1 of 3 quiet CI runs; not yet found
-_STRICT_RESET = pytest.mark.xfail(reason="intermittent: strict drive may stay in Fault after reset (issue 14)",
-                                  strict=False)
-
-
-@pytest.fixture(scope="module", params=["permissive", pytest.param("strict", marks=_STRICT_RESET)])
+@pytest.fixture(scope="module", params=["permissive", "strict"])
 def profile_machine(request, base_cfg):
     cfg = base_cfg.replace(bus=dataclasses.replace(base_cfg.bus, simulate_profile=request.param))
     gen = running_machine(cfg, name=f"pr{request.param[:2]}")

@@ -81,6 +81,10 @@ def fault_message(code: int, strut: int, arg: int, emcy_text: str = "", detail: 
             return f"drive {strut} reports a position outside the strut length range: not enabled"
         if arg == -1:
             return f"no position feedback from drive {strut}: not enabled"
+        if arg >> 16 and arg & 0x4F == 0x08:
+            return (f"drive {strut} did not reach Operation Enabled: still in Fault (statusword 0x{arg & 0xFFFF:04X}) "
+                    f"after {arg >> 16} fault reset edge(s) (controlword bit 7): the fault persists, see the drive's "
+                    "EMCY / error code 0x603F")
         return f"drive {strut} did not reach Operation Enabled (statusword 0x{arg & 0xFFFF:04X})"
     if code == F_TEST:
         return "test fault"
