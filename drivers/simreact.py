@@ -2,7 +2,9 @@
 supervision of the master, exactly as the master configured them by SDO.
 
 * Stop ramps: quick stop (controlword bit 2, transition 11) per 0x605A, fault reaction per 0x605E,
-  disable operation (transition 5) per 0x605C; slow-down ramp = 0x6084, quick-stop ramp = 0x6085
+  disable operation (transition 5) per 0x605C; each that ends with the power stage off (0x605A 1 and 2,
+  0x605E 1 and 2, 0x605C 1) holds the strut at rest with torque on for the holding brake's engage delay
+  (0x2110:2) before it leaves the state, so the brake grips before the torque goes; slow-down ramp = 0x6084, quick-stop ramp = 0x6085
   (position units/s^2), jerk-limited at the profile jerk 0x60A4:1 (units/s^3) where the drive has it. The ramp runs on the drive's own clock: on SYNC while the master sends
   them, on the housekeeping clock (every ``TICK_S``) once SYNC has stopped.
 * Communication loss: RPDO1 deadline monitoring (0x1400 sub 5 event timer, armed by the first
@@ -177,24 +179,33 @@ class Reactions:
             self.note(now, f"{why}: quick stop option {qs}: drive function disabled at once")
             return
         then = cia402.SWITCH_ON_DISABLED if qs in (1, 2) else None
-        self.start_ramp(qs in (2, 6), then, now, f"{why} (0x605A = {qs})")
+        hold = self.brake.engage_s if then is not None else 0.0     # 5, 6: stays in Quick stop active, torque on
+        self.start_ramp(qs in (2, 6), then, now, f"{why} (0x605A = {qs})" + self._brake_text(hold), hold)
+        self.brake.engaging = hold > 0
 
     def fault_reaction(self, now: float) -> None:
         fr = self.d.raw_or(0x605E, 0, cia402.FAULT_REACTION_QUICK_RAMP)
         if fr in (1, 2):
-            self.start_ramp(fr == 2, cia402.FAULT, now, f"fault reaction (0x605E = {fr})")
+            hold = self.brake.engage_s
+            self.start_ramp(fr == 2, cia402.FAULT, now, f"fault reaction (0x605E = {fr})" + self._brake_text(hold),
+                            hold)
+            self.brake.engaging = hold > 0
         else:
             self.ramp = None
             self.note(now, f"fault reaction (0x605E = {fr}): drive disabled, motor free")
+
+    @staticmethod
+    def _brake_text(hold_s: float) -> str:
+        return (f", then the holding brake engages with torque on for {hold_s * 1e3:g} ms (0x2110:2)"
+                if hold_s > 0 else "")
 
     def disable_operation(self, now: float) -> bool:
         """Transition 5 asked: True when the drive ramps first (0x605C = 1, still moving)."""
         opt = self.d.raw_or(0x605C, 0, cia402.DISABLE_OP_SLOW_DOWN)
         hold = self.brake.engage_s
         if opt == cia402.DISABLE_OP_SLOW_DOWN and (abs(self.d.model.velocity_mm_s) > 1e-9 or hold > 0):
-            self.start_ramp(False, cia402.SWITCHED_ON, now, "disable operation (0x605C = 1)"
-                            + (f", then the holding brake engages with torque on for {hold * 1e3:g} ms (0x2110:2)"
-                               if hold > 0 else ""), hold)
+            self.start_ramp(False, cia402.SWITCHED_ON, now, "disable operation (0x605C = 1)" + self._brake_text(hold),
+                            hold)
             self.brake.engaging = hold > 0
             return True
         self.note(now, f"disable operation (0x605C = {opt}): brake engaged, Switched on")

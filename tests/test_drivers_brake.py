@@ -79,3 +79,47 @@ def test_brake_releases_after_its_delay_on_enable():
             t_rel0 = next(t for t, e in ev if "holding brake releasing (40 ms" in e)
             t_rel = next(t for t, e in ev if e == "holding brake released")
             assert t_rel - t_rel0 >= RELEASE_MS * 1e-3 * 0.95 and not d.react.brake.engaged
+
+
+def test_quick_stop_and_fault_reaction_keep_torque_until_the_brake_is_engaged():
+    """Quick stop (0x605A = 2: ramp, then Switch on disabled) on struts 1-3 and a fault (0x605E = 2: ramp,
+    then Fault) on strut 4, moving: each drive stays in Quick stop active / Fault reaction active, torque
+    on, for the brake's engage delay after its ramp, and only then reports the state with the power off."""
+    with SimRig() as rig:
+        rec = Recorder(rig.cfg)
+        try:
+            m = _boot_with_brake(rig)
+            start = m.positions_inc()
+            io = rig.cyclic()
+            last = move(io, start, 20, 200)
+            t0 = time.monotonic()
+            for i in (0, 1, 2):
+                io.set_controlword(i, cia402.CW_QUICK_STOP)
+            with rig.sim.lock:
+                rig.sim.drives[3].fault(0x2310)
+            want = {0: cia402.SWITCH_ON_DISABLED, 1: cia402.SWITCH_ON_DISABLED, 2: cia402.SWITCH_ON_DISABLED,
+                    3: cia402.FAULT}
+            for _ in range(2000):
+                io.send(last)
+                time.sleep(0.0005)
+                io.poll()
+                if all(rig.sim.states()[i] == s for i, s in want.items()):
+                    break
+            assert all(rig.sim.states()[i] == s for i, s in want.items()), rig.sim.states()
+            time.sleep(0.02)
+            during = {0: cia402.QUICK_STOP_ACTIVE, 1: cia402.QUICK_STOP_ACTIVE, 2: cia402.QUICK_STOP_ACTIVE,
+                      3: cia402.FAULT_REACTION_ACTIVE}
+            for i, end in want.items():
+                nd = m.plan.nodes[i]
+                sw = [(t, cia402.state_from_status(int.from_bytes(x[:2], "little")))
+                      for t, x in rec.of(0x280 + nd.node_id) if t >= t0]
+                t_end = next(t for t, s in sw if s == end)
+                assert [s for t, s in sw if t < t_end] == [during[i]], sw       # torque on until then
+                assert t_end - t0 >= ENGAGE_MS * 1e-3 * 0.95, (i, t_end - t0)
+                d = rig.sim.drives[i]
+                ev = [(t, e) for t, e in d.react.events if t >= t0]
+                assert any("holding brake engages with torque on for 60 ms" in e for _, e in ev), ev
+                t_eng = next(t for t, e in ev if "holding brake engaged" in e)
+                assert t_eng <= t_end and d.react.brake.engaged
+        finally:
+            rec.close()
