@@ -10,7 +10,10 @@ bytes.
 :class:`CaptureBus` wraps a python-can bus (or the daemon's frame-record buses) and writes every
 frame it passes, both directions, with the wall-clock time; nothing else changes on the bus.
 ``hexacnc run --capture FILE.pcap`` sets ``HEXACNC_CAPTURE`` for the hot process, which wraps its
-buses with :func:`capture_buses` (one file per bus: FILE.pcap, FILE-bus1.pcap, ...).
+buses with :func:`capture_buses` (one file per bus: FILE.pcap, FILE-bus1.pcap, ...). With simulated
+drives, their process captures its ends of the buses too (FILE-drives.pcap, FILE-drives-bus1.pcap,
+:func:`drives_capture_path`): what a bus monitor would record, including the drives' reaction after the
+master fell silent (a capture inside the master ends with it).
 """
 from __future__ import annotations
 
@@ -37,9 +40,12 @@ FLUSH_S = 0.25
 
 
 class PcapWriter:
-    """Thread-safe pcap writer for SocketCAN frames (bounded buffer, flushed every 0.25 s)."""
+    """Thread-safe pcap writer for SocketCAN frames (bounded buffer, flushed every 0.25 s).
 
-    def __init__(self, path: str | os.PathLike):
+    ``background=True``: :meth:`write` only appends to a memory buffer and a thread writes it out every
+    ``FLUSH_S``, so a slow disk never blocks the caller (the simulated drives write under their lock)."""
+
+    def __init__(self, path: str | os.PathLike, background: bool = False):
         self.path = str(path)
         self._f = open(self.path, "wb")
         self._f.write(_GLOBAL.pack(0xA1B2C3D4, 2, 4, 0, 0, 72, LINKTYPE_CAN_SOCKETCAN))
@@ -47,6 +53,25 @@ class PcapWriter:
         self._last_flush = time.monotonic()
         self.frames = 0
         self.closed = False
+        self._pending: bytearray | None = None
+        self._thread: threading.Thread | None = None
+        if background:
+            self._pending = bytearray()
+            self._wake = threading.Event()
+            self._thread = threading.Thread(target=self._drain, name="pcap-writer", daemon=True)
+            self._thread.start()
+
+    def _drain(self) -> None:
+        while not self._wake.wait(FLUSH_S):
+            self._write_pending()
+        self._write_pending()
+
+    def _write_pending(self) -> None:
+        with self._lock:
+            chunk, self._pending = self._pending, bytearray()
+        if chunk:
+            self._f.write(chunk)
+            self._f.flush()
 
     def write(self, arbitration_id: int, data, *, is_extended_id: bool = False, is_fd: bool = False,
               bitrate_switch: bool = False, is_remote_frame: bool = False, t_s: float | None = None) -> None:
@@ -60,9 +85,13 @@ class PcapWriter:
         with self._lock:
             if self.closed:
                 return
+            self.frames += 1
+            if self._pending is not None:
+                self._pending += _RECORD.pack(sec, int((t - sec) * 1e6), len(body), len(body))
+                self._pending += body
+                return
             self._f.write(_RECORD.pack(sec, int((t - sec) * 1e6), len(body), len(body)))
             self._f.write(body)
-            self.frames += 1
             now = time.monotonic()
             if now - self._last_flush > FLUSH_S:
                 self._last_flush = now
@@ -83,9 +112,14 @@ class PcapWriter:
                        is_remote_frame=bool(flags & framerec.F_RTR), t_s=t)
 
     def close(self) -> None:
+        if self._thread is not None:
+            with self._lock:
+                self.closed = True          # no more frames; the thread writes what is pending
+            self._wake.set()
+            self._thread.join(5.0)
         with self._lock:
-            if not self.closed:
-                self.closed = True
+            self.closed = True
+            if not self._f.closed:
                 self._f.close()
 
 
@@ -147,13 +181,20 @@ def capture_path(path: str, bus_index: int) -> str:
     return f"{root}-bus{bus_index}{ext or '.pcap'}"
 
 
-def capture_buses(buses: Sequence[can.BusABC], path: str | None = None) -> list:
+def drives_capture_path(path: str) -> str:
+    """FILE-drives.pcap for FILE.pcap: the capture taken on the simulated drives' side of the buses
+    (every frame on the wire, also after the master fell silent; ``capture_path`` of it per bus)."""
+    root, ext = os.path.splitext(path)
+    return f"{root}-drives{ext or '.pcap'}"
+
+
+def capture_buses(buses: Sequence[can.BusABC], path: str | None = None, background: bool = False) -> list:
     """Wrap ``buses`` in :class:`CaptureBus` when ``path`` (default: ``$HEXACNC_CAPTURE``) is set,
-    one pcap file per bus; otherwise return them unchanged."""
+    one pcap file per bus (``background``: see :class:`PcapWriter`); otherwise return them unchanged."""
     path = path if path is not None else os.environ.get(ENV_CAPTURE, "")
     if not path:
         return list(buses)
-    return [CaptureBus(b, PcapWriter(capture_path(path, i))) for i, b in enumerate(buses)]
+    return [CaptureBus(b, PcapWriter(capture_path(path, i), background)) for i, b in enumerate(buses)]
 
 
 def read_pcap(path: str) -> list[tuple[float, int, bytes, int]]:

@@ -53,6 +53,21 @@ def disable_sequence_per_0x605C(frames, nodes):
         assert any(s == cia402.SWITCH_ON_DISABLED for t, s in sw if t >= t0), (node, sw[-3:])
 
 
+@pytest.mark.parametrize("background", [False, True])
+def test_pcap_writer_round_trip(tmp_path, background):
+    """Frames written (directly, or buffered and written by the writer's thread) read back as written."""
+    w = pcap.PcapWriter(tmp_path / "f.pcap", background=background)
+    sent = [(0x080, b""), (0x181, (1234).to_bytes(4, "little", signed=True)), (0x701, b"\x05"),
+            (0x12345, b"\x01\x02", True)]
+    for k, f in enumerate(sent):
+        w.write(f[0], f[1], is_extended_id=len(f) > 2, t_s=1000.0 + k * 0.001)
+    w.close()
+    w.write(0x080, b"")                     # after close: dropped, not an error
+    got = pcap.read_pcap(str(tmp_path / "f.pcap"))
+    assert [(cid & 0x1FFFFFFF, d) for _, cid, d, _ in got] == [(f[0], f[1]) for f in sent]
+    assert got[3][1] & pcap.CAN_EFF_FLAG and abs(got[2][0] - 1000.002) < 1e-6 and w.frames == 4
+
+
 PROGRAM = """%
 G21 G90 G17 G64 P0.02
 T1 M6 G43 H1

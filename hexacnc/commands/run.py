@@ -30,7 +30,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="simulated drives only: the plant and the simulated instruments follow this true "
                              "machine (hexacnc calib synth-machine); overrides [simulation] truth")
     parser.add_argument("--capture", metavar="FILE.pcap", help="write every CAN frame of the session to a "
-                        "SocketCAN pcap (Wireshark link type 227; more buses: FILE-bus1.pcap, ...)")
+                        "SocketCAN pcap (Wireshark link type 227; more buses: FILE-bus1.pcap, ...); with simulated "
+                        "drives also their side of the buses, which outlives the master: FILE-drives.pcap, ...")
 
 
 class Watchdog(threading.Thread):

@@ -198,6 +198,10 @@ def main() -> int:
         buses = [ShmBus(name, side=1, poll_interval_s=poll_s) for name in args["shm"]]
     else:
         buses = [PipeBus(fd=fd, poll_interval_s=poll_s) for fd in args["fds"]]
+    capture = os.environ.get("HEXACNC_CAPTURE", "")      # hexacnc run --capture FILE.pcap (drivers.pcap)
+    if capture:     # the drives' side of the buses: FILE-drives.pcap, FILE-drives-bus1.pcap (outlives the master)
+        from drivers.pcap import capture_buses, drives_capture_path
+        buses = capture_buses(buses, drives_capture_path(capture), background=True)
     faults = [FaultSpec.parse(f) for f in args.get("faults", ())]
     truth = _truth(cfg)
     sim = sim_drives(cfg, buses, faults=faults, model_factory=_plant_factory(truth),
