@@ -86,3 +86,23 @@ def test_session_boot_program_stop_fault_reset(profile_machine):
         _ends_on_ik(cfg, st, text)
     finally:
         c.close()
+
+
+def test_every_drive_fault_is_reset(profile_machine):
+    """An EMCY on each drive in turn, each reset at another moment: every reset re-enables all six. With
+    the strict profile the bus runs every 2nd loop cycle; a fault reset that toggled controlword bit 7
+    every loop cycle left the drive in Fault in about half of these resets (the drive saw bit 7 low in
+    every bus cycle: no rising edge)."""
+    profile, cfg, daemon, srv = profile_machine
+    c = P.Client.unix(srv.socket_path)
+    try:
+        for k in range(6):
+            daemon.inject_drive("emcy", k + 1, 0x2310)
+            st = _wait_state(c, "fault", 5.0)
+            assert f"EMCY from drive {k + 1}" in st["fault"]["message"], st["fault"]
+            time.sleep(0.013 * k)                           # the reset lands at a different loop phase
+            c.call("reset", reply_timeout_s=30.0)
+            st = c.call("wait", timeout_s=30.0)
+            assert st["state"] == "idle" and st["fault"] is None, (k, st["fault"])
+    finally:
+        c.close()
