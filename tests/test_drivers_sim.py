@@ -115,7 +115,9 @@ def test_refusing_drive_is_named_with_its_state():
 
 
 def test_emcy_injection_faults_the_drive_and_is_decoded():
-    with SimRig(faults=[FaultSpec(2, "emcy", 0x3210, 0.05)]) as rig:
+    # 0.5 s after the enable: the cyclic I/O below is running by then (0.05 s was often too early on a loaded
+    # machine: the EMCY came while only the SDO master listened)
+    with SimRig(faults=[FaultSpec(2, "emcy", 0x3210, 0.5)]) as rig:
         rig.master.bring_up()
         start = rig.master.positions_inc()
         io = rig.cyclic()
