@@ -22,6 +22,7 @@ the hot loop); it is part of the source's snapshot, so a rewind re-produces them
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,15 @@ from ..setpoint import FLAG_DWELL
 from .dioloop import SLOTS, encode, pack_row
 
 _HOLDS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.SPINDLE, B.TOOL_CHANGE)
+
+
+_IO_WORD = re.compile(r"m\s*0*6[2-8](?![\d.])", re.IGNORECASE)
+
+
+def has_io_words(text: str) -> bool:
+    """Does the program text contain an M62-M68 word (it is then planned whole, its outputs placed on the
+    rows: :func:`plan_with_io`)?  A word inside a comment counts too (a harmless whole-program plan)."""
+    return _IO_WORD.search(text) is not None
 
 
 def _mcode(ex: dict) -> str:

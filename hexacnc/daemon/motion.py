@@ -78,6 +78,15 @@ class MotionMixin:
         from .probeprog import has_probe_words, run_probe_program
         if has_probe_words(text):
             return run_probe_program(self, text, name)
+        job, info = self.load_streamed(text, name)
+        return info
+
+    def load_streamed(self, text: str, name: str, state=None, on_valid=None, accept=None):
+        """The streamed program path of :meth:`load_program` (also the operator's, which interprets from
+        its persistent ``state``; ``on_valid(stream_plan)`` once the whole program is validated; ``accept
+        (stream_plan, info, source)`` before the job is queued: False leaves it unqueued, e.g. a program without
+        motion).  Returns ``(job or None, info)``.  A ``stop`` (or reset) that comes while the program is
+        interpreted, validated or planned kills its children and the program is refused."""
         from .planstream import StreamPlan
         from .program import program_source
         with self.lock:
@@ -86,7 +95,7 @@ class MotionMixin:
             stops = self._stops
         # interpreted, validated and planned in children with bounded memory and time (started outside
         # the lock: stop/pause never wait for them); a stop kills them
-        sp = StreamPlan(self.cfg, text, name, start, self.period_s)
+        sp = StreamPlan(self.cfg, text, name, start, self.period_s, state=state, on_valid=on_valid)
         with self.lock:
             self._planning.add(sp)
             if self._stops != stops:        # a stop came while the children were being started
@@ -96,19 +105,24 @@ class MotionMixin:
         finally:
             with self.lock:
                 self._planning.discard(sp)
+        out = {k: v for k, v in info.items() if k != "end_rad"}
+        if accept is not None and not accept(sp, out, src):
+            src.close()
+            return None, out
         job = Job(name=name, source=src, start_rad=start, end_rad=info["end_rad"], blocks=info["blocks"],
                   duration_s=info["duration_s"])
         with self.lock:
-            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
-                src.close()
-                raise HexacncError("another motion was queued while this program was planned; send it again")
             try:
+                if self._stops != stops:
+                    raise HexacncError(f"{name}: stopped while it was being interpreted and planned")
+                if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                    raise HexacncError("another motion was queued while this program was planned; send it again")
                 self._queue(job)
             except BaseException:
                 src.close()
                 raise
         self._watch_validation(job)
-        return {k: v for k, v in info.items() if k != "end_rad"}
+        return job, out
 
     def _cancel_planning(self) -> None:
         for pj in list(self._planning):
@@ -141,7 +155,6 @@ class MotionMixin:
             if self.sh is None:
                 raise HexacncError("the daemon is not running")
             self._stops += 1
-            self._cancel_planning()         # a program still being interpreted or planned: dropped
             for job in self.queue:
                 self._close_job(job)
                 self.dropped.append({"name": job.name, "reason": "stop requested"})
@@ -152,6 +165,9 @@ class MotionMixin:
                 self._command(self.current.source.stop)
             elif self.sh.h[S.H_STATE] in (S.ST_RUNNING, S.ST_HOMING):     # homing: stopped, not referenced
                 self.sh.command(S.CMD_STOP)
+            # a program still being interpreted or planned: its children killed, after the motion's stop
+            # was commanded (killing and reaping them must not delay it)
+            self._cancel_planning()
             self.cv.notify_all()
         return self.status()
 

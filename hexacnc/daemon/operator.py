@@ -141,6 +141,9 @@ class Operator:
         from .probeprog import has_probe_words, run_probe_program
         if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
             return run_probe_program(d, text, name, self, _check_tip_limits if mdi else None)
+        from .ioprog import has_io_words
+        if not mdi and not has_io_words(text):
+            return self._load_streamed(text, name)
         with d.lock:
             d._require_motion_ok()
             start = d._planned_start()
@@ -182,6 +185,43 @@ class Operator:
         self.store.commit(new_state)
         self.status_view.program_loaded(name, text, prog, float(plan.duration_s))
         return {"blocks": len(prog.blocks), "duration_s": float(plan.duration_s)}
+
+    def _load_streamed(self, text: str, name: str) -> dict:
+        """A program (not MDI, no M62-M68): streamed through validation and windowed planning in bounded
+        children as the daemon's own programs (:meth:`~hexacnc.daemon.motion.MotionMixin.load_streamed`),
+        interpreted from the persistent state; the state after it is committed once the whole program
+        is validated and the program accepted (``[planner] start_before_validated``: when its
+        validation ends, while it runs).  Memory: one planning window, whatever the program's length."""
+        d = self.daemon
+        state = self.store.snapshot()
+        done = {"accepted": False, "committed": False}
+        lock = threading.Lock()
+
+        def commit(sp) -> None:           # once: after the validation and the acceptance, whichever is last
+            with lock:
+                if not (done["accepted"] and sp.final_state is not None) or done["committed"]:
+                    return
+                done["committed"] = True
+            self.store.commit(sp.final_state)
+
+        def accept(sp, info: dict, src) -> bool:
+            src.sampler.set_override(min(self.feed, 2.0))     # the overrides in force carry over
+            src.sampler.set_rapid_override(self.rapid)
+            moves = sp.motion_blocks != 0 or bool(sp.io_blocks)
+            self.status_view.program_loaded(name, text, sp, float(info["duration_s"]) if moves else 0.0)
+            if not moves:                 # settings only (offsets, tools, ...): nothing is queued
+                with lock:
+                    done["accepted"] = True
+                commit(sp)
+            return moves
+
+        job, info = d.load_streamed(text, name, state=state, on_valid=commit, accept=accept)
+        if job is None:
+            return {"blocks": info["blocks"], "duration_s": 0.0, "moved": False}
+        with lock:
+            done["accepted"] = True
+        commit(job.source.stream)
+        return info
 
     def mdi(self, text: str) -> dict:
         if len(text.encode()) > MAX_MDI_BYTES:

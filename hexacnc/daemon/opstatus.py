@@ -39,14 +39,35 @@ def modal_text(st, modal: dict) -> str:
     return " ".join(words)
 
 
+class TextLines:
+    """Lines of a program's text by index, without a list of a million strings: the text's UTF-8 bytes
+    and the offsets of its line ends (a 1e6-line program: its bytes plus 8 MB)."""
+
+    def __init__(self, text: str):
+        self.data = text.encode("utf-8", errors="replace")
+        buf = np.frombuffer(self.data, dtype=np.uint8)
+        self.ends = np.flatnonzero(buf == 10)
+        self.n = int(self.ends.size) + (1 if self.data and not self.data.endswith(b"\n") else 0)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, k: int) -> str:
+        if not 0 <= k < self.n:
+            raise IndexError(k)
+        lo = int(self.ends[k - 1]) + 1 if k > 0 else 0
+        hi = int(self.ends[k]) if k < self.ends.size else len(self.data)
+        return self.data[lo:hi].decode("utf-8", errors="replace")
+
+
 class OperatorStatus:
     def __init__(self, op):
         self.op = op
         self.lock = threading.Lock()
         self.name = None
-        self.lines: list[str] = []
-        self.feeds: dict[int, float] = {}
-        self.messages: list[tuple[int, str]] = []
+        self.lines = TextLines("")
+        self.feeds = {}.get             #: line -> programmed feed (mm/min) or None
+        self.messages = list     #: () -> [(line, text)] of the program's (MSG, ...) comments
         self.duration_s = 0.0
         self.started = None
         self.ended = None
@@ -54,15 +75,20 @@ class OperatorStatus:
         self._speed = 0.0
 
     def program_loaded(self, name: str, text: str, prog, duration_s: float) -> None:
-        feeds = {}
-        for b in prog.motion_blocks:
-            f = b.feed_mm_s
-            feeds[b.line] = 60.0 * f if f is not None and b.kind != "rapid" else None
+        """``prog``: the interpreted program (its blocks), or a streamed one (a
+        :class:`~hexacnc.daemon.planstream.StreamPlan`: the feeds come from its windows as they run)."""
+        feeds = getattr(prog, "feed_at", None)
+        if feeds is None:
+            feeds = {}
+            for b in prog.motion_blocks:
+                f = b.feed_mm_s
+                feeds[b.line] = 60.0 * f if f is not None and b.kind != "rapid" else None
+            feeds = feeds.get
         with self.lock:
             self.name = name
-            self.lines = text.split("\n")[:2_000_000]
+            self.lines = TextLines(text)
             self.feeds = feeds
-            self.messages = list(prog.messages)
+            self.messages = (lambda: prog.messages) if hasattr(prog, "feed_at") else list(prog.messages).copy
             self.duration_s = duration_s
             self.started = None
             self.ended = None
@@ -107,10 +133,10 @@ class OperatorStatus:
             name = (prog or {}).get("name")
             ours = name is not None and name == self.name
             block = self.lines[line - 1] if ours and 0 < line <= len(self.lines) else None
-            fprog = self.feeds.get(line) if ours else None
+            fprog = self.feeds(line) if ours else None
             msg = None
             if ours:
-                for ln, text in self.messages:
+                for ln, text in self.messages():
                     if ln <= line or not running:
                         msg = text
             elapsed, remaining = self._times(st, running, name)
