@@ -38,10 +38,17 @@ _HOLDS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.SPINDLE, B.TOOL_CHANGE)
 _IO_WORD = re.compile(r"m\s*0*6[2-8](?![\d.])", re.IGNORECASE)
 
 
-def has_io_words(text: str) -> bool:
-    """Does the program text contain an M62-M68 word (it is then planned whole, its outputs placed on the
-    rows: :func:`plan_with_io`)?  A word inside a comment counts too (a harmless whole-program plan)."""
-    return _IO_WORD.search(text) is not None
+_IO_DIGITS = re.compile(r"6[2-8]")
+#: the pattern of :func:`has_io_words` for :func:`.progtext.scan` (tried where its digits are)
+IO_WORDS = (lambda s: _IO_DIGITS.search(s) is not None, _IO_WORD)
+
+
+def has_io_words(text) -> bool:
+    """Does the program text (str or pieces) contain an M62-M68 word (it is then planned whole, its outputs
+    placed on the rows: :func:`plan_with_io`)?  A word inside a comment counts too (a harmless
+    whole-program plan)."""
+    from .progtext import scan
+    return bool(scan({"io": IO_WORDS}, text))
 
 
 def _mcode(ex: dict) -> str:

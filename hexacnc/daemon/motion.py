@@ -16,6 +16,18 @@ from .feed import ArraySource, point_to_point
 from .feeding import Job
 
 
+def scan_words(daemon, text, patterns: dict, name: str, stops: int | None) -> set:
+    """:func:`.progtext.scan` of a program for ``patterns`` (which path it takes: probing, I/O), ended
+    by a stop that comes meanwhile (``daemon._stops`` no longer ``stops``: the program is refused)."""
+    from .progtext import Aborted, scan
+    if stops is None:
+        stops = daemon._stops
+    try:
+        return scan(patterns, text, abort=lambda: daemon._stops != stops)
+    except Aborted:
+        raise HexacncError(f"{name}: stopped before it was interpreted and planned") from None
+
+
 class MotionMixin:
     """The motion-command half of :class:`~hexacnc.daemon.core.Daemon`."""
 
@@ -70,37 +82,43 @@ class MotionMixin:
             self._queue(job)
         return {"blocks": 1, "duration_s": job.duration_s}
 
-    def load_program(self, text: str, name: str) -> dict:
+    def load_program(self, text, name: str, stops: int | None = None) -> dict:
         """Stream the program through validation and windowed planning (:mod:`.planstream`), then queue it:
         after the whole program is validated, or at the first planned window with ``[planner]
         start_before_validated``. G38.x programs run probe-synchronised (reply at the end).
-        Raises GcodeError/PlanError (nothing moved)."""
-        from .probeprog import has_probe_words, run_probe_program
-        if has_probe_words(text):
-            return run_probe_program(self, text, name)
-        job, info = self.load_streamed(text, name)
+        Raises GcodeError/PlanError (nothing moved).  ``text``: str, or the chunks of an upload (a list
+        of str); ``stops``: :meth:`load_streamed`."""
+        from .probeprog import PROBE_WORDS, run_probe_program
+        from .progtext import joined
+        if scan_words(self, text, {"probe": PROBE_WORDS}, name, stops):
+            return run_probe_program(self, joined(text), name)
+        job, info = self.load_streamed(text, name, stops=stops)
         return info
 
-    def load_streamed(self, text: str, name: str, state=None, on_valid=None, accept=None):
+    def load_streamed(self, text, name: str, state=None, on_valid=None, accept=None, stops: int | None = None):
         """The streamed program path of :meth:`load_program` (also the operator's, which interprets from
         its persistent ``state``; ``on_valid(stream_plan)`` once the whole program is validated; ``accept
         (stream_plan, info, source)`` before the job is queued: False leaves it unqueued, e.g. a program without
         motion).  Returns ``(job or None, info)``.  A ``stop`` (or reset) that comes while the program is
-        interpreted, validated or planned kills its children and the program is refused."""
+        interpreted, validated or planned kills its children and the program is refused; ``stops``: the count of
+        stops (``_stops``) when the caller took the program (default: now), a stop after it refuses it."""
         from .planstream import StreamPlan
         from .program import program_source
         with self.lock:
+            stops = self._stops if stops is None else stops
+            if self._stops != stops:
+                raise HexacncError(f"{name}: stopped before it was interpreted and planned")
             self._require_motion_ok()
             start = self._planned_start()
-            stops = self._stops
         # interpreted, validated and planned in children with bounded memory and time (started outside
         # the lock: stop/pause never wait for them); a stop kills them
-        sp = StreamPlan(self.cfg, text, name, start, self.period_s, state=state, on_valid=on_valid)
+        sp = StreamPlan(self.cfg, text, name, start, self.period_s, state=state, on_valid=on_valid, start=False)
         with self.lock:
             self._planning.add(sp)
-            if self._stops != stops:        # a stop came while the children were being started
+            if self._stops != stops:        # a stop came meanwhile
                 sp.cancel()
         try:
+            sp.start()                      # a stop from now on kills the children, even while they get the text
             src, info = program_source(sp, name, start, self.period_s)
         finally:
             with self.lock:

@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from ..state.machine import SYSTEMS
+from .progtext import TextLines
 
 
 def modal_text(st, modal: dict) -> str:
@@ -37,27 +38,6 @@ def modal_text(st, modal: dict) -> str:
              "M8" if modal.get("flood") else ("M7" if modal.get("mist") else "M9"),
              f"F{modal.get('feed', 0.0):g}", f"S{modal.get('rpm', 0.0):g}"]
     return " ".join(words)
-
-
-class TextLines:
-    """Lines of a program's text by index, without a list of a million strings: the text's UTF-8 bytes
-    and the offsets of its line ends (a 1e6-line program: its bytes plus 8 MB)."""
-
-    def __init__(self, text: str):
-        self.data = text.encode("utf-8", errors="replace")
-        buf = np.frombuffer(self.data, dtype=np.uint8)
-        self.ends = np.flatnonzero(buf == 10)
-        self.n = int(self.ends.size) + (1 if self.data and not self.data.endswith(b"\n") else 0)
-
-    def __len__(self) -> int:
-        return self.n
-
-    def __getitem__(self, k: int) -> str:
-        if not 0 <= k < self.n:
-            raise IndexError(k)
-        lo = int(self.ends[k - 1]) + 1 if k > 0 else 0
-        hi = int(self.ends[k]) if k < self.ends.size else len(self.data)
-        return self.data[lo:hi].decode("utf-8", errors="replace")
 
 
 class OperatorStatus:

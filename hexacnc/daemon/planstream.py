@@ -29,6 +29,7 @@ import threading
 import time
 
 from ..errors import HexacncError, PlanError
+from .progtext import count_lines, pieces
 from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reached, refusal
 
 log = logging.getLogger("hexacnc.daemon.planstream")
@@ -88,6 +89,17 @@ def _failure(exc: BaseException, name: str) -> tuple:
                       + (f" at line {line}" if line else "") + f": {type(exc).__name__}: {exc}"})
 
 
+def _recv_text(conn) -> str:
+    """The program text, sent in pieces after the child started (:meth:`StreamPlan._send_text`)."""
+    parts = []
+    while True:
+        msg = conn.recv()
+        if msg[0] == "text":
+            parts.append(msg[1])
+        elif msg[0] == "text_end":
+            return "".join(parts)
+
+
 def _blocks(cfg, text: str, name: str, start_tip, state=None):
     """The program's block stream: from the machine's defaults, or from the operator's persistent
     ``state`` (:class:`hexacnc.state.MachineState`: offsets, G92, tools, the modal state left)."""
@@ -124,11 +136,12 @@ class _Counted:
         return b
 
 
-def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s, state=None) -> None:
+def _validate_child(conn, cfg, name, start_tip, start_rad, max_mb, max_s, state=None) -> None:
     from ..planner.window import validate_windows
     ref: list = []
     _setup(max_mb, ref, VALIDATOR_NICE)
     try:
+        text = _recv_text(conn)
         stream = _blocks(cfg, text, name, start_tip, state)
         ref.append(stream)
         del text
@@ -182,13 +195,14 @@ class _Feeds:
         return out
 
 
-def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s, state=None) -> None:
+def _stream_child(conn, cfg, name, start_tip, period_s, max_mb, max_s, state=None) -> None:
     from ..kinematics import Hexapod
     from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows
     ref: list = []
     _setup(max_mb, ref)
     granted = 0
     try:
+        text = _recv_text(conn)
         stream = _blocks(cfg, text, name, start_tip, state)
         ref.append(stream)
         del text
@@ -269,18 +283,22 @@ class StreamPlan:
     window feed of a :class:`~hexacnc.planner.chain.ChainSampler` (``window``, ``peek``, ``release``,
     ``finished``, ``error``, ``total_lines``)."""
 
-    def __init__(self, cfg, text: str, name: str, start_rad, period_s: float, state=None, on_valid=None):
-        """``state``: interpret from the operator's persistent state (:class:`hexacnc.state.MachineState`;
+    def __init__(self, cfg, text, name: str, start_rad, period_s: float, state=None, on_valid=None,
+                 start: bool = True):
+        """``text``: the program (str, or the list of chunks of an upload: :mod:`.progtext`; it reaches
+        the children in pieces, never as one pickled object); ``state``: interpret from the operator's persistent state (:class:`hexacnc.state.MachineState`;
         the state after the program is then ``final_state`` once validated); ``on_valid``: called (from
         a receiver thread) once the validator has checked the whole program, before ``end_rad`` is set
-        and ready is signalled."""
+        and ready is signalled; ``start`` false: the children start with :meth:`start` (the caller can
+        register the object first, so that a stop that comes while the text is sent cancels it)."""
         from ..planner.window import tool_tip_pose_deg
         d = cfg.daemon
         self.max_mb = float(getattr(d, "max_plan_memory_mb", 0) or 0)
         self.max_s = float(getattr(d, "max_plan_s", 0) or 0)
         self.name = name
         self.before_validated = bool(cfg.planner.start_before_validated)
-        self.total_lines = text.count("\n") + (0 if text.endswith("\n") else 1)
+        text = pieces(text)
+        self.total_lines = count_lines(text)
         self.finished = False
         self.error: HexacncError | None = None
         self.validation: dict = {"state": "running", "line": 0, "blocks": 0}
@@ -298,11 +316,27 @@ class StreamPlan:
         self._granted = 0
         self.t0 = time.monotonic()
         tip = tool_tip_pose_deg(cfg, start_rad)
-        self._plan = _Child(_stream_child, (cfg, text, name, tip, period_s, self.max_mb, self.max_s, state),
-                            self._on_plan, "hexacnc-plan")
+        self._text = text               # until both children have it
+        self._plan = self._val = None
+        self._args = ((cfg, name, tip, period_s, self.max_mb, self.max_s, state),
+                      (cfg, name, tip, start_rad, self.max_mb, self.max_s, state))
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start the planner (and the validator) and send them the text (see ``start`` of the constructor)."""
+        plan_args, val_args = self._args
+        with self._cv:
+            if self.cancelled or self._plan is not None:
+                return
+        plan = _Child(_stream_child, plan_args, self._on_plan, "hexacnc-plan")
+        with self._cv:
+            self._plan, cancelled = plan, self.cancelled
+        if cancelled:                   # a stop while the child was started: cancel() did not see it
+            plan.kill()
+            return
+        self._send_text(self._plan)
         self._grant(AHEAD_WINDOWS)
-        self._val = None
-        val_args = (cfg, text, name, tip, start_rad, self.max_mb, self.max_s, state)
         if self.before_validated:
             threading.Thread(target=self._start_validator, args=(val_args, VALIDATOR_DELAY_S),
                              name="hexacnc-validate-start", daemon=True).start()
@@ -317,6 +351,15 @@ class StreamPlan:
             if self.cancelled:
                 return
             self._val = _Child(_validate_child, args, self._on_val, "hexacnc-validate")
+        self._send_text(self._val)
+        self._text = None
+
+    def _send_text(self, child) -> None:
+        for p in self._text:
+            if self.cancelled:
+                return
+            child.send(("text", p))
+        child.send(("text_end",))
 
     # -- messages (receiver threads) ----------------------------------------------------------
     def _exc(self, msg, child=None) -> HexacncError:
@@ -372,7 +415,7 @@ class StreamPlan:
             self._cv.notify_all()
 
     def _grant(self, n: int) -> None:
-        if n > self._granted:
+        if n > self._granted and self._plan is not None:
             self._granted = n
             self._plan.send(("grant", n))
 
@@ -424,10 +467,10 @@ class StreamPlan:
         with self._cv:
             self.cancelled = True
             self._cv.notify_all()
-            val = self._val
-        if val is not None:
-            val.kill()
-        self._plan.kill()
+            val, plan = self._val, self._plan
+        for child in (val, plan):
+            if child is not None:
+                child.kill()
 
     close = cancel
 
