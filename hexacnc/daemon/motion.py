@@ -25,7 +25,7 @@ def scan_words(daemon, text, patterns: dict, name: str, stops: int | None) -> se
     try:
         return scan(patterns, text, abort=lambda: daemon._stops != stops)
     except Aborted:
-        raise HexacncError(f"{name}: stopped before it was interpreted and planned") from None
+        raise HexacncError(f"{name}: stopped while it was being interpreted and planned") from None
 
 
 class MotionMixin:
@@ -106,8 +106,8 @@ class MotionMixin:
         from .program import program_source
         with self.lock:
             stops = self._stops if stops is None else stops
-            if self._stops != stops:
-                raise HexacncError(f"{name}: stopped before it was interpreted and planned")
+            if self._stops != stops:        # taken by the motion worker before the stop: stopped while prepared
+                raise HexacncError(f"{name}: stopped while it was being interpreted and planned")
             self._require_motion_ok()
             start = self._planned_start()
         # interpreted, validated and planned in children with bounded memory and time (started outside
