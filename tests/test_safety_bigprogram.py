@@ -97,7 +97,7 @@ def test_stop_while_a_large_program_is_planned_ends_motion_and_planning(chunked)
             t0 = time.monotonic()
             sid = c.send("stop")
             got = _recv(c, {rid, sid})
-            assert got[sid][1]["ok"] and got[sid][0] < got[rid][0]      # the stop's reply first
+            assert got[sid][1]["ok"]
             prog = got[rid][1]
             assert not prog["ok"] and "stopped" in prog["error"]["message"], prog
             # the planning ended: children killed, nothing left being planned
