@@ -14,7 +14,11 @@ path and reads what the drives received off the rings (:class:`~hexacnc.bench.ri
   increments moves an estimate by at most 2 % of the limit; windows and resolution in the summary's
   ``peak_estimator``, see :func:`~hexacnc.bench.ringtap.peak_estimator`). The controlled stop is
   planned at ``stopgen.STOP_SHARE`` (0.9) of the acceleration and jerk limits;
-* ``drives_disabled``: every drive's last statusword on the ring is a disabled state;
+* ``drives_disabled``: every drive is shown disabled by the frames after the provocation (a disabled
+  state in a statusword sent after it, or a boot-up after its last statusword: a reset drive comes up
+  in Switch on disabled and sends no PDO until started); ``drives_disabled_reporting``: the same for the
+  drives that still report; ``drives_not_reporting``: drives with no statusword after it (a silent drive:
+  its state cannot be read off the frames; ``drives_end`` says what the master last commanded it);
 * ``spurious``: a fault other than the path's own.
 
 Paths: SIGINT/SIGTERM/SIGHUP to the supervisor, to the hot loop and to the process group;
@@ -322,6 +326,10 @@ def main(args: argparse.Namespace) -> int:
         "detected": sum(1 for r in res.values() if r.get("detected")),
         "not_detected": [k for k, r in res.items() if r.get("detected") is False],
         "drives_disabled": sum(1 for r in res.values() if r.get("drives_disabled")),
+        "drives_disabled_reporting": sum(1 for r in res.values() if r.get("drives_disabled_reporting")),
+        "drives_left_enabled": [k for k, r in res.items() if r.get("drives_disabled_reporting") is False
+                                and not r.get("drives_stay_enabled")],
+        "drives_not_reporting": {k: r["drives_not_reporting"] for k, r in res.items() if r.get("drives_not_reporting")},
         "max_peak_fraction": {k: max((r["peak_fraction"][k] for r in stops), default=None) for k in ("v", "a", "j")},
         "spurious": [k for k, r in res.items() if r.get("spurious")],
         "stop_share_of_limits": STOP_SHARE,

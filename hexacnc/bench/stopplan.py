@@ -5,8 +5,11 @@ The machine moves (a point-to-point move at 15 mm/s); the program goes over the 
 sends it: one ``program`` message is refused above ``[daemon] max_message_bytes`` (checked first,
 on its own connection: the reply is ``too_large`` and names the chunked upload), so it is uploaded in
 chunks (``program_begin`` / ``program_chunk`` / ``program_end``, the pieces ``hexacnc send`` cuts,
-each reply timed: ``chunk_reply_s``), then ``stop`` is sent ``stop_after_s`` after ``program_end``
-(0: right behind it, while the daemon takes the assembled text; 0.5: while the child plans).
+each reply timed: ``chunk_reply_s``), then ``stop`` is sent ``stop_after_s`` after the program's
+planning children started (streamed validation and windowed planning, :mod:`hexacnc.daemon.planstream`; 0.5: while they interpret, validate
+and plan; the move starts once they run, so that it is under way at the stop whatever the time the
+daemon took to take the program on a loaded machine) or right behind ``program_end`` (0: while the
+daemon takes the chunks).
 
 ``latency_s``: from sending ``stop`` to the first SYNC whose targets leave the motion they
 followed: a strut's target more than :data:`DEPARTURE_INCREMENTS` increments off a quadratic fitted
@@ -27,7 +30,7 @@ import time
 import numpy as np
 
 from ..commands.upload_client import CHUNK_BYTES, split_chunks
-from .faultjudge import judge, moving_daemon
+from .faultjudge import judge, moving_daemon, start_move
 
 #: a SYNC has left the motion before the stop when a strut's target is this many increments off
 #: its extrapolation (a quadratic fitted over the 100 ms before the stop): above the rounding
@@ -119,12 +122,33 @@ def _baseline(c: _Conn, d, tap, cfg) -> dict:
     stop_reply_s, _ = c.wait(3, t0)
     time.sleep(0.3)
     out = judge(tap, cfg, t0)
+    out.pop("drives_end", None)
     lat = first_decel_s(tap, cfg, t0)
     f = d.status()["fault"]
     out.update(latency_s=round(lat[0], 4) if lat else None, latency_cycles_s=round(lat[1], 4) if lat else None,
                detected=lat is not None, note="baseline: the same stop with no program sent", stop_reply_s=round(stop_reply_s, 4),
+               drives_stay_enabled=True,
                fault=f and f["code"], spurious=f is not None)
     return out
+
+
+def _wait_planning(d, timeout_s: float) -> float | None:
+    """When the program's planning children run (monotonic s), None if not within ``timeout_s``."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        plans = list(d._planning)
+        if any(p.alive() for p in plans if hasattr(p, "alive")):
+            return time.monotonic()
+        time.sleep(0.005)
+    return None
+
+
+def _validated_lines(d) -> int | None:
+    for p in list(d._planning):
+        v = getattr(p, "validation", None)
+        if v is not None:
+            return int(v.get("line", 0))
+    return None
 
 
 def stop_during_planning(cfg, lines: int, stop_after_s: float | None = 0.5) -> dict:
@@ -133,7 +157,8 @@ def stop_during_planning(cfg, lines: int, stop_after_s: float | None = 0.5) -> d
     body = (f"G1 X{(i % 100) * 0.5 - 25:.1f} Y{(i % 7) - 3} F3000\n" for i in range(lines))
     text = "" if stop_after_s is None else "G0 X0 Y0 Z20\n" + "".join(body)
     data = text.encode()
-    d, tap = moving_daemon(cfg, 15.0)           # ~7 s of motion
+    during = stop_after_s is not None and stop_after_s > 0
+    d, tap = moving_daemon(cfg, 15.0, move=not during)      # ~7 s of motion (during planning: started then)
     tmp = tempfile.mkdtemp(prefix="hxbp", dir="/tmp")
     srv = SocketServer(d, cfg, os.path.join(tmp, "b.sock")).start()
     c = None
@@ -155,14 +180,20 @@ def stop_during_planning(cfg, lines: int, stop_after_s: float | None = 0.5) -> d
                 raise RuntimeError(f"chunk {seq} refused: {m.get('error')}")
             rtt.append(dt_r)
         t_end_sent = c.send({"id": 2, "op": "program_end"})
-        time.sleep(stop_after_s)
+        t_planning = None
+        if during:          # the motion runs while the planning children interpret, validate and plan
+            t_planning = _wait_planning(d, 120.0)
+            start_move(d, tap, cfg, 15.0)
+            time.sleep(stop_after_s)
         planning = bool(d._planning)
+        validated_lines = _validated_lines(d)
         tap.drain()
         t0 = c.send({"id": 3, "op": "stop"})
         stop_reply_s, _ = c.wait(3, t0)
         _, end_reply = c.wait(2)
         time.sleep(0.3)
         out = judge(tap, cfg, t0)
+        out.pop("drives_end", None)         # a stop keeps the drives enabled: their statuswords do not change
         lat = first_decel_s(tap, cfg, t0)
         f = d.status()["fault"]
         out.update(latency_s=round(lat[0], 4) if lat else None, latency_cycles_s=round(lat[1], 4) if lat else None,
@@ -171,9 +202,12 @@ def stop_during_planning(cfg, lines: int, stop_after_s: float | None = 0.5) -> d
                    lines=lines, program_bytes=len(data), one_message=one, chunks=len(rtt),
                    chunk_reply_s={"median": round(float(np.median(rtt)), 4), "max": round(max(rtt), 4)},
                    stop_after_program_end_s=round(t0 - t_end_sent, 4), planning_when_stopped=planning,
+                   planning_started_after_s=None if t_planning is None else round(t_planning - t_end_sent, 3),
+                   validated_lines_when_stopped=validated_lines,
                    stop_reply_s=round(stop_reply_s, 4), program_refused=not end_reply.get("ok"),
                    program_error=(end_reply.get("error") or {}).get("message"),
-                   fault=f and f["code"], spurious=f is not None)
+                   fault=f and f["code"], spurious=f is not None,
+                   drives_stay_enabled=True)       # a stop keeps the drives enabled (not an end: by design)
         return out
     finally:
         if c is not None:

@@ -22,6 +22,7 @@ the hot loop); it is part of the source's snapshot, so a rewind re-produces them
 """
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +33,22 @@ from ..setpoint import FLAG_DWELL
 from .dioloop import SLOTS, encode, pack_row
 
 _HOLDS = (B.DWELL, B.PAUSE, B.OPTIONAL_PAUSE, B.SPINDLE, B.TOOL_CHANGE)
+
+
+_IO_WORD = re.compile(r"m\s*0*6[2-8](?![\d.])", re.IGNORECASE)
+
+
+_IO_DIGITS = re.compile(r"6[2-8]")
+#: the pattern of :func:`has_io_words` for :func:`.progtext.scan` (tried where its digits are)
+IO_WORDS = (lambda s: _IO_DIGITS.search(s) is not None, _IO_WORD)
+
+
+def has_io_words(text) -> bool:
+    """Does the program text (str or pieces) contain an M62-M68 word (it is then planned whole, its outputs
+    placed on the rows: :func:`plan_with_io`)?  A word inside a comment counts too (a harmless
+    whole-program plan)."""
+    from .progtext import scan
+    return bool(scan({"io": IO_WORDS}, text))
 
 
 def _mcode(ex: dict) -> str:

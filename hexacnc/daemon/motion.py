@@ -16,6 +16,18 @@ from .feed import ArraySource, point_to_point
 from .feeding import Job
 
 
+def scan_words(daemon, text, patterns: dict, name: str, stops: int | None) -> set:
+    """:func:`.progtext.scan` of a program for ``patterns`` (which path it takes: probing, I/O), ended
+    by a stop that comes meanwhile (``daemon._stops`` no longer ``stops``: the program is refused)."""
+    from .progtext import Aborted, scan
+    if stops is None:
+        stops = daemon._stops
+    try:
+        return scan(patterns, text, abort=lambda: daemon._stops != stops)
+    except Aborted:
+        raise HexacncError(f"{name}: stopped while it was being interpreted and planned") from None
+
+
 class MotionMixin:
     """The motion-command half of :class:`~hexacnc.daemon.core.Daemon`."""
 
@@ -70,45 +82,65 @@ class MotionMixin:
             self._queue(job)
         return {"blocks": 1, "duration_s": job.duration_s}
 
-    def load_program(self, text: str, name: str) -> dict:
+    def load_program(self, text, name: str, stops: int | None = None) -> dict:
         """Stream the program through validation and windowed planning (:mod:`.planstream`), then queue it:
         after the whole program is validated, or at the first planned window with ``[planner]
         start_before_validated``. G38.x programs run probe-synchronised (reply at the end).
-        Raises GcodeError/PlanError (nothing moved)."""
-        from .probeprog import has_probe_words, run_probe_program
-        if has_probe_words(text):
-            return run_probe_program(self, text, name)
+        Raises GcodeError/PlanError (nothing moved).  ``text``: str, or the chunks of an upload (a list
+        of str); ``stops``: :meth:`load_streamed`."""
+        from .probeprog import PROBE_WORDS, run_probe_program
+        from .progtext import joined
+        if scan_words(self, text, {"probe": PROBE_WORDS}, name, stops):
+            return run_probe_program(self, joined(text), name)
+        job, info = self.load_streamed(text, name, stops=stops)
+        return info
+
+    def load_streamed(self, text, name: str, state=None, on_valid=None, accept=None, stops: int | None = None):
+        """The streamed program path of :meth:`load_program` (also the operator's, which interprets from
+        its persistent ``state``; ``on_valid(stream_plan)`` once the whole program is validated; ``accept
+        (stream_plan, info, source)`` before the job is queued: False leaves it unqueued, e.g. a program without
+        motion).  Returns ``(job or None, info)``.  A ``stop`` (or reset) that comes while the program is
+        interpreted, validated or planned kills its children and the program is refused; ``stops``: the count of
+        stops (``_stops``) when the caller took the program (default: now), a stop after it refuses it."""
         from .planstream import StreamPlan
         from .program import program_source
         with self.lock:
+            stops = self._stops if stops is None else stops
+            if self._stops != stops:        # taken by the motion worker before the stop: stopped while prepared
+                raise HexacncError(f"{name}: stopped while it was being interpreted and planned")
             self._require_motion_ok()
             start = self._planned_start()
-            stops = self._stops
         # interpreted, validated and planned in children with bounded memory and time (started outside
         # the lock: stop/pause never wait for them); a stop kills them
-        sp = StreamPlan(self.cfg, text, name, start, self.period_s)
+        sp = StreamPlan(self.cfg, text, name, start, self.period_s, state=state, on_valid=on_valid, start=False)
         with self.lock:
             self._planning.add(sp)
-            if self._stops != stops:        # a stop came while the children were being started
+            if self._stops != stops:        # a stop came meanwhile
                 sp.cancel()
         try:
+            sp.start()                      # a stop from now on kills the children, even while they get the text
             src, info = program_source(sp, name, start, self.period_s)
         finally:
             with self.lock:
                 self._planning.discard(sp)
+        out = {k: v for k, v in info.items() if k != "end_rad"}
+        if accept is not None and not accept(sp, out, src):
+            src.close()
+            return None, out
         job = Job(name=name, source=src, start_rad=start, end_rad=info["end_rad"], blocks=info["blocks"],
                   duration_s=info["duration_s"])
         with self.lock:
-            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
-                src.close()
-                raise HexacncError("another motion was queued while this program was planned; send it again")
             try:
+                if self._stops != stops:
+                    raise HexacncError(f"{name}: stopped while it was being interpreted and planned")
+                if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+                    raise HexacncError("another motion was queued while this program was planned; send it again")
                 self._queue(job)
             except BaseException:
                 src.close()
                 raise
         self._watch_validation(job)
-        return {k: v for k, v in info.items() if k != "end_rad"}
+        return job, out
 
     def _cancel_planning(self) -> None:
         for pj in list(self._planning):
@@ -141,7 +173,6 @@ class MotionMixin:
             if self.sh is None:
                 raise HexacncError("the daemon is not running")
             self._stops += 1
-            self._cancel_planning()         # a program still being interpreted or planned: dropped
             for job in self.queue:
                 self._close_job(job)
                 self.dropped.append({"name": job.name, "reason": "stop requested"})
@@ -152,6 +183,9 @@ class MotionMixin:
                 self._command(self.current.source.stop)
             elif self.sh.h[S.H_STATE] in (S.ST_RUNNING, S.ST_HOMING):     # homing: stopped, not referenced
                 self.sh.command(S.CMD_STOP)
+            # a program still being interpreted or planned: its children killed, after the motion's stop
+            # was commanded (killing and reaping them must not delay it)
+            self._cancel_planning()
             self.cv.notify_all()
         return self.status()
 

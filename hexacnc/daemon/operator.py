@@ -28,6 +28,7 @@ from ..errors import HexacncError, PlanError
 from ..config.operator import tip_box, tip_violation
 from ..state import MachineState, StateStore, ToolEntry, interpret
 from . import shm as S
+from .motion import scan_words
 from .jog import JogLimitError, JogSource, plan_jog, tip_poses, tool_point_platform
 from .opstatus import OperatorStatus
 from .reference import ReferenceWatch
@@ -127,8 +128,11 @@ class Operator:
         return tool_point_platform(self.cfg, self.tool_length_mm())
 
     # ------------------------------------------------------------------ programs and MDI
-    def load_program(self, text: str, name: str, mdi: bool = False) -> dict:
-        """Interpret from the persistent state, plan, check and queue; commit the new state."""
+    def load_program(self, text, name: str, mdi: bool = False, stops: int | None = None) -> dict:
+        """Interpret from the persistent state, plan, check and queue; commit the new state.  ``text``: str,
+        or the chunks of an upload (list of str); ``stops``: the daemon's stop count when the program was
+        taken (a stop after it refuses the program)."""
+        from .progtext import joined
         from .core import Job
         from .program import ProgramSource
         d = self.daemon
@@ -138,13 +142,18 @@ class Operator:
             self._idle_checks("MDI")
         if self.active_jog() is not None:
             raise OperatorError(f"{what} refused: a jog is running", "busy")
-        from .probeprog import has_probe_words, run_probe_program
-        if has_probe_words(text):          # G38.x: run probe-synchronised, reply at the end
-            return run_probe_program(d, text, name, self, _check_tip_limits if mdi else None)
+        from .ioprog import IO_WORDS
+        from .probeprog import PROBE_WORDS, run_probe_program
+        words = scan_words(d, text, {"probe": PROBE_WORDS, "io": IO_WORDS}, name, stops)
+        if "probe" in words:               # G38.x: run probe-synchronised, reply at the end
+            return run_probe_program(d, joined(text), name, self, _check_tip_limits if mdi else None)
+        if not mdi and "io" not in words:
+            return self._load_streamed(text, name, stops)
+        text = joined(text)
         with d.lock:
+            stops = d._stops if stops is None else stops
             d._require_motion_ok()
             start = d._planned_start()
-            stops = d._stops
         state = self.store.snapshot()
         tip0 = self.tip_pose_deg(start)
         # interpreted and planned in a child with bounded memory and time ([daemon] max_plan_memory_mb,
@@ -182,6 +191,43 @@ class Operator:
         self.store.commit(new_state)
         self.status_view.program_loaded(name, text, prog, float(plan.duration_s))
         return {"blocks": len(prog.blocks), "duration_s": float(plan.duration_s)}
+
+    def _load_streamed(self, text, name: str, stops: int | None = None) -> dict:
+        """A program (not MDI, no M62-M68): streamed through validation and windowed planning in bounded
+        children as the daemon's own programs (:meth:`~hexacnc.daemon.motion.MotionMixin.load_streamed`),
+        interpreted from the persistent state; the state after it is committed once the whole program
+        is validated and the program accepted (``[planner] start_before_validated``: when its
+        validation ends, while it runs).  Memory: one planning window, whatever the program's length."""
+        d = self.daemon
+        state = self.store.snapshot()
+        done = {"accepted": False, "committed": False}
+        lock = threading.Lock()
+
+        def commit(sp) -> None:           # once: after the validation and the acceptance, whichever is last
+            with lock:
+                if not (done["accepted"] and sp.final_state is not None) or done["committed"]:
+                    return
+                done["committed"] = True
+            self.store.commit(sp.final_state)
+
+        def accept(sp, info: dict, src) -> bool:
+            src.sampler.set_override(min(self.feed, 2.0))     # the overrides in force carry over
+            src.sampler.set_rapid_override(self.rapid)
+            moves = sp.motion_blocks != 0 or bool(sp.io_blocks)
+            self.status_view.program_loaded(name, text, sp, float(info["duration_s"]) if moves else 0.0)
+            if not moves:                 # settings only (offsets, tools, ...): nothing is queued
+                with lock:
+                    done["accepted"] = True
+                commit(sp)
+            return moves
+
+        job, info = d.load_streamed(text, name, state=state, on_valid=commit, accept=accept, stops=stops)
+        if job is None:
+            return {"blocks": info["blocks"], "duration_s": 0.0, "moved": False}
+        with lock:
+            done["accepted"] = True
+        commit(job.source.stream)
+        return info
 
     def mdi(self, text: str) -> dict:
         if len(text.encode()) > MAX_MDI_BYTES:

@@ -18,6 +18,7 @@ import time
 import numpy as np
 
 from ..state.machine import SYSTEMS
+from .progtext import TextLines
 
 
 def modal_text(st, modal: dict) -> str:
@@ -44,9 +45,9 @@ class OperatorStatus:
         self.op = op
         self.lock = threading.Lock()
         self.name = None
-        self.lines: list[str] = []
-        self.feeds: dict[int, float] = {}
-        self.messages: list[tuple[int, str]] = []
+        self.lines = TextLines("")
+        self.feeds = {}.get             #: line -> programmed feed (mm/min) or None
+        self.messages = list     #: () -> [(line, text)] of the program's (MSG, ...) comments
         self.duration_s = 0.0
         self.started = None
         self.ended = None
@@ -54,15 +55,20 @@ class OperatorStatus:
         self._speed = 0.0
 
     def program_loaded(self, name: str, text: str, prog, duration_s: float) -> None:
-        feeds = {}
-        for b in prog.motion_blocks:
-            f = b.feed_mm_s
-            feeds[b.line] = 60.0 * f if f is not None and b.kind != "rapid" else None
+        """``prog``: the interpreted program (its blocks), or a streamed one (a
+        :class:`~hexacnc.daemon.planstream.StreamPlan`: the feeds come from its windows as they run)."""
+        feeds = getattr(prog, "feed_at", None)
+        if feeds is None:
+            feeds = {}
+            for b in prog.motion_blocks:
+                f = b.feed_mm_s
+                feeds[b.line] = 60.0 * f if f is not None and b.kind != "rapid" else None
+            feeds = feeds.get
         with self.lock:
             self.name = name
-            self.lines = text.split("\n")[:2_000_000]
+            self.lines = TextLines(text)
             self.feeds = feeds
-            self.messages = list(prog.messages)
+            self.messages = (lambda: prog.messages) if hasattr(prog, "feed_at") else list(prog.messages).copy
             self.duration_s = duration_s
             self.started = None
             self.ended = None
@@ -107,10 +113,10 @@ class OperatorStatus:
             name = (prog or {}).get("name")
             ours = name is not None and name == self.name
             block = self.lines[line - 1] if ours and 0 < line <= len(self.lines) else None
-            fprog = self.feeds.get(line) if ours else None
+            fprog = self.feeds(line) if ours else None
             msg = None
             if ours:
-                for ln, text in self.messages:
+                for ln, text in self.messages():
                     if ln <= line or not running:
                         msg = text
             elapsed, remaining = self._times(st, running, name)

@@ -23,15 +23,23 @@ is disarmed while it waits for the motion to need more.
 """
 from __future__ import annotations
 
+import logging
 import signal
 import threading
 import time
 
 from ..errors import HexacncError, PlanError
+from .progtext import count_lines, pieces
 from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reached, refusal
+
+log = logging.getLogger("hexacnc.daemon.planstream")
 
 #: windows planned ahead of the one the motion is in
 AHEAD_WINDOWS = 2
+#: (MSG, ...) comments kept for the status (the first ones; memory stays bounded whatever the program)
+MAX_MESSAGES = 10_000
+#: motion lines whose feed the planner holds before it hands them out with their window
+MAX_FEED_LINES = 200_000
 
 
 #: niceness of the validator, which runs flat out for minutes on a long program: background work beside the
@@ -81,7 +89,23 @@ def _failure(exc: BaseException, name: str) -> tuple:
                       + (f" at line {line}" if line else "") + f": {type(exc).__name__}: {exc}"})
 
 
-def _blocks(cfg, text: str, name: str, start_tip):
+def _recv_text(conn) -> str:
+    """The program text, sent in pieces after the child started (:meth:`StreamPlan._send_text`)."""
+    parts = []
+    while True:
+        msg = conn.recv()
+        if msg[0] == "text":
+            parts.append(msg[1])
+        elif msg[0] == "text_end":
+            return "".join(parts)
+
+
+def _blocks(cfg, text: str, name: str, start_tip, state=None):
+    """The program's block stream: from the machine's defaults, or from the operator's persistent
+    ``state`` (:class:`hexacnc.state.MachineState`: offsets, G92, tools, the modal state left)."""
+    if state is not None:
+        from ..state import interpret_stream
+        return interpret_stream(text, name, cfg, start_tip, state)
     from ..gcode.factory import machine_defaults
     from ..gcode.textstream import iter_text_blocks
     kw = machine_defaults(cfg)
@@ -89,39 +113,102 @@ def _blocks(cfg, text: str, name: str, start_tip):
     return iter_text_blocks(text, name, **kw)
 
 
-def _validate_child(conn, cfg, text, name, start_tip, start_rad, max_mb, max_s) -> None:
+class _Counted:
+    """The blocks of a stream, counting motion blocks and M62-M68 / M66 blocks on the way."""
+
+    def __init__(self, blocks):
+        from ..gcode import blocks as B
+        self._it = iter(blocks)
+        self._motion, self._io = B.MOTION_KINDS, B.IO
+        self.motion = 0
+        self.io = 0
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        b = next(self._it)
+        k = b.kind
+        if k in self._motion:
+            self.motion += 1
+        elif k == self._io:
+            self.io += 1
+        return b
+
+
+def _validate_child(conn, cfg, name, start_tip, start_rad, max_mb, max_s, state=None) -> None:
     from ..planner.window import validate_windows
     ref: list = []
     _setup(max_mb, ref, VALIDATOR_NICE)
     try:
-        stream = _blocks(cfg, text, name, start_tip)
+        text = _recv_text(conn)
+        stream = _blocks(cfg, text, name, start_tip, state)
         ref.append(stream)
         del text
+        counted = _Counted(stream)
         nb, est, end = 0, 0.0, start_rad
         _arm(max_s)
-        for nb, est, line, end in validate_windows(stream, cfg, start_rad=start_rad):
+        for nb, est, line, end in validate_windows(counted, cfg, start_rad=start_rad):
             conn.send(("checked", line, nb))
             _arm(max_s)
         _arm(0)
-        out = ("valid", nb, est, end)
+        prog = stream.program
+        extra = {"motion_blocks": counted.motion, "io_blocks": counted.io,
+                 "messages": list(prog.messages[:MAX_MESSAGES]) if prog is not None else []}
+        if state is not None:
+            from ..state import state_after_stream
+            extra["state"] = state_after_stream(stream)
+        out = ("valid", nb, est, end, extra)
     except BaseException as exc:       # noqa: BLE001 - every failure is an answer
         out = _failure(exc, name)
     conn.send(out)
     conn.close()
 
 
-def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s) -> None:
+class _Feeds:
+    """The blocks of a stream, noting the programmed feed (mm/min; None for rapids) of each motion
+    line, handed out per window (the operator's status shows the feed of the line being run)."""
+
+    def __init__(self, blocks):
+        from ..gcode import blocks as B
+        self._it = iter(blocks)
+        self._motion, self._rapid = B.MOTION_KINDS, B.RAPID
+        self.seen: dict = {}
+
+    def __iter__(self):
+        return self
+
+    def __next__(self):
+        b = next(self._it)
+        if b.kind in self._motion:
+            f = b.feed_mm_s
+            if len(self.seen) >= MAX_FEED_LINES:
+                self.seen.clear()
+            self.seen[int(b.line)] = 60.0 * f if f is not None and b.kind != self._rapid else None
+        return b
+
+    def take(self, w) -> dict:
+        lo, hi = w.first_line, w.last_line
+        out = {k: v for k, v in self.seen.items() if lo <= k <= hi}
+        for k in out:
+            del self.seen[k]
+        return out
+
+
+def _stream_child(conn, cfg, name, start_tip, period_s, max_mb, max_s, state=None) -> None:
     from ..kinematics import Hexapod
     from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows
     ref: list = []
     _setup(max_mb, ref)
     granted = 0
     try:
-        stream = _blocks(cfg, text, name, start_tip)
+        text = _recv_text(conn)
+        stream = _blocks(cfg, text, name, start_tip, state)
         ref.append(stream)
         del text
+        feeds = _Feeds(stream)
         first = FIRST_WINDOW_BLOCKS if cfg.planner.start_before_validated else 0
-        gen = plan_windows(stream, cfg, hexapod=Hexapod(cfg), period_s=period_s, start_pose=start_tip,
+        gen = plan_windows(feeds, cfg, hexapod=Hexapod(cfg), period_s=period_s, start_pose=start_tip,
                            first_blocks=first)
         while True:
             _arm(max_s)
@@ -129,6 +216,7 @@ def _stream_child(conn, cfg, text, name, start_tip, period_s, max_mb, max_s) -> 
             _arm(0)
             if w is None:
                 break
+            w.feeds = feeds.take(w)
             while w.index >= granted:
                 msg = conn.recv()
                 if msg[0] == "grant":
@@ -195,14 +283,22 @@ class StreamPlan:
     window feed of a :class:`~hexacnc.planner.chain.ChainSampler` (``window``, ``peek``, ``release``,
     ``finished``, ``error``, ``total_lines``)."""
 
-    def __init__(self, cfg, text: str, name: str, start_rad, period_s: float):
+    def __init__(self, cfg, text, name: str, start_rad, period_s: float, state=None, on_valid=None,
+                 start: bool = True):
+        """``text``: the program (str, or the list of chunks of an upload: :mod:`.progtext`; it reaches
+        the children in pieces, never as one pickled object); ``state``: interpret from the operator's persistent state (:class:`hexacnc.state.MachineState`;
+        the state after the program is then ``final_state`` once validated); ``on_valid``: called (from
+        a receiver thread) once the validator has checked the whole program, before ``end_rad`` is set
+        and ready is signalled; ``start`` false: the children start with :meth:`start` (the caller can
+        register the object first, so that a stop that comes while the text is sent cancels it)."""
         from ..planner.window import tool_tip_pose_deg
         d = cfg.daemon
         self.max_mb = float(getattr(d, "max_plan_memory_mb", 0) or 0)
         self.max_s = float(getattr(d, "max_plan_s", 0) or 0)
         self.name = name
         self.before_validated = bool(cfg.planner.start_before_validated)
-        self.total_lines = text.count("\n") + (0 if text.endswith("\n") else 1)
+        text = pieces(text)
+        self.total_lines = count_lines(text)
         self.finished = False
         self.error: HexacncError | None = None
         self.validation: dict = {"state": "running", "line": 0, "blocks": 0}
@@ -210,16 +306,37 @@ class StreamPlan:
         self.end_rad = None             #: platform pose (mm, rad) at the program's end, once validated
         self.on_invalid = None          #: called with the error the validator finds (after the start)
         self.cancelled = False
+        self.final_state = None         #: the persistent state after the program (with ``state``), once valid
+        self.messages: list = []        #: (line, text) of its (MSG, ...) comments, once valid
+        self.motion_blocks = None       #: motion blocks of the whole program, once valid
+        self.io_blocks = None           #: M62-M68 / M66 blocks of the whole program, once valid
+        self.on_valid = on_valid
         self._cv = threading.Condition()
         self._have: dict = {}
         self._granted = 0
         self.t0 = time.monotonic()
         tip = tool_tip_pose_deg(cfg, start_rad)
-        self._plan = _Child(_stream_child, (cfg, text, name, tip, period_s, self.max_mb, self.max_s),
-                            self._on_plan, "hexacnc-plan")
+        self._text = text               # until both children have it
+        self._plan = self._val = None
+        self._args = ((cfg, name, tip, period_s, self.max_mb, self.max_s, state),
+                      (cfg, name, tip, start_rad, self.max_mb, self.max_s, state))
+        if start:
+            self.start()
+
+    def start(self) -> None:
+        """Start the planner (and the validator) and send them the text (see ``start`` of the constructor)."""
+        plan_args, val_args = self._args
+        with self._cv:
+            if self.cancelled or self._plan is not None:
+                return
+        plan = _Child(_stream_child, plan_args, self._on_plan, "hexacnc-plan")
+        with self._cv:
+            self._plan, cancelled = plan, self.cancelled
+        if cancelled:                   # a stop while the child was started: cancel() did not see it
+            plan.kill()
+            return
+        self._send_text(self._plan)
         self._grant(AHEAD_WINDOWS)
-        self._val = None
-        val_args = (cfg, text, name, tip, start_rad, self.max_mb, self.max_s)
         if self.before_validated:
             threading.Thread(target=self._start_validator, args=(val_args, VALIDATOR_DELAY_S),
                              name="hexacnc-validate-start", daemon=True).start()
@@ -234,6 +351,15 @@ class StreamPlan:
             if self.cancelled:
                 return
             self._val = _Child(_validate_child, args, self._on_val, "hexacnc-validate")
+        self._send_text(self._val)
+        self._text = None
+
+    def _send_text(self, child) -> None:
+        for p in self._text:
+            if self.cancelled:
+                return
+            child.send(("text", p))
+        child.send(("text_end",))
 
     # -- messages (receiver threads) ----------------------------------------------------------
     def _exc(self, msg, child=None) -> HexacncError:
@@ -247,6 +373,18 @@ class StreamPlan:
 
     def _on_val(self, msg) -> None:
         cb = None
+        if msg is not None and msg[0] == "valid":
+            extra = msg[4] if len(msg) > 4 else {}
+            with self._cv:
+                self.final_state = extra.get("state")
+                self.messages = extra.get("messages", [])
+                self.motion_blocks, self.io_blocks = extra.get("motion_blocks"), extra.get("io_blocks")
+                ok = not self.cancelled
+            if ok and self.on_valid is not None:
+                try:                    # before ready / end_rad: the state is committed before the next load
+                    self.on_valid(self)
+                except Exception:       # noqa: BLE001 - the program's answer must still come
+                    log.exception("%s: after its validation", self.name)
         with self._cv:
             if msg is not None and msg[0] == "checked":
                 self.validation.update(line=msg[1], blocks=msg[2])
@@ -277,7 +415,7 @@ class StreamPlan:
             self._cv.notify_all()
 
     def _grant(self, n: int) -> None:
-        if n > self._granted:
+        if n > self._granted and self._plan is not None:
             self._granted = n
             self._plan.send(("grant", n))
 
@@ -290,6 +428,15 @@ class StreamPlan:
     def peek(self, i: int):
         with self._cv:
             return self._have.get(i)
+
+    def feed_at(self, line: int):
+        """Programmed feed (mm/min; None: a rapid or not known) of ``line`` in the windows held."""
+        with self._cv:
+            for w in self._have.values():
+                f = getattr(w, "feeds", None)
+                if f and line in f:
+                    return f[line]
+        return None
 
     def release(self, i: int) -> None:
         with self._cv:
@@ -320,10 +467,10 @@ class StreamPlan:
         with self._cv:
             self.cancelled = True
             self._cv.notify_all()
-            val = self._val
-        if val is not None:
-            val.kill()
-        self._plan.kill()
+            val, plan = self._val, self._plan
+        for child in (val, plan):
+            if child is not None:
+                child.kill()
 
     close = cancel
 

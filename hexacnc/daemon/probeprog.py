@@ -38,9 +38,15 @@ _G38 = re.compile(r"g\s*0*38\s*\.\s*[2-5]|m\s*0*66(?![\d.])", re.IGNORECASE)
 MAX_PROBES = 10_000
 
 
-def has_probe_words(text: str) -> bool:
-    """Does the program text contain a G38.2..G38.5 or an M66 word (it then runs synchronised)?"""
-    return _G38.search(text) is not None
+#: the pattern of :func:`has_probe_words` for :func:`.progtext.scan`: where neither "38" nor "66" occurs, none
+PROBE_WORDS = (lambda s: "38" in s or "66" in s, _G38)
+
+
+def has_probe_words(text) -> bool:
+    """Does the program text (str or pieces) contain a G38.2..G38.5 or an M66 word (it then runs
+    synchronised)?  Scanned in pieces: a stop never waits behind a scan of a large program."""
+    from .progtext import scan
+    return bool(scan({"probe": PROBE_WORDS}, text))
 
 
 def plan_segment(cfg, text: str, name: str, start_rad, period_s: float, tip0, state, known, tip_check):

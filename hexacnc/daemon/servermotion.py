@@ -78,19 +78,37 @@ class MotionOps:
             info = P.plain(result) if isinstance(result, dict) else {"blocks": result}
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
-        load = self.operator.load_program if self.operator is not None else self.daemon.load_program
-        self._submit_motion(conn, req, self._unless_stopped(lambda: load(text, name), name), reply)
+        load = self._program_loader()
+        self._submit_motion(conn, req, self._unless_stopped(lambda stops: load(text, name, stops), name), reply)
+
+    def _program_loader(self) -> Callable[[Any, str, Any], Any]:
+        """``load(text or chunks, name, stops)``: the operator's (persistent state) or the daemon's
+        ``load_program``; one that takes no ``stops`` (a test double) gets the text joined."""
+        import inspect
+
+        from .progtext import joined
+        load = self.operator.load_program if getattr(self, "operator", None) is not None else self.daemon.load_program
+        try:
+            takes = "stops" in inspect.signature(load).parameters
+        except (TypeError, ValueError):
+            takes = False
+        if takes:
+            return lambda text, name, stops: load(text, name, stops=stops)
+        return lambda text, name, stops: load(joined(text), name)
 
     def _unless_stopped(self, load: Callable[[], Any], name: str) -> Callable[[], Any]:
-        """``load`` for the motion worker, unless a ``stop`` arrived after the program (stop runs on
+        """``load(stops)`` for the motion worker, unless a ``stop`` arrived after the program (stop runs on
         its own worker and can overtake it): refused if the stop came before planning began, and
-        stopped again if it came while planning began (the daemon cancels a plan in progress)."""
+        stopped again if it came while planning began.  ``stops``: the daemon's count of stops taken
+        before this check, so that a stop that comes while the program is still being prepared (a large
+        text scanned, its planning children started) aborts it as soon as it is planned or queued."""
         epoch = self._stop_epoch
 
         def call() -> Any:
+            stops = getattr(self.daemon, "_stops", None)
             if self._stop_epoch != epoch:
                 raise HexacncError(f"{name}: stopped before it was interpreted and planned")
-            result = load()
+            result = load(stops)
             if self._stop_epoch != epoch:
                 self.daemon.stop()
                 raise HexacncError(f"{name}: stopped while it was being interpreted and planned")

@@ -106,7 +106,7 @@ class Uploads:
 
 class UploadOps:
     """The three ops for :class:`hexacnc.daemon.server.SocketServer` (a mixin: uses its ``_take_control``,
-    ``_send``, ``_submit_motion`` and ``daemon``; the server keeps an :class:`Uploads` in ``_uploads``)."""
+    ``_program_loader``, ``_send``, ``_submit_motion`` and ``daemon``; the server keeps an :class:`Uploads` in ``_uploads``)."""
 
     def _upload_step(self, conn, req, step) -> None:
         from . import protocol as P
@@ -141,6 +141,8 @@ class UploadOps:
             info = P.plain(result) if isinstance(result, dict) else {"blocks": result}
             info.setdefault("name", name)
             return P.ok_reply(req.id, **info)
-        operator = getattr(self, "operator", None)     # as op "program": the operator's state when there is one
-        load = operator.load_program if operator is not None else self.daemon.load_program
-        self._submit_motion(conn, req, self._unless_stopped(lambda: load("".join(parts), name), name), reply)
+        load = self._program_loader()           # as op "program": the operator's state when there is one
+        # the chunks go on as they came (never joined here: one join of a large program holds the
+        # interpreter lock for tens of ms, and a stop would wait behind it; :mod:`.progtext`)
+        self._submit_motion(conn, req, self._unless_stopped(lambda stops: load(parts, name, stops), name),
+                            reply)

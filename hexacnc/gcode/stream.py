@@ -150,11 +150,15 @@ class _StreamInterpreter(Interpreter):
 class BlockStream:
     """Iterator of the blocks of a streamed program (see the module docstring)."""
 
-    def __init__(self, path: Path, name: str, window_lines: int, queue_batches: int, kw: dict, lines=None):
-        """``lines``: a :class:`_FileLines` over the program (default: over the file ``path``)."""
+    def __init__(self, path: Path, name: str, window_lines: int, queue_batches: int, kw: dict, lines=None,
+                 prepare=None):
+        """``lines``: a :class:`_FileLines` over the program (default: over the file ``path``);
+        ``prepare``: called with the interpreter before it starts (e.g. to set a modal state)."""
         lines = lines if lines is not None else _FileLines(path, window_lines)
         self._it = _StreamInterpreter(None, name, lines=lines, **kw)
         self._it.parsed = _Parsed(2 * window_lines)
+        if prepare is not None:
+            prepare(self._it)
         self._q: queue.Queue = queue.Queue(maxsize=queue_batches)
         self._stop = False
         self.program: Program | None = None
@@ -198,6 +202,11 @@ class BlockStream:
                 self._put(exc)
             except _Stopped:
                 return
+
+    @property
+    def interpreter(self) -> Interpreter:
+        """The interpreter (its modal state after the end, once the iterator is exhausted)."""
+        return self._it
 
     def __iter__(self):
         return self

@@ -51,13 +51,14 @@ class _TextLines(_FileLines):
 
 
 def iter_text_blocks(text: str, name: str, *, window_lines: int = 4096, queue_batches: int = 4,
-                     **kw) -> BlockStream:
+                     prepare=None, **kw) -> BlockStream:
     """Stream the blocks of program ``text`` (keywords of :func:`~hexacnc.gcode.parse_program`); errors are
-    raised from ``next()`` where they happen, after the blocks before them."""
+    raised from ``next()`` where they happen, after the blocks before them.  ``prepare``: called with the
+    interpreter before it starts (a modal state carried over from an earlier program)."""
     if not 64 <= int(window_lines) <= 10_000_000:
         raise GcodeError(f"window_lines {window_lines} must be 64..10000000", None, None, "value")
     data = text.encode("utf-8") if isinstance(text, str) else bytes(text)
     if data and not data.endswith(b"\n"):
         data += b"\n"
     lines = _TextLines(data, int(window_lines))
-    return BlockStream(Path(name), name, int(window_lines), int(queue_batches), kw, lines=lines)
+    return BlockStream(Path(name), name, int(window_lines), int(queue_batches), kw, lines=lines, prepare=prepare)

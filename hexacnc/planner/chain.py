@@ -191,8 +191,9 @@ class ChainSampler:
     @property
     def progress(self) -> tuple[float, float]:
         """(percent done by program line, nominal time left s of the windows planned so far)."""
+        finished = self._done and self.error is None and self._intent != "stop"    # a stopped program is not
         if self._s is None:
-            return (100.0 if self._done else 0.0), 0.0
+            return (100.0 if finished else 0.0), 0.0
         _pct, left = self._s.progress
         k = self._i + 1
         w = self.feed.peek(k)
@@ -200,7 +201,7 @@ class ChainSampler:
             left += w.plan.duration_s
             k += 1
             w = self.feed.peek(k)
-        if self._done and self.error is None:
+        if finished:
             return 100.0, 0.0
         total = max(1, int(getattr(self.feed, "total_lines", 0) or 0))
         return min(100.0, 100.0 * self.line / total), left

@@ -126,19 +126,10 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState, int
     subclass; probe synchronisation, :mod:`hexacnc.gcode.probesync`)."""
     import gc
 
-    from ..gcode.factory import machine_defaults
     from ..gcode.interp import Interpreter
     Interpreter = interpreter or Interpreter
-    kw = machine_defaults(cfg)
-    kw["start_pose"] = [float(v) for v in start_tip_deg]
-    for k in ("work_offsets", "g28_pose", "g30_pose", "tool_table"):
-        kw.pop(k, None)
-    if not state.tools and cfg.tools.length_mm:
-        kw["tool_table"] = dict(cfg.tools.length_mm)
-    it = Interpreter(text, name, initial_state=_to_interp_state(state), **kw)
-    for a in MODAL_ATTRS:
-        if a in state.modal and hasattr(it, a):
-            setattr(it, a, copy.deepcopy(state.modal[a]))
+    it = Interpreter(text, name, **_interp_kwargs(cfg, start_tip_deg, state))
+    _set_modal(it, state)
     was = gc.isenabled()
     gc.disable()
     try:
@@ -146,9 +137,45 @@ def interpret(text: str, name: str, cfg, start_tip_deg, state: MachineState, int
     finally:
         if was:
             gc.enable()
-    newp, tools = _from_interp_state(prog.final_state)
+    return prog, _state_after(prog.final_state, it)
+
+
+def _interp_kwargs(cfg, start_tip_deg, state: MachineState) -> dict:
+    from ..gcode.factory import machine_defaults
+    kw = machine_defaults(cfg)
+    kw["start_pose"] = [float(v) for v in start_tip_deg]
+    for k in ("work_offsets", "g28_pose", "g30_pose", "tool_table"):
+        kw.pop(k, None)
+    if not state.tools and cfg.tools.length_mm:
+        kw["tool_table"] = dict(cfg.tools.length_mm)
+    kw["initial_state"] = _to_interp_state(state)
+    return kw
+
+
+def _set_modal(it, state: MachineState) -> None:
+    for a in MODAL_ATTRS:
+        if a in state.modal and hasattr(it, a):
+            setattr(it, a, copy.deepcopy(state.modal[a]))
+
+
+def _state_after(final_state, it) -> MachineState:
+    newp, tools = _from_interp_state(final_state)
     modal = {a: copy.deepcopy(getattr(it, a)) for a in MODAL_ATTRS if hasattr(it, a)}
-    return prog, MachineState(newp, tools, modal)
+    return MachineState(newp, tools, modal)
+
+
+def interpret_stream(text: str, name: str, cfg, start_tip_deg, state: MachineState, **kw):
+    """As :func:`interpret`, streamed (:func:`hexacnc.gcode.textstream.iter_text_blocks`: blocks in
+    windows, memory bounded by the window): returns the :class:`~hexacnc.gcode.stream.BlockStream`;
+    once it is exhausted, :func:`state_after_stream` gives the state after the program."""
+    from ..gcode.textstream import iter_text_blocks
+    return iter_text_blocks(text, name, prepare=lambda it: _set_modal(it, state),
+                            **_interp_kwargs(cfg, start_tip_deg, state), **kw)
+
+
+def state_after_stream(stream) -> MachineState:
+    """The :class:`MachineState` after an exhausted :func:`interpret_stream`."""
+    return _state_after(stream.program.final_state, stream.interpreter)
 
 
 def state_dir(cfg) -> Path:
