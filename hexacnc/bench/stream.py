@@ -72,6 +72,7 @@ def bench_config(config: str | None, smooth_mm: float, source: str, path: str):
         from .toppra_peer import lift_workspace
         cfg = lift_workspace(cfg)
         head = Path(path).read_text(encoding="utf-8", errors="replace")[:200_000]
+        head = head[:head.rfind("\n") + 1] or head         # whole lines (a cut line is a G-code error)
         _prog, wo = _place(head + "\nM2\n", "head.ngc", cfg)
         cfg = cfg.replace(planner=dataclasses.replace(cfg.planner, work_offset_mm=tuple(wo)))
     return cfg

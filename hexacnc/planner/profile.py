@@ -19,18 +19,19 @@ CAP_BISECT = 14
 CAP_HALVINGS = 60
 
 
-def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, speed2=None) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
     positions passed within T.  If the raw speed is at most sqrt(x_j) for all
     positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
     that mean is at most sqrt(x_j):
-    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.
+    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.  ``speed2`` (N,):
+    spread another quantity x (an acceleration cap) over the reach of these speeds^2 instead.
     """
     N = x.shape[0]
     fin = np.isfinite(x)
-    r = np.where(fin, np.sqrt(np.maximum(x, 0.0)) * T, 0.0)
+    r = np.where(fin, np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, 0.0)
     lo = np.searchsorted(sg, sg - r, side="left")
     hi = np.searchsorted(sg, sg + r, side="right") - 1
     cnt = np.minimum(hi - lo + 1, max_span)
@@ -125,33 +126,52 @@ class RampBounds:
     sample whose window holds it, and a ramp at a line's cap beside a corner blend gave the blend's
     samples more jerk than the blend's own cap allows."""
 
-    def __init__(self, topp, sg: np.ndarray, reach_s: float, cap_col: int = 6, off: int = 0):
+    def __init__(self, topp, sg: np.ndarray, reach_s: float, cap_col: int = 6, off: int = 0, _near=None):
         self.t, self.sg, self.reach_s, self.col, self.off = topp, sg, float(reach_s), cap_col, off
+        self._near = [None] if _near is None else _near         # shared with the shifted copies
 
     def shifted(self, a0: int) -> "RampBounds":
         """The same bounds for a grid range starting at point ``a0``."""
-        return RampBounds(self.t, self.sg, self.reach_s, self.col, self.off + int(a0))
+        return RampBounds(self.t, self.sg, self.reach_s, self.col, self.off + int(a0), self._near)
 
-    def _cap_near(self, k: np.ndarray, v: np.ndarray) -> np.ndarray:
-        """Minimum of the acceleration cap over the grid points within ``reach_s * v`` of interval k."""
-        t, sg = self.t, self.sg
-        n = t.e.shape[0]
+    def _cap_near(self, k: np.ndarray) -> np.ndarray:
+        """The acceleration cap of the intervals k as its minimum over the filter's reach: every point's cap
+        spread ``reach_s`` seconds either side at the TOPP solution's speed there, then the smaller of an
+        interval's two ends (and past a duplicated junction point).  Computed once, for the whole grid."""
+        t = self.t
         if self.col >= t.e.shape[1]:
             return np.full(k.shape[0], np.inf)
-        r = self.reach_s * v
-        lo = np.searchsorted(sg, sg[k] - r, side="left")
-        hi = np.minimum(np.searchsorted(sg, sg[k + 1] + r, side="right"), n)
-        lo = np.minimum(lo, hi - 1)
-        cnt = hi - lo
-        idx = np.repeat(lo - np.concatenate([[0], np.cumsum(cnt)[:-1]]), cnt) + np.arange(int(cnt.sum()))
-        return np.minimum.reduceat(t.e[idx, self.col], np.concatenate([[0], np.cumsum(cnt)[:-1]]))
+        if self._near[0] is None:
+            cap = np.concatenate([t.e[:, self.col], t.e[-1:, self.col]])
+            near = dilate_min(self.sg, cap, self.reach_s, speed2=t.x)
+            for _ in range(2):
+                np.minimum(near[:-1], near[1:], out=near[:-1])
+            self._near[0] = near[:-1]
+        return self._near[0][k]
 
-    def up(self, k: np.ndarray, x0: np.ndarray, x1: np.ndarray) -> np.ndarray:
-        """Largest path acceleration on the intervals k from speed^2 x0 up to x1."""
+    def up(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """Largest path acceleration on the intervals k starting at speed^2 x0."""
         t, k = self.t, k + self.off
         with np.errstate(invalid="ignore", over="ignore"):
             u = (t.e[k] + t.d[k] * x0[:, None]).min(axis=1)
-        return np.minimum(u, self._cap_near(k, np.sqrt(np.maximum(x1, 0.0))))
+        return np.minimum(u, self._cap_near(k))
+
+    def table(self, x: np.ndarray, idx: np.ndarray) -> tuple:
+        """For the bisection of the peak caps, on the intervals idx of the range (x: its speeds^2; the
+        other entries are left unset): the largest acceleration from the first point, and the
+        deceleration bounds' rows C + D x (a decel bound at any level: ``-max(C + D L2)``), the reach's cap."""
+        t, n = self.t, x.shape[0] - 1
+        k = idx + self.off
+        ur = np.empty(n)
+        ur[idx] = self.up(idx, x[idx])
+        C = np.empty((n, t.d.shape[1]))
+        D = np.empty((n, t.d.shape[1]))
+        near = np.empty(n)
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            C[idx] = np.where(t.bok[k], t.bnum[k] / t.h2[k][:, None], -np.inf)
+        D[idx] = t.d[k]
+        near[idx] = self._cap_near(k)
+        return ur, C, D, near
 
     def down(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """Largest path deceleration (positive) on the intervals k (h > 0) starting at speed^2 x0."""
@@ -159,7 +179,7 @@ class RampBounds:
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             lo = t.bnum[k] / t.h2[k][:, None] + t.d[k] * x0[:, None]
             dec = -np.where(t.bok[k], lo, -np.inf).max(axis=1)
-        return np.minimum(dec, self._cap_near(k, np.sqrt(np.maximum(x0, 0.0))))
+        return np.minimum(dec, self._cap_near(k))
 
 
 def _ramp_times(h, xa, xb, ur, uf) -> np.ndarray:
@@ -198,7 +218,7 @@ def ramp_kinks(h, x, caps, ramps):
     pos = h > 0
     k = np.nonzero(pos & (x[1:] > x[:-1]) & capped[1:])[0]
     if k.size:
-        ur[k] = np.maximum(ramps.up(k, x[k], x[k + 1]), 0.0)
+        ur[k] = np.maximum(ramps.up(k, x[k]), 0.0)
     k = np.nonzero(pos & (x[:-1] > x[1:]) & capped[:-1])[0]
     if k.size:
         uf[k] = np.maximum(ramps.down(k, x[k]), 0.0)
@@ -251,13 +271,21 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float, ramps: RampBounds | None 
         b = fi[np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)]
         s_a = S[a]
         s_b = S[b]
-        if ramps is not None:
-            s_a, s_b = _crossings(h, x, ramps, a, b, hs[hid], L * L, s_a.copy(), s_b.copy())
+        if rt is not None:
+            s_a, s_b = _crossings(h, x, rt, a, b, hs[hid], L * L, s_a, s_b)
         return s_b - s_a >= w * L
 
+    rt = None
     cap = np.full(H, np.inf)
     hid = np.arange(H)
     hid = hid[(vpk > 0) & ~long_enough(hid, vpk)]           # the others have their plateau already
+    if ramps is not None and hid.size:
+        # the ramps only lengthen a plateau: the hills short on the grid's points, measured at the crossings
+        cnt = he[hid] - hs[hid]
+        st = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        idx = np.repeat(hs[hid] - st, cnt) + np.arange(int(cnt.sum()))
+        rt = ramps.table(x, idx[idx < N - 1])
+        hid = hid[~long_enough(hid, vpk[hid])]
     if hid.size:
         v_lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
         short = ~long_enough(hid, v_lo)
@@ -295,22 +323,25 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float, ramps: RampBounds | None 
     return cap[hill] ** 2, hill
 
 
-def _crossings(h, x, ramps, a, b, first, L2, s_a, s_b):
-    """Where the ramps cross the level L2 (speed^2): into the first point ``a`` at or above it from the
-    point before (unless ``a`` is its hill's ``first``), and out of the last one ``b`` to the next."""
+def _crossings(h, x, rt, a, b, first, L2, s_a, s_b):
+    """Where the ramps (``rt``: :meth:`RampBounds.table`) cross the level L2 (speed^2): into the first
+    point ``a`` at or above it from the point before (unless ``a`` is its hill's ``first``), and out of the
+    last one ``b`` to the next.  (Masks, no index lists: a bisection step on a few hills is all overhead.)"""
     N = x.shape[0]
-    m = np.nonzero((a > first) & (h[np.maximum(a - 1, 0)] > 0))[0]
-    if m.size:
-        k = a[m] - 1
-        u = np.maximum(ramps.up(k, x[k], L2[m]), (x[a[m]] - x[k]) / (2 * h[k]))
-        s_a[m] = s_a[m] - h[k] + np.minimum(h[k], np.maximum(L2[m] - x[k], 0.0) / (2 * u))
-    m = np.nonzero((b < N - 1) & (h[np.minimum(b, N - 2)] > 0))[0]
-    if m.size:
-        k = b[m]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.maximum(ramps.down(k, L2[m]), (L2[m] - x[k + 1]) / (2 * h[k]))
-            d = np.where(u > 0, np.maximum(L2[m] - x[k + 1], 0.0) / (2 * u), h[k])
-        s_b[m] = s_b[m] + h[k] - np.minimum(h[k], d)
+    ur, C, D, near = rt
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        k = np.maximum(a - 1, 0)
+        hk = h[k]
+        xk = x[k]
+        u = np.maximum(ur[k], (x[a] - xk) / (2 * hk))
+        dr = np.minimum(hk, np.maximum(L2 - xk, 0.0) / (2 * u))
+        s_a = np.where((a > first) & (hk > 0), s_a - hk + dr, s_a)
+        k = np.minimum(b, N - 2)
+        hk = h[k]
+        xn = x[k + 1]
+        u = np.maximum(np.minimum(-(C[k] + D[k] * L2[:, None]).max(axis=1), near[k]), (L2 - xn) / (2 * hk))
+        d = np.where(u > 0, np.maximum(L2 - xn, 0.0) / (2 * u), hk)
+        s_b = np.where((b < N - 1) & (hk > 0), s_b + hk - np.minimum(hk, d), s_b)
     return s_a, s_b
 
 
