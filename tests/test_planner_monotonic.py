@@ -68,10 +68,11 @@ def _random_directions(rng, k: int, rotation: bool) -> np.ndarray:
     return U / np.linalg.norm(U, axis=1, keepdims=True)
 
 
-def _sweep_and_check(cfg, rng, seed, programme, n: int, n_rows: int):
-    """Durations over the swept lengths (no dip); the rows of n_rows random ones within the limits."""
+def _sweep_and_check(cfg, rng, seed, plan_of, n: int, n_rows: int):
+    """Durations of the plans ``plan_of(length)`` over the swept lengths (no dip); the rows of n_rows random
+    ones within the limits."""
     L = _lengths_mm(rng, n)
-    plans = [_plan(cfg, programme(d)) for d in L]
+    plans = [plan_of(d) for d in L]
     dur = [p.duration_s for p in plans]
     assert not _dips(L, dur), f"seed {seed}: {_dips(L, dur)}"
     for i in rng.choice(len(plans), n_rows, replace=False):
@@ -84,18 +85,25 @@ def _sweep_and_check(cfg, rng, seed, programme, n: int, n_rows: int):
 def test_single_moves_from_rest_in_random_directions_with_rotations(cfg, seed):
     rng = np.random.default_rng(seed)
     for u in _random_directions(rng, 2, rotation=True):
-        _sweep_and_check(cfg, rng, seed, lambda d: _moves([u], d, "G61", 6000.0), 48, 2)
+        _sweep_and_check(cfg, rng, seed, lambda d: _plan(cfg, _moves([u], d, "G61", 6000.0)), 48, 2)
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("mode", ["G61", "G64 P0.01"])
-def test_back_to_back_moves_dense(cfg, seed, mode):
-    """The twelve moves of :func:`back_to_back` in a random order and sense, swept densely (G64 P0.01: the
-    peak plateaus used to end on grid points, and a longer move then planned shorter)."""
+def test_back_to_back_exact_stop_moves_in_random_order_dense(cfg, seed):
+    """The twelve moves of :func:`back_to_back` in a random order and sense, G61: the path scales with
+    the length exactly."""
     rng = np.random.default_rng(seed)
     U = [np.array(DIRS[k % 6], float) / np.linalg.norm(DIRS[k % 6]) * rng.choice([-1.0, 1.0]) for k in range(12)]
     U = [np.concatenate([u, np.zeros(3)]) for u in rng.permutation(U)]
-    _sweep_and_check(cfg, rng, seed, lambda d: _moves(U, d, mode), 48, 2)
+    _sweep_and_check(cfg, rng, seed, lambda d: _plan(cfg, _moves(U, d, "G61")), 48, 2)
+
+
+@pytest.mark.slow
+def test_back_to_back_g64_moves_dense(cfg, seed):
+    """:func:`back_to_back` (G64 P0.01) on a dense random grid of lengths: the peak plateaus used to end on
+    grid points, and a longer move then planned shorter (0.44 mm 1.5 % longer than 0.57 mm)."""
+    rng = np.random.default_rng(seed)
+    _sweep_and_check(cfg, rng, seed, lambda d: back_to_back(cfg, d), 48, 2)
 
 
 @pytest.mark.parametrize("move", ["X{d:.7f}", "X{h:.7f} Y{h:.7f} Z{h:.7f}", "A{d:.7f}"])

@@ -114,64 +114,58 @@ def _with_accel_cap(c, e, d, ecap):
     return c7, e7, d7, xcap
 
 
+#: the acceleration cap spread over the filter's reach before the TOPP pass (:func:`_spread_cap`)
+SPREAD_CAP = True
+
+
+def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float) -> np.ndarray:
+    """The acceleration cap (N,) lowered to its minimum over the filter's reach: the moving average carries
+    an acceleration to every sample whose window holds it (a ramp at a line's cap beside a corner blend gave
+    the blend's samples more jerk than the blend's cap allows).  Every point's cap is spread ``T`` seconds
+    either side at the speed^2 ``x`` there, then each point takes the smaller of its own and the next
+    point's, twice (the TOPP pass bounds an interval at its first point; past a duplicated junction point
+    too), so that a ramp anywhere inside an interval keeps the caps of both its ends."""
+    out = dilate_min(sg, ecap, T, speed2=x)
+    for _ in range(2):
+        np.minimum(out[:-1], out[1:], out=out[:-1])
+    return out
+
+
 class RampBounds:
     """The path-acceleration bounds of the TOPP pass per grid interval, ``max_k(c_k + d_k x) <= u <=
     min_k(e_k + d_k x)`` at the interval's first point (where the forward and backward passes evaluate
-    them), read from a :class:`~hexacnc.planner.toppvec.WavefrontTopp` on the intervals asked for only:
-    the ramps into and out of a capped plateau, which end at the cap inside their interval.
+    them, the acceleration cap among them: :func:`_spread_cap`), read from a
+    :class:`~hexacnc.planner.toppvec.WavefrontTopp` on the intervals asked for only: the ramps into and
+    out of a capped plateau, which end at the cap inside their interval."""
 
-    The acceleration cap (the bounds' column ``cap_col``, which keeps the filter's jerk within the limit)
-    is taken as its minimum over the filter's reach (``reach_s`` seconds either side at the interval's
-    higher speed, grid positions ``sg``): the moving average carries a ramp's acceleration to every
-    sample whose window holds it, and a ramp at a line's cap beside a corner blend gave the blend's
-    samples more jerk than the blend's own cap allows."""
-
-    def __init__(self, topp, sg: np.ndarray, reach_s: float, cap_col: int = 6, off: int = 0, _near=None):
-        self.t, self.sg, self.reach_s, self.col, self.off = topp, sg, float(reach_s), cap_col, off
-        self._near = [None] if _near is None else _near         # shared with the shifted copies
+    def __init__(self, topp, off: int = 0):
+        self.t, self.off = topp, off
 
     def shifted(self, a0: int) -> "RampBounds":
         """The same bounds for a grid range starting at point ``a0``."""
-        return RampBounds(self.t, self.sg, self.reach_s, self.col, self.off + int(a0), self._near)
-
-    def _cap_near(self, k: np.ndarray) -> np.ndarray:
-        """The acceleration cap of the intervals k as its minimum over the filter's reach: every point's cap
-        spread ``reach_s`` seconds either side at the TOPP solution's speed there, then the smaller of an
-        interval's two ends (and past a duplicated junction point).  Computed once, for the whole grid."""
-        t = self.t
-        if self.col >= t.e.shape[1]:
-            return np.full(k.shape[0], np.inf)
-        if self._near[0] is None:
-            cap = np.concatenate([t.e[:, self.col], t.e[-1:, self.col]])
-            near = dilate_min(self.sg, cap, self.reach_s, speed2=t.x)
-            for _ in range(2):
-                np.minimum(near[:-1], near[1:], out=near[:-1])
-            self._near[0] = near[:-1]
-        return self._near[0][k]
+        return RampBounds(self.t, self.off + int(a0))
 
     def up(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """Largest path acceleration on the intervals k starting at speed^2 x0."""
         t, k = self.t, k + self.off
         with np.errstate(invalid="ignore", over="ignore"):
             u = (t.e[k] + t.d[k] * x0[:, None]).min(axis=1)
-        return np.minimum(u, self._cap_near(k))
+        return u
 
     def table(self, x: np.ndarray, idx: np.ndarray) -> tuple:
         """For the bisection of the peak caps, on the intervals idx of the range (x: its speeds^2; the
         other entries are left unset): the largest acceleration from the first point, and the
-        deceleration bounds' rows C + D x (a decel bound at any level: ``-max(C + D L2)``), the reach's cap."""
+        deceleration bounds' rows C + D x (a decel bound at any level: ``-max(C + D L2)``)."""
         t, n = self.t, x.shape[0] - 1
         k = idx + self.off
         ur = np.empty(n)
         ur[idx] = self.up(idx, x[idx])
         C = np.empty((n, t.d.shape[1]))
         D = np.empty((n, t.d.shape[1]))
-        near = np.empty(n)
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             C[idx] = np.where(t.bok[k], t.bnum[k] / t.h2[k][:, None], -np.inf)
         D[idx] = t.d[k]
-        near[idx] = self._cap_near(k)
-        return ur, C, D, near
+        return ur, C, D
 
     def down(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
         """Largest path deceleration (positive) on the intervals k (h > 0) starting at speed^2 x0."""
@@ -179,7 +173,7 @@ class RampBounds:
         with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
             lo = t.bnum[k] / t.h2[k][:, None] + t.d[k] * x0[:, None]
             dec = -np.where(t.bok[k], lo, -np.inf).max(axis=1)
-        return np.minimum(dec, self._cap_near(k))
+        return dec
 
 
 def _ramp_times(h, xa, xb, ur, uf) -> np.ndarray:
@@ -326,21 +320,21 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float, ramps: RampBounds | None 
 def _crossings(h, x, rt, a, b, first, L2, s_a, s_b):
     """Where the ramps (``rt``: :meth:`RampBounds.table`) cross the level L2 (speed^2): into the first
     point ``a`` at or above it from the point before (unless ``a`` is its hill's ``first``), and out of the
-    last one ``b`` to the next.  (Masks, no index lists: a bisection step on a few hills is all overhead.)"""
+    last one ``b`` to the next; a ramp is never slower than reaching the level at the grid point, as
+    :func:`ramp_kinks` runs it.  (Masks, no index lists: a bisection step on a few hills is all overhead.)"""
     N = x.shape[0]
-    ur, C, D, near = rt
+    ur, C, D = rt
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         k = np.maximum(a - 1, 0)
         hk = h[k]
-        xk = x[k]
-        u = np.maximum(ur[k], (x[a] - xk) / (2 * hk))
-        dr = np.minimum(hk, np.maximum(L2 - xk, 0.0) / (2 * u))
-        s_a = np.where((a > first) & (hk > 0), s_a - hk + dr, s_a)
+        rise = np.maximum(L2 - x[k], 0.0)
+        u = np.maximum(ur[k], rise / (2 * hk))
+        s_a = np.where((a > first) & (hk > 0), s_a - hk + np.minimum(hk, rise / (2 * u)), s_a)
         k = np.minimum(b, N - 2)
         hk = h[k]
-        xn = x[k + 1]
-        u = np.maximum(np.minimum(-(C[k] + D[k] * L2[:, None]).max(axis=1), near[k]), (L2 - xn) / (2 * hk))
-        d = np.where(u > 0, np.maximum(L2 - xn, 0.0) / (2 * u), hk)
+        fall = np.maximum(L2 - x[k + 1], 0.0)
+        u = np.maximum(-(C[k] + D[k] * L2[:, None]).max(axis=1), fall / (2 * hk))
+        d = np.where(u > 0, fall / (2 * u), hk)
         s_b = np.where((b < N - 1) & (hk > 0), s_b + hk - np.minimum(hk, d), s_b)
     return s_a, s_b
 
