@@ -13,7 +13,9 @@ file, then, each in a fresh process (peak RSS = ``ru_maxrss`` of that process):
   holds AHEAD_WINDOWS + 2 of);
 * ``first_motion``: the daemon's :class:`~hexacnc.daemon.planstream.StreamPlan` with
   ``start_before_validated`` (warm forkserver): seconds from the program to its first planned window
-  (target <= 1 s), and, in the default mode, seconds until motion may start (the validation).
+  (target <= 1 s), and, in the default mode, seconds until motion may start (the validation); beside it
+  the CPU seconds of that first window (``first_window_cpu_s``, in this process: what the wall time is
+  on an idle machine).
 
 Timings are CPU-load dependent (a shared machine): the JSON says the load average.
 """
@@ -72,6 +74,7 @@ def bench_config(config: str | None, smooth_mm: float, source: str, path: str):
         from .toppra_peer import lift_workspace
         cfg = lift_workspace(cfg)
         head = Path(path).read_text(encoding="utf-8", errors="replace")[:200_000]
+        head = head[:head.rfind("\n") + 1] or head         # whole lines (a cut line is a G-code error)
         _prog, wo = _place(head + "\nM2\n", "head.ngc", cfg)
         cfg = cfg.replace(planner=dataclasses.replace(cfg.planner, work_offset_mm=tuple(wo)))
     return cfg
@@ -124,6 +127,7 @@ def first_motion(path: Path, args, source: str) -> dict:
     finally:
         sp.cancel()
     out = {"forkserver_start_s": round(time.perf_counter() - t0, 3)}
+    out.update(_first_window_cpu(cfg, text, path.name, home))
     for before in (True, False):
         c = cfg.replace(planner=dataclasses.replace(cfg.planner, start_before_validated=before))
         t0 = time.perf_counter()
@@ -136,6 +140,29 @@ def first_motion(path: Path, args, source: str) -> dict:
             out["error" if before else "error_validated"] = str(exc)
         finally:
             sp.cancel()
+    return out
+
+
+def _first_window_cpu(cfg, text: str, name: str, home) -> dict:
+    """CPU seconds of what the planning child does before its first window (interpreter stream, first window
+    of FIRST_WINDOW_BLOCKS motion blocks), in this process with its modules loaded as the forkserver has them:
+    the part of ``first_window_s`` that does not depend on the machine's load (on a loaded machine the wall
+    time is this times the CPU share the child gets)."""
+    from ..gcode.factory import machine_defaults
+    from ..gcode.textstream import iter_text_blocks
+    from ..kinematics import Hexapod
+    from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows, tool_tip_pose_deg
+    tip = tool_tip_pose_deg(cfg, home)
+    kw = {**machine_defaults(cfg), "start_pose": tip}          # as the daemon's planning child streams it
+    out = {"first_window_blocks_max": FIRST_WINDOW_BLOCKS}
+    for key in ("first_window_cpu_cold_s", "first_window_cpu_s"):     # first call in a process, then again
+        c0 = time.process_time()
+        gen = plan_windows(iter_text_blocks(text, name, **kw), cfg, hexapod=Hexapod(cfg), start_pose=tip,
+                           first_blocks=FIRST_WINDOW_BLOCKS)
+        w = next(gen)
+        out[key] = round(time.process_time() - c0, 3)
+        gen.close()
+    out["first_window_motion_s"] = round(w.plan.duration_s, 3)
     return out
 
 

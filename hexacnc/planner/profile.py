@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 
-from .topp import interval_times
 
 #: fraction of the acceleration and jerk limits the nominal plan may use
 ETA = 0.95
@@ -20,18 +19,19 @@ CAP_BISECT = 14
 CAP_HALVINGS = 60
 
 
-def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000) -> np.ndarray:
+def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, speed2=None) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
     positions passed within T.  If the raw speed is at most sqrt(x_j) for all
     positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
     that mean is at most sqrt(x_j):
-    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.
+    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.  ``speed2`` (N,):
+    spread another quantity x (an acceleration cap) over the reach of these speeds^2 instead.
     """
     N = x.shape[0]
     fin = np.isfinite(x)
-    r = np.where(fin, np.sqrt(np.maximum(x, 0.0)) * T, 0.0)
+    r = np.where(fin, np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, 0.0)
     lo = np.searchsorted(sg, sg - r, side="left")
     hi = np.searchsorted(sg, sg + r, side="right") - 1
     cnt = np.minimum(hi - lo + 1, max_span)
@@ -114,14 +114,126 @@ def _with_accel_cap(c, e, d, ecap):
     return c7, e7, d7, xcap
 
 
-def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
+#: the acceleration cap spread over the filter's reach before the TOPP pass (:func:`_spread_cap`)
+SPREAD_CAP = True
+#: farthest the acceleration cap is spread (mm): a corner's or a curve's low cap reaches the ramps beside it
+#: (at the speeds there the filter's reach is a few tenths of a mm); on long fast moves the reach at the
+#: uncapped speeds would lower the cap over whole moves (rest-to-rest moves 1.2 % longer, smoothed CAM 11 %)
+SPREAD_CAP_MM = 0.2
+
+
+def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float) -> np.ndarray:
+    """The acceleration cap (N,) lowered to its minimum over the filter's reach: the moving average carries
+    an acceleration to every sample whose window holds it (a ramp at a line's cap beside a corner blend gave
+    the blend's samples more jerk than the blend's cap allows).  Every point's cap is spread ``T`` seconds
+    either side at the speed^2 ``x`` there (at most SPREAD_CAP_MM), then each point takes the smaller of
+    its own and the next point's, twice (the TOPP pass bounds an interval at its first point; past a
+    duplicated junction point too), so that a ramp anywhere inside an interval keeps the caps of both
+    its ends."""
+    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2))
+    for _ in range(2):
+        np.minimum(out[:-1], out[1:], out=out[:-1])
+    return out
+
+
+class RampBounds:
+    """The path-acceleration bounds of the TOPP pass per grid interval, ``max_k(c_k + d_k x) <= u <=
+    min_k(e_k + d_k x)`` at the interval's first point (where the forward and backward passes evaluate
+    them, the acceleration cap among them: :func:`_spread_cap`), read from a
+    :class:`~hexacnc.planner.toppvec.WavefrontTopp` on the intervals asked for only: the ramps into and
+    out of a capped plateau, which end at the cap inside their interval."""
+
+    def __init__(self, topp, off: int = 0):
+        self.t, self.off = topp, off
+
+    def shifted(self, a0: int) -> "RampBounds":
+        """The same bounds for a grid range starting at point ``a0``."""
+        return RampBounds(self.t, self.off + int(a0))
+
+    def up(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """Largest path acceleration on the intervals k starting at speed^2 x0."""
+        t, k = self.t, k + self.off
+        with np.errstate(invalid="ignore", over="ignore"):
+            u = (t.e[k] + t.d[k] * x0[:, None]).min(axis=1)
+        return u
+
+    def table(self, x: np.ndarray, idx: np.ndarray) -> tuple:
+        """For the bisection of the peak caps, on the intervals idx of the range (x: its speeds^2; the
+        other entries are left unset): the largest acceleration from the first point, and the
+        deceleration bounds' rows C + D x (a decel bound at any level: ``-max(C + D L2)``)."""
+        t, n = self.t, x.shape[0] - 1
+        k = idx + self.off
+        ur = np.empty(n)
+        ur[idx] = self.up(idx, x[idx])
+        C = np.empty((n, t.d.shape[1]))
+        D = np.empty((n, t.d.shape[1]))
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            C[idx] = np.where(t.bok[k], t.bnum[k] / t.h2[k][:, None], -np.inf)
+        D[idx] = t.d[k]
+        return ur, C, D
+
+    def down(self, k: np.ndarray, x0: np.ndarray) -> np.ndarray:
+        """Largest path deceleration (positive) on the intervals k (h > 0) starting at speed^2 x0."""
+        t, k = self.t, k + self.off
+        with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+            lo = t.bnum[k] / t.h2[k][:, None] + t.d[k] * x0[:, None]
+            dec = -np.where(t.bok[k], lo, -np.inf).max(axis=1)
+        return dec
+
+
+def _ramp_times(h, xa, xb, ur, uf) -> np.ndarray:
+    """Durations of intervals of length h from speed^2 xa to xb: a ramp at ``ur`` (rising, > 0) then the
+    end speed, or the start speed then a ramp at ``uf`` (falling, > 0), else constant acceleration (the
+    ramp is never slower than that)."""
+    va = np.sqrt(np.maximum(xa, 0.0))
+    vb = np.sqrt(np.maximum(xb, 0.0))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.where(h > 0, 2.0 * h / (va + vb), 0.0)
+        lin = np.abs(xb - xa) / (2.0 * np.where(h > 0, h, 1.0))
+        r = (ur > 0) & (xb > xa) & (h > 0)
+        if r.any():
+            u = np.maximum(ur[r], lin[r])
+            t[r] = (vb[r] - va[r]) / u + (h[r] - (xb[r] - xa[r]) / (2 * u)) / vb[r]
+        f = (uf > 0) & (xa > xb) & (h > 0)
+        if f.any():
+            u = np.maximum(uf[f], lin[f])
+            t[f] = (h[f] - (xa[f] - xb[f]) / (2 * u)) / va[f] + (va[f] - vb[f]) / u
+    return t
+
+
+def ramp_kinks(h, x, caps, ramps):
+    """Ramp accelerations (N-1,) into (``ur``) and out of (``uf``) every capped point: a rising interval
+    that ends at its end point's cap ramps at the largest acceleration of the TOPP bounds, then holds the
+    cap; a falling one that starts at its start point's cap holds it, then ramps down at the largest
+    deceleration.  That is ``min(x(s), cap)`` with the plateau's ends inside the intervals, where the
+    uncapped ramp crosses the cap (a plateau from grid point to grid point made its ramps, and the
+    move's time, shrink as the move grew)."""
+    n = h.shape[0]
+    ur = np.zeros(n)
+    uf = np.zeros(n)
+    if ramps is None or caps is None or n == 0:
+        return ur, uf
+    capped = np.isfinite(caps) & (x >= caps * (1 - 1e-12))
+    pos = h > 0
+    k = np.nonzero(pos & (x[1:] > x[:-1]) & capped[1:])[0]
+    if k.size:
+        ur[k] = np.maximum(ramps.up(k, x[k]), 0.0)
+    k = np.nonzero(pos & (x[:-1] > x[1:]) & capped[:-1])[0]
+    if k.size:
+        uf[k] = np.maximum(ramps.down(k, x[k]), 0.0)
+    return ur, uf
+
+
+def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float, ramps: RampBounds | None = None):
     """Speed caps (x units, per grid point; inf where none) that give every speed peak of the profile x
     a plateau of at least ``w`` seconds, so that a moving average of width ``w`` never holds an
     acceleration reversal; and the hill number of each grid point.
 
     A hill runs from one local minimum of x to the next; its cap is the highest level L (bisection)
-    whose plateau, from the first grid point at or above L on the way up to the last one on the way
-    down, lasts at least w at speed L (the capped profile reaches L at those points: it did before).
+    whose plateau lasts at least w at speed L: with ``ramps`` (:class:`RampBounds`) from where the ramp
+    into it at the largest acceleration crosses L to where the ramp out of it at the largest deceleration
+    leaves L (inside the grid intervals: :func:`ramp_kinks`, what the raw profile then runs); without,
+    from the first grid point at or above L on the way up to the last one on the way down.
     """
     N = x.shape[0]
     if N < 3:
@@ -153,14 +265,26 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
     key_f = (H - 1 - hill[fi]) + v[fi] / scale                   # non-decreasing
 
     def long_enough(hid, L):
-        """The plateau at level L (between the crossing grid points) lasts at least w at speed L."""
-        a = np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)
-        b = np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)
-        return S[fi[b]] - S[ri[a]] >= w * L
+        """The plateau at level L (between the crossings of L) lasts at least w at speed L."""
+        a = ri[np.minimum(np.searchsorted(key_r, hid + L / scale, side="left"), ri.size - 1)]
+        b = fi[np.minimum(np.searchsorted(key_f, (H - 1 - hid) + L / scale, side="left"), fi.size - 1)]
+        s_a = S[a]
+        s_b = S[b]
+        if rt is not None:
+            s_a, s_b = _crossings(h, x, rt, a, b, hs[hid], L * L, s_a, s_b)
+        return s_b - s_a >= w * L
 
+    rt = None
     cap = np.full(H, np.inf)
     hid = np.arange(H)
     hid = hid[(vpk > 0) & ~long_enough(hid, vpk)]           # the others have their plateau already
+    if ramps is not None and hid.size:
+        # the ramps only lengthen a plateau: the hills short on the grid's points, measured at the crossings
+        cnt = he[hid] - hs[hid]
+        st = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        idx = np.repeat(hs[hid] - st, cnt) + np.arange(int(cnt.sum()))
+        rt = ramps.table(x, idx[idx < N - 1])
+        hid = hid[~long_enough(hid, vpk[hid])]
     if hid.size:
         v_lo = np.minimum(np.maximum(v[hs[hid]], v[he[hid]]), vpk[hid])
         short = ~long_enough(hid, v_lo)
@@ -193,23 +317,46 @@ def _cap_peaks(h: np.ndarray, x: np.ndarray, w: float):
         # instead (tiny moves between slow corners: a plateau of w each would cost w per move)
         flat = np.full(H, np.inf)
         flat[hid] = np.where((v_lo > 0) & (lo > 0), v_lo, np.inf)
-        slower = np.isfinite(flat) & (_hill_times(h, v, hill, H, cap) > _hill_times(h, v, hill, H, flat))
+        slower = np.isfinite(flat) & (_hill_times(h, x, hill, H, cap, ramps) > _hill_times(h, x, hill, H, flat, ramps))
         cap[slower] = flat[slower]
     return cap[hill] ** 2, hill
 
 
-def _hill_times(h: np.ndarray, v: np.ndarray, hill: np.ndarray, H: int, level: np.ndarray) -> np.ndarray:
-    """Time (H,) over each hill of the grid profile ``v`` (speeds) with speeds capped at the hill's
-    ``level`` (inf: not capped); constant path acceleration between grid points."""
-    lev = level[hill[:-1]]
-    a = np.minimum(v[:-1], lev)
-    b = np.minimum(v[1:], lev)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(h > 0, 2.0 * h / (a + b), 0.0)
+def _crossings(h, x, rt, a, b, first, L2, s_a, s_b):
+    """Where the ramps (``rt``: :meth:`RampBounds.table`) cross the level L2 (speed^2): into the first
+    point ``a`` at or above it from the point before (unless ``a`` is its hill's ``first``), and out of the
+    last one ``b`` to the next; a ramp is never slower than reaching the level at the grid point, as
+    :func:`ramp_kinks` runs it.  (Masks, no index lists: a bisection step on a few hills is all overhead.)"""
+    N = x.shape[0]
+    ur, C, D = rt
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        k = np.maximum(a - 1, 0)
+        hk = h[k]
+        rise = np.maximum(L2 - x[k], 0.0)
+        u = np.maximum(ur[k], rise / (2 * hk))
+        s_a = np.where((a > first) & (hk > 0), s_a - hk + np.minimum(hk, rise / (2 * u)), s_a)
+        k = np.minimum(b, N - 2)
+        hk = h[k]
+        fall = np.maximum(L2 - x[k + 1], 0.0)
+        u = np.maximum(-(C[k] + D[k] * L2[:, None]).max(axis=1), fall / (2 * hk))
+        d = np.where(u > 0, fall / (2 * u), hk)
+        s_b = np.where((b < N - 1) & (hk > 0), s_b + hk - np.minimum(hk, d), s_b)
+    return s_a, s_b
+
+
+def _hill_times(h: np.ndarray, x: np.ndarray, hill: np.ndarray, H: int, level: np.ndarray,
+                ramps: RampBounds | None = None) -> np.ndarray:
+    """Time (H,) over each hill of the grid profile ``x`` (speed^2) with speeds capped at the hill's
+    ``level`` (inf: not capped); constant path acceleration between grid points, or with ``ramps`` the
+    ramps into and out of the cap that :func:`ramp_kinks` gives the raw profile."""
+    lev = level[hill]
+    xc = np.minimum(x, lev * lev)
+    ur, uf = ramp_kinks(h, xc, lev * lev, ramps)
+    t = _ramp_times(h, xc[:-1], xc[1:], ur, uf)
     return np.bincount(hill[:-1], weights=t, minlength=H)
 
 
-def _cap_round(h, x, w, spans=None, max_spans: int = 64):
+def _cap_round(h, x, w, spans=None, max_spans: int = 64, ramps: RampBounds | None = None):
     """One round of peak caps on the whole profile (``spans`` None) or on grid ranges that start and end
     at a valley.  Returns (mask of the grid points of the hills that need a cap, caps (N,) valid there),
     or (None, None) when every peak has its plateau."""
@@ -221,7 +368,7 @@ def _cap_round(h, x, w, spans=None, max_spans: int = 64):
     for a0, a1 in spans:
         if a1 <= a0:
             continue
-        c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w)
+        c, hill = _cap_peaks(h[a0:a1], x[a0:a1 + 1], w, None if ramps is None else ramps.shifted(a0))
         more = c < x[a0:a1 + 1] * (1 - 1e-9)
         if more.any():
             hm = np.zeros(int(hill[-1]) + 1, dtype=bool)
@@ -238,10 +385,16 @@ def _runs(mask: np.ndarray) -> list:
     return list(zip(np.nonzero(d == 1)[0].tolist(), (np.nonzero(d == -1)[0] - 1).tolist()))
 
 
-def _sample_profile(sg, h, x, holds_s, dt):
-    """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point)."""
+def _sample_profile(sg, h, x, holds_s, dt, ramps: RampBounds | None = None, caps=None):
+    """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point); with ``ramps`` and
+    ``caps`` the intervals into and out of a capped plateau ramp at the largest acceleration and hold the
+    cap for the rest (:func:`ramp_kinks`), the others run at constant acceleration."""
     N = sg.shape[0]
-    D = interval_times(h, x)                       # (N-1,)
+    ur, uf = ramp_kinks(h, x, caps, ramps)
+    D = _ramp_times(h, x[:-1], x[1:], ur, uf)      # (N-1,)
+    if not np.all(np.isfinite(D)):
+        k = int(np.nonzero(~np.isfinite(D))[0][0])
+        raise FloatingPointError(f"zero speed over a path interval at grid point {k}")
     v = np.sqrt(np.maximum(x, 0.0))
     with np.errstate(divide="ignore", invalid="ignore"):
         u = np.where(h > 0, (x[1:] - x[:-1]) / (2 * np.where(h > 0, h, 1.0)), 0.0)
@@ -261,6 +414,21 @@ def _sample_profile(sg, h, x, holds_s, dt):
     mov = (tau > 0) & (g < N - 1)
     tm = np.minimum(tau, Dg)
     s[mov] = np.minimum(sg[g[mov]] + v[g[mov]] * tm[mov] + 0.5 * u[gi[mov]] * tm[mov] ** 2, sg[g[mov] + 1])
+    kr = mov & (ur[gi] > 0) & (x[np.minimum(g + 1, N - 1)] > x[g])
+    if kr.any():           # ramp at ur to the end speed, then that speed
+        k, tk = gi[kr], tm[kr]
+        a = np.maximum(ur[k], u[k])
+        t1 = (v[k + 1] - v[k]) / a
+        r = np.minimum(tk, t1)
+        s[kr] = np.minimum(sg[k] + v[k] * r + 0.5 * a * r * r + v[k + 1] * np.maximum(tk - t1, 0.0), sg[k + 1])
+    kf = mov & (uf[gi] > 0) & (x[np.minimum(g + 1, N - 1)] < x[g])
+    if kf.any():           # the start speed, then a ramp down at uf to the end speed
+        k, tk = gi[kf], tm[kf]
+        a = np.maximum(uf[k], -u[k])
+        dr = (x[k] - x[k + 1]) / (2 * a)
+        tc = (h[k] - dr) / v[k]
+        r = np.maximum(tk - tc, 0.0)
+        s[kf] = np.minimum(sg[k] + v[k] * np.minimum(tk, tc) + v[k] * r - 0.5 * a * r * r, sg[k + 1])
     return s, TH, total
 
 

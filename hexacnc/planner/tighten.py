@@ -14,8 +14,8 @@ from . import path as P
 from .consts import CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, MAX_ITERATIONS, MODEL_SCREEN, SCREEN, SPREAD_REACH
 from .grid import Derivs, Grid
 from .holds import Rests
-from .profile import (ETA, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min, _runs,
-                      _sample_profile, _with_accel_cap)
+from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
+                      _runs, _sample_profile, _spread_cap, _with_accel_cap)
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
@@ -49,6 +49,8 @@ class Tightener:
         # cap only grows as speeds drop, so it stays valid)
         x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
         self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
+        if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
+            self.ecap = _spread_cap(g.sg, self.ecap, x0, SPREAD_REACH * nf * dt)
         del x0
         c, self.e, self.dd, xcap = _with_accel_cap(c, e, dd, self.ecap)
         lower = np.nonzero(xcap < self.xlim)[0]
@@ -99,7 +101,7 @@ class Tightener:
         step, so a second round caps what the first left."""
         spans = None                       # the first round looks at every hill
         for _round in range(rounds):
-            region, cap = _cap_round(self.g.h, x, self.w_plateau, spans)
+            region, cap = _cap_round(self.g.h, x, self.w_plateau, spans, ramps=self.ramps())
             if region is None:
                 break
             self.caps[region] = np.minimum(self.caps[region], cap[region])
@@ -108,11 +110,15 @@ class Tightener:
             x = self.topp.solve_ranges(self.xc, spans)
         return x
 
+    def ramps(self) -> RampBounds:
+        """The TOPP bounds the ramps into and out of capped plateaus run at (profile.ramp_kinks)."""
+        return RampBounds(self.topp)
+
     def table(self, x: np.ndarray):
         """Raw profile at dt, its moving average, and rows that rest exactly at each hold."""
         g, rs, dt, nf = self.g, self.rs, self.dt, self.nf
         try:
-            s_raw, TH, _total = _sample_profile(g.sg, g.h, x, rs.holds_s, dt)
+            s_raw, TH, _total = _sample_profile(g.sg, g.h, x, rs.holds_s, dt, self.ramps(), self.caps)
         except FloatingPointError as exc:
             k = int(str(exc).rsplit(" ", 1)[-1])
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
