@@ -428,6 +428,9 @@ class SimDrive:
         self.tpdos = []
 
     def _getter(self, index: int) -> Callable[[], int]:
+        hook = self.hooks.read.get(index)
+        if hook is not None:                # an extension's object (e.g. 0x6077, drivers/simtorque)
+            return lambda: hook(0) or 0
         return {
             0x6041: self.statusword, 0x6064: lambda: self.pos_inc, 0x6061: lambda: self.mode,
             0x6062: lambda: self.demand_inc, 0x60F4: lambda: self.ferr_inc, 0x603F: lambda: self.error_code,
