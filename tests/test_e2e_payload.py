@@ -22,6 +22,7 @@ from hexacnc.calib.output import dumps_toml
 from hexacnc.calib.payload import plan_rest_poses, sag_tip_deviation
 from hexacnc.calib.recording import load
 from hexacnc.cli import main as cli
+from hexacnc.errors import HexacncError
 from hexacnc.kinematics import Hexapod
 from hexacnc.sim.truth import parse_truth, synth_truth_doc
 
@@ -50,10 +51,15 @@ def loaded(cfg, tmp_path_factory):  # noqa: F811
 
 def _visit(daemon, poses) -> None:
     for pose in poses:
+        st = {"state": "not moved", "fault": None}
         for attempt in range(5):       # a stall of the loaded test VM can fault a move: reset, again
-            if daemon.status()["state"] == "fault":
-                daemon.reset(timeout_s=30.0)
-            daemon.move_to(pose, 60.0)
+            try:
+                if daemon.status()["state"] == "fault":
+                    daemon.reset(timeout_s=30.0)
+                daemon.move_to(pose, 60.0)
+            except HexacncError:       # faulted between the status and the move: reset and again
+                time.sleep(0.2)
+                continue
             st = daemon.wait(60.0)
             if st["state"] == "idle" or attempt == 4:
                 break
