@@ -102,6 +102,9 @@ def test_payload_identified_within_5_percent_from_a_live_recording_with_torques_
           f"from {p['rest_poses']} rest poses; moving samples {int(moving.sum())}, with torques "
           f"{np.mean(np.all(np.isfinite(r['torque_permille'][moving]), axis=1)):.3f}")
     assert abs(p["mass_kg"] - true_kg) <= 0.05 * true_kg, (p["mass_kg"], true_kg)
+    pm = p["in_motion"]
+    print(f"payload in motion: {pm.get('mass_kg', float('nan')):.3f} +- {pm.get('mass_std_kg', float('nan')):.3f} kg "
+          f"from {pm.get('samples')} samples ({pm.get('reason', 'ok')})")
     assert "payload_changed" in rep["causes"]
     upd = p["proposed_update"]
     assert upd["carrier"]["mass_kg"] == pytest.approx(cfg.mass_kg + p["mass_kg"], abs=1e-3)
