@@ -27,7 +27,7 @@ from hexacnc.errors import HexacncError
 from hexacnc.kinematics import Hexapod
 from hexacnc.sim.truth import parse_truth, synth_truth_doc
 
-pytestmark = [pytest.mark.e2e]
+pytestmark = [pytest.mark.e2e, pytest.mark.slow]     # a daemon, five rest poses, ~1 min on the loaded 2-core VM
 RATED_TORQUE_MNM = 7958                         #: drivers/hexapod_drive.eds 0x6076
 N_PER_PERMILLE = 2 * math.pi * RATED_TORQUE_MNM / LEAD_MM / 1000.0
 TORQUE_PDO_EVERY = 40                           #: 20 ms per drive at 0.5 ms
@@ -57,7 +57,7 @@ def _visit(daemon, poses) -> None:
             try:
                 if daemon.status()["state"] == "fault":
                     daemon.reset(timeout_s=30.0)
-                daemon.move_to(pose, 60.0)
+                daemon.move_to(pose, 150.0)
             except HexacncError:       # faulted between the status and the move: reset and again
                 time.sleep(0.2)
                 continue
