@@ -14,6 +14,7 @@ reaches the drives within ~0.3 ms of each other (SDO-free broadcast order), as o
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import random
 import statistics
@@ -21,6 +22,7 @@ from typing import Callable
 
 from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
+from . import torquepdo
 
 
 def _crc15(bits: list[int]) -> int:
@@ -56,12 +58,13 @@ def frame_bits(can_id: int, data: bytes) -> int:
 
 
 def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: int = 1,
-             sdo_gap_s: float = 0.0) -> dict:
+             sdo_gap_s: float = 0.0, torque_pdo: bool = True) -> dict:
     """Per-cycle demand on the busiest bus (us): median, p99, max, p99/median.
 
     ``sdo_gap_s`` > 0: also the master's decimated SDO uploads (torque sampling,
     ``hexacnc.daemon.torqueread``): one 8-byte request every ``sdo_gap_s`` over all buses, round robin,
-    answered (8 bytes) in the next cycle."""
+    answered (8 bytes) in the next cycle.  ``torque_pdo``: with the drives' torque TPDO3 when ``[bus]
+    torque_pdo_every`` is set (:mod:`drivers.torquepdo`, on its staggered SYNC count)."""
     rng = random.Random(seed)
     plan = plan_layout(bus_cfg)
     us_per_bit = 1e6 / bus_cfg.bitrate
@@ -72,6 +75,8 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
         frames = [f for f in plan.frames if f.bus == b]
         nodes = [plan.nodes[i] for i in group]
         pos = {nd.index: rng.randrange(-2 ** 20, 2 ** 20) for nd in nodes}
+        tq_every = torquepdo.every(bus_cfg) if torque_pdo else 0
+        tq_first: dict[int, int] = {}             # the SYNC of each drive's first TPDO3 (its start value)
 
         def add(k: int, can_id: int, data: bytes) -> None:
             if 0 <= k < n_cycles:
@@ -89,6 +94,12 @@ def simulate(bus_cfg, period_s: float, seconds: float, staggered: bool, seed: in
                 d = plan.feedback_divider
                 if (nd.tpdo1_sync_start == 0 and k % d == 0) or (nd.tpdo1_sync_start and counter == nd.tpdo1_sync_start):
                     add(k, nd.tpdo1_cob_id, pos[nd.index].to_bytes(4, "little", signed=True))
+                if tq_every:
+                    f = tq_first.get(nd.index)
+                    if f is None and nd.tpdo1_sync_start in (0, counter):
+                        tq_first[nd.index] = f = k
+                    if f is not None and (k - f) % tq_every == 0:
+                        add(k, torquepdo.cob_id(nd.node_id), rng.randrange(-3000, 3000).to_bytes(2, "little", signed=True))
 
         def periodic(first_s: float, every_s: float, emit: Callable[[int], None]) -> None:
             t = first_s
@@ -129,11 +140,22 @@ def _sdo_traffic(add, periodic, rng, nodes, every_s: float, seconds: float) -> N
     periodic(rng.uniform(0, every_s), every_s, emit)
 
 
-def demand_report(bus_cfg, period_s: float, seconds: float = 10.0, sdo_gap_s: float = 0.0) -> dict:
+def demand_report(bus_cfg, period_s: float, seconds: float = 10.0, sdo_gap_s: float = 0.0,
+                  torque_pdo_every: int = 0) -> dict:
     """``hexacnc bus demand``: the layout, the bus period and :func:`simulate` for the configured (staggered)
-    timers and for the former uniform ones."""
-    return {"layout": plan_layout(bus_cfg).layout, "bus_period_us": period_s * 1e6, "seconds": seconds,
-            "staggered": simulate(bus_cfg, period_s, seconds, True),
-            "uniform_timers": simulate(bus_cfg, period_s, seconds, False),
-            **({"staggered_with_torque_sdo": simulate(bus_cfg, period_s, seconds, True, sdo_gap_s=sdo_gap_s),
-                "torque_sdo_gap_s": sdo_gap_s} if sdo_gap_s > 0 else {})}
+    timers and for the former uniform ones.  With ``[bus] torque_pdo_every`` set, also the configured
+    timers without the torque TPDO3 (``staggered_without_torque_pdo``); ``torque_pdo_every`` > 0: also
+    with a torque TPDO3 every that many SYNCs (``staggered_with_torque_pdo``, a preview)."""
+    out = {"layout": plan_layout(bus_cfg).layout, "bus_period_us": period_s * 1e6, "seconds": seconds,
+           "staggered": simulate(bus_cfg, period_s, seconds, True),
+           "uniform_timers": simulate(bus_cfg, period_s, seconds, False),
+           **({"staggered_with_torque_sdo": simulate(bus_cfg, period_s, seconds, True, sdo_gap_s=sdo_gap_s),
+               "torque_sdo_gap_s": sdo_gap_s} if sdo_gap_s > 0 else {})}
+    if torquepdo.every(bus_cfg):
+        out["torque_pdo_every"] = torquepdo.every(bus_cfg)
+        out["staggered_without_torque_pdo"] = simulate(bus_cfg, period_s, seconds, True, torque_pdo=False)
+    if torque_pdo_every > 0:
+        cfg_t = dataclasses.replace(bus_cfg, torque_pdo_every=int(torque_pdo_every))
+        out["staggered_with_torque_pdo"] = {**simulate(cfg_t, period_s, seconds, True),
+                                            "torque_pdo_every": int(torque_pdo_every)}
+    return out

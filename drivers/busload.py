@@ -28,6 +28,7 @@ from .errors import BusError
 from .description import bus_period_s
 from .cyclicdefs import master_heartbeat_s
 from .layout import heartbeat_producer_ms, plan_layout, status_event_timer_ms
+from . import torquepdo
 
 ASYNC_RESERVE_BYTES = 2
 EMCY_BYTES = 8
@@ -103,6 +104,8 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
     hb_rate = sum(1000.0 / heartbeat_producer_ms(bus_cfg.heartbeat_ms, i) for i in range(n)) \
         + 1.0 / master_heartbeat_s(bus_cfg)
     status_rate = sum(1000.0 / status_event_timer_ms(i) for i in range(n))
+    torque = torquepdo.budget(bus_cfg, plan, period_us, per_bus, hb_rate + status_rate,
+                              lambda nb: frame_time_us(nb, br), ASYNC_RESERVE_BYTES)
     return {
         "layout": plan.layout, "requested_layout": plan.requested_layout or bus_cfg.layout,
         "layout_note": plan.note, "bitrate": br, "fd": bool(bus_cfg.fd), "data_bitrate": dbr,
@@ -111,11 +114,12 @@ def bus_time(bus_cfg, period_s: float) -> dict[str, Any]:
         "loop_period_us": round(loop_period_s * 1e6, 3), "sync_every": int(round(period_s / loop_period_s)),
         "min_us": worst["min_us"], "max_us": worst["max_us"],
         "load": round(worst["max_us"] / period_us, 4),
-        "fits": worst["max_us"] <= bus_cfg.max_load * period_us + 1e-9,
+        "fits": worst["max_us"] <= bus_cfg.max_load * period_us + 1e-9 and (torque is None or torque["fits"]),
         "worst_bus": worst["bus"],
         "fault_frame_us": round(emcy[1], 3),
         "async_frames_per_s": round(hb_rate + status_rate, 1),
         "per_bus": per_bus,
+        **({"torque_pdo": torque} if torque is not None else {}),
     }
 
 
@@ -139,7 +143,10 @@ def describe(report: dict[str, Any]) -> str:
             f"{100 * report['load']:.1f} % of the {report['period_us']:.0f} us period "
             f"(limit [bus] max_load {100 * report['max_load']:.0f} %)"
             + (f"; the bus runs at {report['period_us'] / 1e3:g} ms (0x60C2) while the loop computes at "
-               f"{report['loop_period_us'] / 1e3:g} ms" if report.get("sync_every", 1) > 1 else ""))
+               f"{report['loop_period_us'] / 1e3:g} ms" if report.get("sync_every", 1) > 1 else "")
+            + (f"; drive torque TPDO3 every {report['torque_pdo']['every_syncs']} SYNCs "
+               f"({'fits' if report['torque_pdo']['fits'] else 'does not fit'}: blocking within the reserve, "
+               "sent in the idle time)" if "torque_pdo" in report else ""))
 
 
 def check_layout(cfg, period_s: float | None = None) -> dict[str, Any]:

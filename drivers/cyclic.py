@@ -35,7 +35,7 @@ from typing import Sequence
 
 import can
 
-from . import cia402, framerec
+from . import cia402, framerec, torquepdo
 from .cyclictx import BusTx
 from .layout import plan_layout
 
@@ -49,7 +49,8 @@ _U16 = struct.Struct("<H")
 _U8 = struct.Struct("<B")
 _EMCY = struct.Struct("<HB5s")
 
-_K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY, _K_SDO = 0, 1, 2, 3, 4
+_K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY, _K_SDO, _K_TORQUE = 0, 1, 2, 3, 4, 5
+_I16 = struct.Struct("<h")
 #: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
 #: re-anchored to the SYNCs just sent (see CyclicIO._init_sync_tags)
 CALM_POLLS = 8
@@ -129,6 +130,13 @@ class CyclicIO:
             self._rx[0x700 + nd.node_id] = (_K_HEARTBEAT, nd.index)
             self._rx[0x080 + nd.node_id] = (_K_EMCY, nd.index)
             self._rx[0x580 + nd.node_id] = (_K_SDO, nd.index)
+            if torquepdo.every(bus_cfg):
+                self._rx[torquepdo.cob_id(nd.node_id)] = (_K_TORQUE, nd.index)
+        #: drive torque 0x6077 (per mille of rated) from the TPDO3 of drivers/torquepdo.py, its monotonic
+        #: arrival time and how many arrived
+        self.torque_pdo_permille: list[int] = [0] * n
+        self.torque_pdo_time_s: list[float] = [0.0] * n
+        self.torque_pdo_count: list[int] = [0] * n
         #: last SDO server response (8 bytes) per drive and how many arrived (:meth:`send_sdo`)
         self.sdo_resp: list[bytearray] = [bytearray(8) for _ in range(n)]
         self.sdo_count: list[int] = [0] * n
@@ -341,6 +349,13 @@ class CyclicIO:
                 self.bootups += 1
                 return EV_HEARTBEAT | EV_BOOTUP
             return (EV_HEARTBEAT | EV_NMT) if st != NMT_OPERATIONAL else EV_HEARTBEAT
+        if kind == _K_TORQUE:
+            if length < 2:
+                return EV_BAD_FRAME
+            self.torque_pdo_permille[i] = _I16.unpack_from(buf, d)[0]
+            self.torque_pdo_time_s[i] = now
+            self.torque_pdo_count[i] += 1
+            return 0
         if kind == _K_SDO:
             if length == 8:
                 self.sdo_resp[i][:] = bytes(buf[d:d + 8])

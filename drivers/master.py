@@ -25,7 +25,7 @@ from canopen.sdo.exceptions import SdoAbortedError, SdoCommunicationError
 
 from .errors import BusError
 
-from . import cia402, commission
+from . import cia402, commission, torquepdo
 from .cyclic import limits_inc
 from .description import node_descriptions
 from .layout import (MASTER_NODE_ID, NodePlan, heartbeat_producer_ms, plan_layout, status_event_timer_ms,
@@ -297,6 +297,9 @@ class Master:
                nd.tpdo1_sync_start if self.plan.sync_counter_overflow else None),
               (nd.tpdo2_cob_id, 255, nd.tpdo2_map, status_inhibit_100us(nd.index),
                status_event_timer_ms(nd.index), None)]
+        tq = torquepdo.tpdo_entry(self.bus_cfg, self.plan, nd)     # TPDO3 drive torque (drivers/torquepdo.py)
+        if tq is not None:
+            tp.append(tq)
         try:
             for maps, wanted, default_base in ((node.rpdo, rp, 0x200), (node.tpdo, tp, 0x180)):
                 for n in range(1, 5):

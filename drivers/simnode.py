@@ -428,11 +428,11 @@ class SimDrive:
         self.tpdos = []
 
     def _getter(self, index: int) -> Callable[[], int]:
-        return {
+        return {            # other objects: an extension's read hook (e.g. 0x6077, drivers/simtorque), else 0
             0x6041: self.statusword, 0x6064: lambda: self.pos_inc, 0x6061: lambda: self.mode,
             0x6062: lambda: self.demand_inc, 0x60F4: lambda: self.ferr_inc, 0x603F: lambda: self.error_code,
             0x606C: lambda: int(round(self.model.velocity_mm_s * self.k)),
-        }.get(index, lambda: 0)
+        }.get(index, lambda: self.hooks.read.get(index, lambda sub: 0)(0) or 0)
 
     def _make_rpdo_handler(self, st: struct.Struct, objs: list[int], synchronous: bool):
         def handler(can_id, data, timestamp):

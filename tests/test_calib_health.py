@@ -51,6 +51,29 @@ def test_payload_mass_and_cog_from_rest_torques(cfg):
     assert np.all(np.abs(r.cog_platform_mm - c_true) <= 5 * r.cog_std_mm + 1.0), (msg, r.cog_platform_mm)
 
 
+def test_payload_mass_from_torques_while_moving(cfg):
+    """Torques sampled while moving (the drives' torque TPDO3): each strut's Coulomb and viscous friction
+    fitted as nuisance parameters; the drives' small constant offsets are left in as a bias."""
+    seed = fresh_seed()
+    m_true = float(np.random.default_rng(seed).uniform(20.0, 150.0))
+    rec = simulate(cfg, seed, Drift(payload_kg=m_true), n_moves=10)
+    t, L = rec["t_s"], rec["struts_cmd_mm"]
+    v = np.gradient(L, t, axis=0)
+    a = np.gradient(v, t, axis=0)
+    from hexacnc.calib.payload import identify_payload_in_motion
+    res = identify_payload_in_motion(Hexapod(cfg), rec["pose_cmd"], rec["torque_permille"], v, a, DriveTorqueModel())
+    assert abs(res.mass_kg - m_true) <= 0.05 * m_true, (seed, res.mass_kg, m_true)
+    assert np.allclose(res.extra["coulomb_N"], 60.0, atol=6.0), (seed, res.extra["coulomb_N"])
+    # health reports it beside the rest-pose result
+    rep = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)
+    assert rep["payload"]["in_motion"]["available"]
+    assert rep["payload"]["in_motion"]["mass_kg"] == pytest.approx(res.mass_kg)
+    # too little motion: a clear refusal, not a number
+    with pytest.raises(Exception, match="at least 60 strut samples"):
+        identify_payload_in_motion(Hexapod(cfg), rec["pose_cmd"][:5], rec["torque_permille"][:5], v[:5], a[:5],
+                                   DriveTorqueModel())
+
+
 def test_planned_rest_poses_carry_more_mass_information(cfg):
     from hexacnc.calib.payload import _design
     rng = np.random.default_rng(fresh_seed())

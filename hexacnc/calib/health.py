@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import DataError
 from ..kinematics import Hexapod
-from .payload import DriveTorqueModel, carrier_update, identify_payload, rest_forces
+from .payload import DriveTorqueModel, carrier_update, identify_payload, identify_payload_in_motion, rest_forces
 from .recording import Recording
 
 #: a per-strut coefficient is an outlier beyond this many robust standard deviations of the others
@@ -127,12 +127,29 @@ def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_p
     return out
 
 
+def _in_motion(rec, hx, model) -> dict:
+    """Payload from the torques sampled while moving (drive torque TPDO3), when the recording has them."""
+    t = rec["t_s"]
+    L = rec["struts_cmd_mm"]
+    v = np.gradient(L, t, axis=0)
+    a = np.gradient(v, t, axis=0)
+    try:
+        res = identify_payload_in_motion(hx, rec["pose_cmd"], rec["torque_permille"], v, a, model)
+    except DataError as exc:
+        return {"available": False, "reason": str(exc)}
+    return {"available": True, "mass_kg": res.mass_kg, "mass_std_kg": res.mass_std_kg,
+            "cog_platform_mm": res.cog_platform_mm.tolist(), "cog_std_mm": res.cog_std_mm.tolist(),
+            "residual_rms_N": res.residual_rms_N, **res.extra}
+
+
 def _payload_part(rec, hx, cfg, model, assumed, reference, windows) -> tuple[dict, list]:
     findings = []
     if not rec.available("torque_permille"):
         return {"available": False, "reason": "no drive torques (0x6077) in the recording"}, findings
+    moving = _in_motion(rec, hx, model)
     if len(windows) < 4:
-        return {"available": False, "reason": f"{len(windows)} rest poses (at least 4 needed)"}, findings
+        return {"available": False, "reason": f"{len(windows)} rest poses (at least 4 needed)",
+                "in_motion": moving}, findings
     P = np.array([rec["pose_cmd"][w].mean(axis=0) for w in windows])
     T = np.array([rec["torque_permille"][w].mean(axis=0) for w in windows])
     tare = None
@@ -149,7 +166,8 @@ def _payload_part(rec, hx, cfg, model, assumed, reference, windows) -> tuple[dic
            "cog_platform_mm": res.cog_platform_mm.tolist(), "cog_std_mm": res.cog_std_mm.tolist(),
            "residual_rms_N": res.residual_rms_N,
            "torque_offsets": "fitted with the reference recording as tare" if tare is not None else
-           "assumed zero (give --reference, a recording without the payload, to fit them)"}
+           "assumed zero (give --reference, a recording without the payload, to fit them)",
+           "in_motion": moving}
     dm = res.mass_kg - assumed
     if abs(dm) > max(4.0 * res.mass_std_kg, 0.5):
         upd = carrier_update(cfg, res, assumed)

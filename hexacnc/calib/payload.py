@@ -31,7 +31,6 @@ import numpy as np
 from ..errors import DataError
 from ..kinematics import Hexapod
 from ..pose import matrix_from_euler
-from ..sag import gravity_wrench
 from .model import strut_geometry
 from .synth import sample_poses
 
@@ -154,6 +153,55 @@ def identify_payload(hx: Hexapod, poses_deg, torques_permille, model: DriveTorqu
     cog_sd = np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
     return PayloadResult(m, float(sd[0]), cog, cog_sd, int(ok[:n_pay].sum()), float(np.sqrt(np.mean(r ** 2))),
                          sol[4:] if fit_offsets else None)
+
+
+def identify_payload_in_motion(hx: Hexapod, poses_deg, torques_permille, velocity_mm_s, acceleration_mm_s2,
+                               model: DriveTorqueModel, min_speed_mm_s: float = 1.0) -> PayloadResult:
+    """Payload mass and COG from torques sampled *while moving* (the drives' torque TPDO3,
+    ``[bus] torque_pdo_every``): per sample and strut ``k T = f_carrier(pose) + D(pose) (m, h) + c_i sign(v_i)
+    + b_i v_i + j_i a_i`` with each strut's Coulomb ``c_i``, viscous ``b_i`` and lumped inertia ``j_i`` as
+    nuisance parameters (22 unknowns); samples of a strut slower than ``min_speed_mm_s`` are left out (its
+    static friction is unknown).  ``velocity_mm_s`` / ``acceleration_mm_s2``: (N,6) strut rates (from the
+    commanded lengths).  No torque offsets: give rest poses with a tare to :func:`identify_payload` for those."""
+    P = np.asarray(poses_deg, dtype=float).reshape(-1, 6)
+    T = np.asarray(torques_permille, dtype=float).reshape(-1, 6)
+    V = np.asarray(velocity_mm_s, dtype=float).reshape(-1, 6)
+    Acc = np.asarray(acceleration_mm_s2, dtype=float).reshape(-1, 6)
+    if not (len(P) == len(T) == len(V) == len(Acc)):
+        raise DataError(f"payload in motion: poses {P.shape}, torques {T.shape}, velocities {V.shape} and "
+                        f"accelerations {Acc.shape} must have the same rows")
+    use = np.isfinite(T) & (np.abs(V) >= min_speed_mm_s) & np.isfinite(Acc) & np.all(np.isfinite(P), axis=1)[:, None]
+    rows = np.where(use.any(axis=1))[0]
+    if use.sum() < 60:
+        raise DataError(f"payload identification in motion needs at least 60 strut samples while moving with "
+                        f"torques, got {int(use.sum())}")
+    f0, D = _design(hx, P[rows])
+    u = use[rows]
+    k = model.force_N_per_permille
+    n_eq = int(u.sum())
+    A = np.zeros((n_eq, 22))
+    y = np.zeros(n_eq)
+    r_idx, s_idx = np.nonzero(u)
+    A[:, :4] = D[r_idx, s_idx]
+    A[np.arange(n_eq), 4 + s_idx] = np.sign(V[rows][r_idx, s_idx])
+    A[np.arange(n_eq), 10 + s_idx] = V[rows][r_idx, s_idx]
+    A[np.arange(n_eq), 16 + s_idx] = Acc[rows][r_idx, s_idx] * 1e-3
+    y[:] = T[rows][r_idx, s_idx] * k - f0[r_idx, s_idx]
+    sol, *_ = np.linalg.lstsq(A, y, rcond=None)
+    r = y - A @ sol
+    s_est = float(np.sqrt(r @ r / max(1, n_eq - 22)))
+    C = np.linalg.pinv(A.T @ A) * s_est ** 2
+    sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+    m, h = float(sol[0]), sol[1:4]
+    cog = h / m if abs(m) > 1e-9 else np.full(3, np.nan)
+    Jc = np.zeros((3, 4))
+    if abs(m) > 1e-9:
+        Jc[:, 0] = -h / m ** 2
+        Jc[:, 1:] = np.eye(3) / m
+    cog_sd = np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
+    return PayloadResult(m, float(sd[0]), cog, cog_sd, 0, float(np.sqrt(np.mean(r ** 2))), None,
+                         {"samples": int(len(rows)), "strut_samples": n_eq, "coulomb_N": sol[4:10].tolist(),
+                          "viscous_N_s_per_mm": sol[10:16].tolist(), "inertia_kg": sol[16:22].tolist()})
 
 
 def plan_rest_poses(cfg, n: int, seed: int = 0, candidates: int = 2000, offsets: bool = True) -> np.ndarray:

@@ -37,6 +37,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     p.add_argument("--torque-sdo-ms", type=float, default=0.0, metavar="MS",
                    help="also with the hot loop's torque sampling: one SDO upload every MS over all drives "
                         "(hexacnc.daemon.torqueread: 8 at rest, 250 in motion); default 0: without")
+    p.add_argument("--torque-pdo-every", type=int, default=0, metavar="N",
+                   help="also with the drives' torque TPDO3 every N SYNCs (1..240; drivers/torquepdo.py, "
+                        "[bus] torque_pdo_every); default 0: without")
 
 
 def _with_simulation(cfg, channel, fn):
@@ -96,10 +99,13 @@ def _demand(args: argparse.Namespace) -> int:
     if not (args.torque_sdo_ms == 0 or 0.5 <= args.torque_sdo_ms <= 60000):
         print(f"hexacnc bus demand: --torque-sdo-ms {args.torque_sdo_ms} must be 0 or 0.5..60000", file=sys.stderr)
         return 2
+    if not 0 <= args.torque_pdo_every <= 240:
+        print(f"hexacnc bus demand: --torque-pdo-every {args.torque_pdo_every} must be 0..240", file=sys.stderr)
+        return 2
     try:
         cfg = load_config(args.config)
         out = demand_report(cfg.bus, bus_period_s(cfg.bus, cfg.cycle.period_s), args.seconds,
-                            sdo_gap_s=args.torque_sdo_ms * 1e-3)
+                            sdo_gap_s=args.torque_sdo_ms * 1e-3, torque_pdo_every=args.torque_pdo_every)
     except HexacncError as exc:
         print(f"hexacnc bus demand: {exc}", file=sys.stderr)
         return 2

@@ -70,6 +70,10 @@ def main(args: argparse.Namespace) -> int:
     for w in rep["warnings"]:
         print(f"  warning: {w}")
     p = rep["payload"]
+    pm = p.get("in_motion") or {}
+    if pm.get("available"):
+        print(f"  payload in motion: {pm['mass_kg']:.2f} +- {pm['mass_std_kg']:.2f} kg from {pm['samples']} samples "
+              "(drive torque TPDO3)")
     if p.get("available"):
         print(f"  payload: {p['mass_kg']:.2f} +- {p['mass_std_kg']:.2f} kg (model assumes {p['assumed_kg']:g} kg)")
         if "proposed_update" in p:

@@ -59,6 +59,8 @@ class BusConfig:
     comm_loss_timeout_s: float = 0.02
     feed_mm_per_rev: float = 0.0               #: strut travel per driving-shaft revolution (0: units unchecked)
     write_factor_group: bool = False           #: write 0x6092 feed constant from increments_per_mm x feed_mm_per_rev
+    #: drive torque 0x6077 in a decimated TPDO3 every n-th SYNC (0: off; drivers/torquepdo.py)
+    torque_pdo_every: int = 0
 
 
 @dataclass(frozen=True)
@@ -141,6 +143,7 @@ def parse_bus(b: Section) -> BusConfig:
         boot_timeout_s=b.getfloat("boot_timeout_s", bd.boot_timeout_s, above=0.0, maxval=600.0),
         feed_mm_per_rev=b.getfloat("feed_mm_per_rev", bd.feed_mm_per_rev, minval=0.0, maxval=1e4),
         write_factor_group=b.getbool("write_factor_group", bd.write_factor_group),
+        torque_pdo_every=b.getint("torque_pdo_every", bd.torque_pdo_every, minval=0, maxval=240),
     )
     return _bus_nodes(b, bus)
 

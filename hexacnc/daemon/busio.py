@@ -269,6 +269,9 @@ class CyclicAdapter:
         self.sdo_resp = cio.sdo_resp          # SDO answers (homing: hexacnc.daemon.homeloop)
         self.sdo_count = cio.sdo_count
         self.send_sdo = cio.send_sdo
+        self.torque_pdo_permille = cio.torque_pdo_permille    # TPDO3 drive torque (drivers/torquepdo.py)
+        self.torque_pdo_time_s = cio.torque_pdo_time_s
+        self.torque_pdo_count = cio.torque_pdo_count
 
     def poll(self, now_ns: int) -> int:
         cio = self.cio

@@ -15,6 +15,11 @@ unchanged).  The default layout (0.5 ms, paired, load 0.93) has no such room: no
 At rest the cycle's frames carry constant targets, so a cycle whose frames end late behind an SDO
 frame (simulated: at most ~60 us past the period) changes nothing for the drives.
 
+Torque in motion (``[bus] torque_pdo_every`` > 0, :mod:`drivers.torquepdo`): the drives send 0x6077 in a
+decimated synchronous TPDO3, decoded by the codec (``torque_pdo_*``); :meth:`TorqueSampler.step` copies
+each new value into the torque slots at every cycle, whatever the state, and the SDO sampler then reads
+only the current 0x6078 (at rest).
+
 The SDO channel is shared with homing (:mod:`.homeloop`) and the probe latch: the sampler sends only in
 idle/running/stopping, never while the latch is busy or asked for, and those wait while a sample request
 of the same drive is outstanding (:meth:`TorqueSampler.holds`).
@@ -64,6 +69,13 @@ def motion_room(cfg) -> bool:
     return rep["max_us"] + extra <= bus_cfg.max_load * rep["period_us"]
 
 
+def _pdo_every(cfg) -> int:
+    try:
+        return int(getattr(cfg.bus, "torque_pdo_every", 0) or 0)
+    except AttributeError:          # test doubles without a [bus]
+        return 0
+
+
 class TorqueSampler:
     """The hot loop's side: :meth:`step` once per cycle after the frames went out."""
 
@@ -81,6 +93,11 @@ class TorqueSampler:
         self.cursor = 0
         self.next_ns = 0
         self.in_motion = motion_room(loop.cfg)        #: sample while running / stopping too
+        self.pdo = _pdo_every(loop.cfg) > 0 and hasattr(self.io, "torque_pdo_count")   #: 0x6077 by TPDO3
+        self.pdo_seen = [0] * 6
+        if self.pdo:
+            for i in range(6):
+                self.supported[i][0] = False          # the SDO sampler leaves 0x6077 to the TPDO3
         s = self.s
         for k in range(2):
             for i in range(6):
@@ -93,6 +110,8 @@ class TorqueSampler:
         return self.sent_at[i] != 0
 
     def step(self, now: int) -> None:
+        if self.pdo:
+            self._from_pdo()
         if not self.enabled:
             return
         io = self.io
@@ -125,6 +144,31 @@ class TorqueSampler:
                 self.next_ns = now + gap
                 return
         self.next_ns = now + gap
+
+    def _from_pdo(self) -> None:
+        """New TPDO3 torque values into the slots (a compare per drive when nothing arrived)."""
+        io = self.io
+        cnt = io.torque_pdo_count
+        seen = self.pdo_seen
+        new = False
+        for i in range(6):
+            if cnt[i] != seen[i]:
+                seen[i] = cnt[i]
+                self.s[S.S_TORQUE + i] = float(io.torque_pdo_permille[i])
+                self.t_sample[0][i] = io.torque_pdo_time_s[i]
+                new = True
+        if new:
+            s = self.s
+            ts = self.t_sample[0]
+            m = 0
+            oldest = math.inf
+            for i in range(6):
+                if ts[i] == ts[i]:
+                    m |= 1 << i
+                    if ts[i] < oldest:
+                        oldest = ts[i]
+            s[S.S_TORQUE_MASK] = float(m)
+            s[S.S_TORQUE_T] = oldest if m == 0x3F else math.nan
 
     def _channel_free(self) -> bool:
         loop = self.loop
