@@ -106,7 +106,7 @@ def _zigzag(cfg, n=10, step_mm=6.0, blend_mm=0.05):
 def test_shaped_rate_stays_below_the_room_and_rises_faster_on_slow_rows():
     """The shaped rate never exceeds the room R, is at least 1, and where the rows move slowly (small strut
     velocity l1) it reaches a room peak that it cannot reach where they move fast (same accelerations)."""
-    from hexacnc.planner.retime import _shaped_rate
+    from hexacnc.planner.retime import _shaped_rate, _slope_room
     n, dt = 400, 5e-4
     R = np.ones(n)
     R[170:230] = 2.0                                        # a short stretch with room
@@ -114,7 +114,7 @@ def test_shaped_rate_stays_below_the_room_and_rises_faster_on_slow_rows():
     peak = {}
     for name, l1 in (("slow", 1.0), ("fast", 200.0)):
         rates = (np.full((n, 6), l1), np.full((n, 6), 100.0), np.full((n, 6), 1000.0))
-        r = _shaped_rate(R, rates, dt, lims, 12)
+        r = _shaped_rate(R, _slope_room(R, rates, dt, lims, 12), dt, 12)
         assert np.all(r <= R + 1e-12) and np.all(r >= 1.0)
         peak[name] = float(r.max())
     assert peak["slow"] > 1.2 and peak["fast"] < peak["slow"], peak

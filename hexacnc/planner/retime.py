@@ -135,14 +135,13 @@ def _smooth_rate(R: np.ndarray, w: int) -> np.ndarray:
     return np.minimum(r, R)
 
 
-def _shaped_rate(R: np.ndarray, rates, dt: float, lims, m: int) -> np.ndarray:
-    """A rate at most R whose change is bounded by the room the old rows leave: by the chain rule the new
-    strut acceleration is ``l2 r^2 + l1 r r'`` and the jerk ``l3 r^3 + 3 l2 r^2 r' + l1 r (r'^2 + r r'')``
-    (' = d/d old time), so at a level ``Rc`` (a share RATE_LEVEL of R's excess, the rest is the room for
-    the change) the slope ``|r'|`` may be ``D = min_i (A_i - |l2_i| Rc^2) / (|l1_i| Rc)`` and, for a slope-D
-    profile smoothed by a box of ``m`` rows (``|r''| <= 2 D / (m dt)``), the jerk's share.  Slow rows
-    (small ``l1``) allow fast changes: the rate can rise between two slow corners.  The profile: the
-    level eroded over m rows, limited to slope D forwards and backwards (min-plus scans), box-smoothed."""
+def _slope_room(R: np.ndarray, rates, dt: float, lims, m: int) -> np.ndarray:
+    """The slope ``D`` (per row, 1/s in old time, the minimum over 2m+1 rows) a rate at the level
+    ``Rc = 1 + RATE_LEVEL (R - 1)`` may take.  By the chain rule the new strut acceleration is
+    ``l2 r^2 + l1 r r'`` and the jerk ``l3 r^3 + 3 l2 r^2 r' + l1 r (r'^2 + r r'')`` (' = d/d old time), so
+    ``|r'| <= (A_i - |l2_i| Rc^2) / (|l1_i| Rc)`` and, for a slope-D profile smoothed by a box of ``m`` rows
+    (``|r''| <= 2 D / (m dt)``), ``|l1| Rc D^2 + (3 |l2| Rc^2 + 2 |l1| Rc^2 / (m dt)) D <= J_i - |l3| Rc^3``.
+    Both bounds only grow as R is lowered: the slope of the first R stays valid for every lower one."""
     d1, d2, d3 = rates
     vmax, amax, jmax, targets, _ = lims
     Rc = 1.0 + RATE_LEVEL * (R - 1.0)
@@ -153,13 +152,19 @@ def _shaped_rate(R: np.ndarray, rates, dt: float, lims, m: int) -> np.ndarray:
             l1, l2, l3 = np.abs(d1[:, i]), np.abs(d2[:, i]), np.abs(d3[:, i])
             da = (targets[1] * amax[i] - l2 * Rc * Rc) / (l1 * Rc)
             da = np.where(l1 > 0, np.maximum(da, 0.0), np.inf)
-            # jerk: l1 Rc D^2 + (3 l2 Rc^2 + 2 l1 Rc^2 / W) D <= J - l3 Rc^3 (the positive root, stable form)
             c = np.maximum(targets[2] * jmax[i] - l3 * Rc ** 3, 0.0)
             b = 3.0 * l2 * Rc * Rc + 2.0 * l1 * Rc * Rc / W
-            dj = 2.0 * c / (b + np.sqrt(b * b + 4.0 * l1 * Rc * c))
-            dj = np.where(b > 0, dj, np.inf)
+            dj = np.where(b > 0, 2.0 * c / (b + np.sqrt(b * b + 4.0 * l1 * Rc * c)), np.inf)
             np.minimum(D, np.minimum(da, dj), out=D)
-    D = np.minimum(minimum_filter1d(D, 2 * m + 1, mode="nearest"), 1e6)
+    return np.minimum(minimum_filter1d(D, 2 * m + 1, mode="nearest"), 1e6)
+
+
+def _shaped_rate(R: np.ndarray, D: np.ndarray, dt: float, m: int) -> np.ndarray:
+    """A rate at most R whose slope stays within ``D`` (:func:`_slope_room`): slow rows (small ``l1``) let it
+    change fast, so it can rise between two slow corners.  The level ``1 + RATE_LEVEL (R - 1)`` (the rest of
+    the room is left for the change) eroded over m rows, limited to slope D forwards and backwards (min-plus
+    scans), smoothed by a box of m rows."""
+    Rc = 1.0 + RATE_LEVEL * (R - 1.0)
     r0 = minimum_filter1d(Rc, m + 1, mode="nearest")
     C = np.concatenate([[0.0], np.cumsum(D[1:] * dt)])
     fwd = C + np.minimum.accumulate(r0 - C)
@@ -335,12 +340,12 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     near_rest = maximum_filter1d(still, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
     R = np.where(near_rest, 1.0, _room(uv, ua, uj, uf, targets))
     R[::ANCHOR_ROWS] = 1.0
+    D = _slope_room(R, rates, dt, lims, RATE_BOX_ROWS) if SHAPED else None
     ok = np.zeros(n, dtype=bool)                  # rows of stretches measured within the targets (r frozen)
     r_ok = np.ones(n)
     for rnd in range(MAX_ROUNDS + 1):
         for _ in range(PREDICT_ROUNDS):
-            r = _quantise(_shaped_rate(R, rates, dt, lims, RATE_BOX_ROWS) if SHAPED else
-                          _smooth_rate(R, WINDOW_ROWS), dt)
+            r = _quantise(_shaped_rate(R, D, dt, RATE_BOX_ROWS) if SHAPED else _smooth_rate(R, WINDOW_ROWS), dt)
             r[ok] = r_ok[ok]
             act = np.nonzero((maximum_filter1d((r > 1.0).astype(np.int8), 5, mode="nearest") > 0) & ~ok)[0]
             bad = act[_predict(rates, uf, r, dt, lims, act) > PREDICT_SHARE]
