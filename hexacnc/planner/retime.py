@@ -340,10 +340,11 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     near_rest = maximum_filter1d(still, 2 * WINDOW_ROWS + 1, mode="nearest") > 0
     R = np.where(near_rest, 1.0, _room(uv, ua, uj, uf, targets))
     R[::ANCHOR_ROWS] = 1.0
-    D = _slope_room(R, rates, dt, lims, RATE_BOX_ROWS) if SHAPED else None
     ok = np.zeros(n, dtype=bool)                  # rows of stretches measured within the targets (r frozen)
     r_ok = np.ones(n)
     for rnd in range(MAX_ROUNDS + 1):
+        # the slope room of this round's R (valid for the lower R the prediction leaves: both bounds grow)
+        D = _slope_room(R, rates, dt, lims, RATE_BOX_ROWS) if SHAPED else None
         for _ in range(PREDICT_ROUNDS):
             r = _quantise(_shaped_rate(R, D, dt, RATE_BOX_ROWS) if SHAPED else _smooth_rate(R, WINDOW_ROWS), dt)
             r[ok] = r_ok[ok]
