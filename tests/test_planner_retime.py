@@ -86,3 +86,49 @@ def test_plan_with_retime_is_shorter_within_limits_and_dwells_rest(cfg, monkeypa
     on2 = rows[rows[:, 6] == 2]
     assert on2.shape[0] * plan.dt >= 0.3 and np.ptp(on2[:, :3], axis=0).max() < 1e-9
     assert np.array_equal(rows[-1, :6], before.rows()[-1, :6])
+
+
+def _zigzag(cfg, n=10, step_mm=6.0, blend_mm=0.05):
+    """Short lines meeting at 90-degree corners with small blends (slow corners, as in dense CAM paths),
+    feeds lifted so that the strut limits bind."""
+    from test_planner_motion import tip_of
+    home = np.array(cfg.home_pose, dtype=float)
+    pts = [home.copy()]
+    for k in range(n):
+        d = np.zeros(6)
+        d[k % 2] = step_mm * (1 if (k // 2) % 2 == 0 else -1)
+        pts.append(pts[-1] + d)
+    tips = [tip_of(cfg, p) for p in pts]
+    return [Block("line", k + 1, tips[k], tips[k + 1], feed_mm_s=1e4, blend_tolerance_mm=blend_mm)
+            for k in range(n)]
+
+
+def test_shaped_rate_stays_below_the_room_and_rises_faster_on_slow_rows():
+    """The shaped rate never exceeds the room R, is at least 1, and where the rows move slowly (small strut
+    velocity l1) it reaches a room peak that it cannot reach where they move fast (same accelerations)."""
+    from hexacnc.planner.retime import _shaped_rate, _slope_room
+    n, dt = 400, 5e-4
+    R = np.ones(n)
+    R[170:230] = 2.0                                        # a short stretch with room
+    lims = (np.full(6, 500.0), np.full(6, 5000.0), np.full(6, 2e5), (0.995, 0.95, 0.95), 1.0)
+    peak = {}
+    for name, l1 in (("slow", 1.0), ("fast", 200.0)):
+        rates = (np.full((n, 6), l1), np.full((n, 6), 100.0), np.full((n, 6), 1000.0))
+        r = _shaped_rate(R, _slope_room(R, rates, dt, lims, 12), dt, 12)
+        assert np.all(r <= R + 1e-12) and np.all(r >= 1.0)
+        peak[name] = float(r.max())
+    assert peak["slow"] > 1.2 and peak["fast"] < peak["slow"], peak
+
+
+def test_retime_on_slow_blended_corners_is_shorter_and_within_targets(cfg, monkeypatch):
+    """Dense corners (the case the shaped rate is for): the retimed table is shorter than the verified one,
+    never goes back, and its rows are within the targets measured independently (Hexapod.inverse_batch,
+    finite differences at the cycle period)."""
+    monkeypatch.setattr(PL, "RETIME", False)
+    plan = plan_program(_zigzag(cfg), cfg)
+    r = retime(plan.path, plan.hexapod, plan.s_tab, plan.dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+               cfg.max_jerk_mm_s3, TARGETS)
+    assert r.rounds >= 0 and r.s_tab.shape[0] < plan.s_tab.shape[0]
+    assert np.all(np.diff(r.s_tab) >= 0) and r.s_tab[-1] == plan.s_tab[-1]
+    uv, ua, uj = utilisation(cfg, _rows(plan, r.s_tab), plan.dt)
+    assert uv <= TARGETS[0] + 1e-9 and ua <= TARGETS[1] + 1e-9 and uj <= TARGETS[2] + 1e-9, (uv, ua, uj)

@@ -42,6 +42,7 @@ def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=N
     from ..planner import plan_program
     from .jerkfloor import _rest_points
     from .jerkopt import jerk_optimum_report
+    from .planloss import time_loss
     from .toppra_peer import _lifted_config, smooth_path_blocks, stops_path_blocks, topp_path_blocks
     cfg = _lifted_config(cfg, False)
     paths = {"corners": topp_path_blocks(cfg), "smooth": smooth_path_blocks(cfg), "stops": stops_path_blocks(cfg)}
@@ -69,6 +70,7 @@ def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=N
                     "hexacnc_planning_s": round(t_plan, 4),
                     "jerk_optimum_s": jo.get("jerk_optimum_s"), "jerk_optimum_ratio": jo.get("jerk_optimum_ratio"),
                     "jerk_optimum_utilisation": jo.get("utilisation"), "jerk_optimum": jo}
+        out[key]["time_loss"] = time_loss(blocks, cfg)
         if at_shares:
             out[key]["jerk_optimum_at_shares_ratio"] = jo.get("jerk_optimum_at_shares_ratio")
     return out

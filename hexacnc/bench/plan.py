@@ -14,6 +14,9 @@
     dedicated path of exact-stop moves (``stops``).  ``programmed_feeds``: the same comparison with the
     programs' own feeds kept (F, rapids, G93); TOPP-RA gets the planner's feed bound through a
     pseudo-coordinate with a varying velocity limit.
+    With ``--optimum-only`` every path also gets ``time_loss`` (:mod:`hexacnc.bench.planloss`): the planner's
+    stages re-run on it (TOPP at its speed limits, after spreading, the raw profile, the filtered table) and
+    the rows' use of the limits, so that the gap to the optimum splits into its causes.
 (b) ``corpus``: every program of the G-code corpus is interpreted and placed in the workspace
     with a work offset chosen by the bench (G54 origin such that the centre of the program's
     bounding box lands on the tool tip at the home pose; no scaling), then planned.  Reported per

@@ -5,8 +5,9 @@ are slower than a jerk-limited optimum's, its slow spots are spread).  This pass
 where the rows leave room: the new table is ``s_new(t) = s_old(tau(t))`` with ``d tau / dt = r >= 1``.
 With the old strut rates ``l', l'', l'''`` (in old time) the new ones are ``l' r``, ``l'' r^2 + l' r'``
 and ``l''' r^3 + 3 l'' r r' + l' r''``; ``r`` is therefore chosen at most the pointwise room
-``R = min(V/|l'|, sqrt(A/|l''|), cbrt(J/|l'''|))`` (targets V, A, J), eroded and smoothed over a window
-so that its derivatives stay small, and the result is measured again from the rows (exact inverse
+``R = min(V/|l'|, sqrt(A/|l''|), cbrt(J/|l'''|))`` (targets V, A, J), shaped so that its derivatives fit
+the room left at each row (:func:`_shaped_rate`: slow rows let it change fast; with ``SHAPED`` off, eroded
+and smoothed over a fixed window), and the result is measured again from the rows (exact inverse
 kinematics, finite differences at the cycle period).  Where a row exceeds a target the room there is
 lowered and the pass repeats; if it does not converge the old table is kept.  ``r`` is 1 wherever the
 table rests (holds keep their duration).
@@ -22,7 +23,7 @@ from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 from .path import platform_struts
 
 #: largest rate (the pass never runs a row more than this much faster)
-R_MAX = 1.5
+R_MAX = 3.0
 #: smoothing window of the rate, in rows (the erosion reaches a full window either side)
 WINDOW_ROWS = 40
 #: share of the programmed feed and the angular-velocity limit the scaled rows may use (rounding margin)
@@ -34,6 +35,12 @@ QUANTISE_NEWTON = 8
 #: rounds of the chain-rule prediction per measurement, and the share of the targets it aims at
 PREDICT_ROUNDS = 12
 PREDICT_SHARE = 0.995
+#: the rate shaped by the room for its change (:func:`_shaped_rate`), else smoothed over WINDOW_ROWS
+SHAPED = True
+#: share of the room's excess over 1 the shaped rate aims at (the rest leaves room for its change)
+RATE_LEVEL = 0.6
+#: rows of the shaped rate's box smoothing
+RATE_BOX_ROWS = 12
 #: every this many rows the rate is 1 (stretches decided on their own are at most this long)
 ANCHOR_ROWS = 2000
 
@@ -126,6 +133,44 @@ def _smooth_rate(R: np.ndarray, w: int) -> np.ndarray:
     h = max(1, w // 2)
     r = uniform_filter1d(uniform_filter1d(r, h, mode="nearest"), h, mode="nearest")
     return np.minimum(r, R)
+
+
+def _slope_room(R: np.ndarray, rates, dt: float, lims, m: int) -> np.ndarray:
+    """The slope ``D`` (per row, 1/s in old time, the minimum over 2m+1 rows) a rate at the level
+    ``Rc = 1 + RATE_LEVEL (R - 1)`` may take.  By the chain rule the new strut acceleration is
+    ``l2 r^2 + l1 r r'`` and the jerk ``l3 r^3 + 3 l2 r^2 r' + l1 r (r'^2 + r r'')`` (' = d/d old time), so
+    ``|r'| <= (A_i - |l2_i| Rc^2) / (|l1_i| Rc)`` and, for a slope-D profile smoothed by a box of ``m`` rows
+    (``|r''| <= 2 D / (m dt)``), ``|l1| Rc D^2 + (3 |l2| Rc^2 + 2 |l1| Rc^2 / (m dt)) D <= J_i - |l3| Rc^3``.
+    Both bounds only grow as R is lowered: the slope of the first R stays valid for every lower one."""
+    d1, d2, d3 = rates
+    vmax, amax, jmax, targets, _ = lims
+    Rc = 1.0 + RATE_LEVEL * (R - 1.0)
+    W = m * dt
+    D = np.full(R.shape[0], np.inf)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for i in range(d1.shape[1]):
+            l1, l2, l3 = np.abs(d1[:, i]), np.abs(d2[:, i]), np.abs(d3[:, i])
+            da = (targets[1] * amax[i] - l2 * Rc * Rc) / (l1 * Rc)
+            da = np.where(l1 > 0, np.maximum(da, 0.0), np.inf)
+            c = np.maximum(targets[2] * jmax[i] - l3 * Rc ** 3, 0.0)
+            b = 3.0 * l2 * Rc * Rc + 2.0 * l1 * Rc * Rc / W
+            dj = np.where(b > 0, 2.0 * c / (b + np.sqrt(b * b + 4.0 * l1 * Rc * c)), np.inf)
+            np.minimum(D, np.minimum(da, dj), out=D)
+    return np.minimum(minimum_filter1d(D, 2 * m + 1, mode="nearest"), 1e6)
+
+
+def _shaped_rate(R: np.ndarray, D: np.ndarray, dt: float, m: int) -> np.ndarray:
+    """A rate at most R whose slope stays within ``D`` (:func:`_slope_room`): slow rows (small ``l1``) let it
+    change fast, so it can rise between two slow corners.  The level ``1 + RATE_LEVEL (R - 1)`` (the rest of
+    the room is left for the change) eroded over m rows, limited to slope D forwards and backwards (min-plus
+    scans), smoothed by a box of m rows."""
+    Rc = 1.0 + RATE_LEVEL * (R - 1.0)
+    r0 = minimum_filter1d(Rc, m + 1, mode="nearest")
+    C = np.concatenate([[0.0], np.cumsum(D[1:] * dt)])
+    fwd = C + np.minimum.accumulate(r0 - C)
+    bwd = -C + np.minimum.accumulate((r0 + C)[::-1])[::-1]
+    r = uniform_filter1d(np.minimum(fwd, bwd), m, mode="nearest")
+    return np.clip(np.minimum(r, R), 1.0, None)
 
 
 def _quantise(r: np.ndarray, dt: float) -> np.ndarray:
@@ -298,8 +343,10 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     ok = np.zeros(n, dtype=bool)                  # rows of stretches measured within the targets (r frozen)
     r_ok = np.ones(n)
     for rnd in range(MAX_ROUNDS + 1):
+        # the slope room of this round's R (valid for the lower R the prediction leaves: both bounds grow)
+        D = _slope_room(R, rates, dt, lims, RATE_BOX_ROWS) if SHAPED else None
         for _ in range(PREDICT_ROUNDS):
-            r = _quantise(_smooth_rate(R, WINDOW_ROWS), dt)
+            r = _quantise(_shaped_rate(R, D, dt, RATE_BOX_ROWS) if SHAPED else _smooth_rate(R, WINDOW_ROWS), dt)
             r[ok] = r_ok[ok]
             act = np.nonzero((maximum_filter1d((r > 1.0).astype(np.int8), 5, mode="nearest") > 0) & ~ok)[0]
             bad = act[_predict(rates, uf, r, dt, lims, act) > PREDICT_SHARE]
