@@ -22,6 +22,7 @@ import os
 import shutil
 import subprocess
 import sys
+import time
 from typing import Sequence
 
 ENV_FLAG = "HEXACNC_NETNS"
@@ -124,13 +125,28 @@ def netns_or_rerun(request, timeout_s: float = 180.0) -> bool:
     pytest.fail(f"inside the network namespace the test {outcome} (exit {r.returncode}):\n{tail}")
 
 
+def _read_maps(node, sdo_error, attempts: int = 10) -> None:
+    """``rpdo.read()`` and ``tpdo.read()`` of ``node``, repeated on an SDO exchange spoilt by another client."""
+    for attempt in range(attempts):
+        try:
+            node.rpdo.read()
+            node.tpdo.read()
+            return
+        except sdo_error:
+            if attempt == attempts - 1:
+                raise
+            time.sleep(0.05)
+
+
 class PdoDecoder:
     """Independent frame decoder for tests: its own bus objects, canopen ``RemoteNode`` objects built
     from the EDS, the PDO mapping read back from the drives by SDO (``rpdo.read()``/``tpdo.read()``),
     and canopen's own ``PdoMap`` decoding. Records, per strut, every decoded target (0x607A),
     controlword (0x6040), position actual (0x6064) and statusword (0x6041).
 
-    Create it while the drives are configured and NMT operational, and while nothing else runs SDO.
+    Create it while the drives are configured and NMT operational. The decoder is a second SDO client on
+    each drive's one SDO server channel: a daemon's own SDO traffic (the torque sampler at rest) can answer
+    the decoder's request, which canopen then refuses; the read of the maps is repeated (it only reads).
     """
 
     def __init__(self, cfg, eds_path=None):
@@ -158,8 +174,7 @@ class PdoDecoder:
         self.positions: list[list[int]] = [[] for _ in range(n)]
         self.statuswords: list[list[int]] = [[] for _ in range(n)]
         for i, node in enumerate(self.nodes):
-            node.rpdo.read()
-            node.tpdo.read()
+            _read_maps(node, canopen.SdoCommunicationError)
             for m in node.rpdo.map.values():
                 if m.enabled:
                     m.add_callback(self._cb(i))

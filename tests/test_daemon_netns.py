@@ -9,6 +9,7 @@ import math
 import os
 import time
 
+import canopen
 import numpy as np
 import pytest
 
@@ -134,9 +135,20 @@ def test_drives_enabled_and_frames_equal_ik_of_setpoints(request):
 
 
 def _inject(dec, strut, sub, value):
-    """Fault injection in a simulated drive by SDO (manufacturer object 0x2000), effective at once."""
+    """Fault injection in a simulated drive by SDO (manufacturer object 0x2000), effective at once.
+
+    The test's decoder is a second SDO client on the drive's one SDO server channel, beside the daemon's
+    own (torque sampler at rest): an answer meant for the daemon can reach the decoder's client, which
+    then gives up ("maybe there is another SDO client"). The write is idempotent, so it is repeated."""
     node = dec.nodes[strut - 1]
-    node.sdo[0x2000][sub].raw = value
+    for attempt in range(5):
+        try:
+            node.sdo[0x2000][sub].raw = value
+            return
+        except canopen.SdoCommunicationError:
+            if attempt == 4:
+                raise
+            time.sleep(0.02)
 
 
 def _fault_run(cfg, action=None, target=(60.0, 0.0, -900.0, 0.0, 0.0, 0.0), feed=250.0):

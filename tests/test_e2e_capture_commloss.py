@@ -94,7 +94,12 @@ def _check_bus(frames, nodes, comm_loss_s):
 
 
 def test_captured_session_shows_the_drives_reaction_to_a_silent_master(base_cfg, tmp_path, monkeypatch):
-    cfg = base_cfg.replace(bus=dataclasses.replace(base_cfg.bus, simulate_profile="strict"))
+    # the drives' watchdog of the master's heartbeat (0x1016, heartbeat_timeout_ms) set past the RPDO deadline
+    # (comm_loss_timeout_s) by more than one heartbeat period, so the deadline is the reaction seen first
+    # (with this test's tolerant comm_loss_timeout_s the heartbeat watchdog could otherwise come first: 0x8130)
+    b = base_cfg.bus
+    hb_timeout_ms = max(b.heartbeat_timeout_ms, int(b.comm_loss_timeout_s * 1000) + b.heartbeat_ms + 300)
+    cfg = base_cfg.replace(bus=dataclasses.replace(b, simulate_profile="strict", heartbeat_timeout_ms=hb_timeout_ms))
     cap = str(tmp_path / "session.pcap")
     monkeypatch.setenv(pcap.ENV_CAPTURE, cap)                  # as hexacnc run --capture sets it
     comm_loss_s = cfg.bus.comm_loss_timeout_s

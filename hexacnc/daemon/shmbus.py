@@ -23,6 +23,7 @@ controller that nobody has to wake.  A full ring drops the records that do not f
 from __future__ import annotations
 
 import os
+import threading
 import time
 from multiprocessing import shared_memory
 
@@ -178,6 +179,25 @@ class ShmBus(can.BusABC):
                         bitrate_switch=msg.bitrate_switch, is_remote_frame=msg.is_remote_frame)
         if self.send_records(self._one):
             raise can.CanOperationError("shared-memory frame ring full: the peer does not read")
+
+    def _send_periodic_internal(self, msgs, period, duration=None, autostart=True, modifier_callback=None):
+        """python-can's thread-based cyclic task (canopen's heartbeat producer uses it), kept alive when one
+        send finds the ring full: python-can stops a task on its first send error unless ``on_error`` says
+        otherwise, so a momentarily full ring silenced a simulated drive's heartbeat for good (the master
+        then faulted "lost heartbeat" while the drive was well). One frame is lost, as a CAN controller
+        with a full transmit queue loses it; the next period sends again. Lost frames are counted in
+        ``periodic_send_errors``."""
+        if not hasattr(self, "_lock_send_periodic"):
+            self._lock_send_periodic = threading.Lock()
+        self.periodic_send_errors = getattr(self, "periodic_send_errors", 0)
+
+        def on_error(exc: Exception) -> bool:
+            self.periodic_send_errors += 1
+            return isinstance(exc, can.CanOperationError)       # a full ring: go on; anything else: stop
+
+        return can.broadcastmanager.ThreadBasedCyclicSendTask(
+            bus=self, lock=self._lock_send_periodic, messages=msgs, period=period, duration=duration,
+            on_error=on_error, autostart=autostart, modifier_callback=modifier_callback)
 
     def _recv_internal(self, timeout: float | None):
         h = self._h
