@@ -1,0 +1,71 @@
+"""The probing cycle on an artefact sphere (calib.probing) against a fake daemon: where the sphere really is."""
+import re
+
+import numpy as np
+import pytest
+
+from hexacnc.calib.probing import probe_sphere
+from hexacnc.daemon.protocol import DaemonError
+
+pytestmark = pytest.mark.unit
+
+R = 13.5
+
+
+class FakeDaemon:
+    """Moves the tip to the last G53 G0 point of a program; ``probe`` runs a straight line to the target
+    and stops at the first point within ``R`` of the true centre (G38.2: no contact or already in
+    contact is an error, as the daemon's op)."""
+
+    def __init__(self, true_centre):
+        self.c = np.asarray(true_centre, dtype=float)
+        self.tip = self.c + [0.0, 0.0, 60.0]
+        self.touches = 0
+        self.path = []
+
+    def call(self, op, **kw):
+        if op == "program":
+            for m in re.finditer(r"G53 G0 X(\S+) Y(\S+) Z(\S+)", kw["text"]):
+                p = np.array([float(v) for v in m.groups()])
+                self._check_path(self.tip, p)
+                self.tip = p
+            return {}
+        if op == "wait":
+            return {"state": "idle"}
+        assert op == "probe"
+        self.touches += 1
+        a, b = self.tip, np.asarray(kw["tip_mm"][:3], dtype=float)
+        if np.linalg.norm(a - self.c) <= R:
+            raise DaemonError({"error": {"code": 3, "message": "G38.2: the probe is already tripped at the start"}})
+        d = b - a
+        # first t in [0, 1] with |a + t d - c| = R
+        A, B, C = d @ d, 2 * d @ (a - self.c), (a - self.c) @ (a - self.c) - R * R
+        disc = B * B - 4 * A * C
+        t = (-B - np.sqrt(disc)) / (2 * A) if disc >= 0 else 2.0
+        if not 0.0 <= t <= 1.0:
+            raise DaemonError({"error": {"code": 3, "message": "G38.2: move finished without the probe tripping"}})
+        p = a + t * d
+        self.tip = p
+        return {"contact": True, "tip_pose": list(p) + [0.0, 0.0, 0.0], "q_mm": [0.0] * 6, "t_s": 0.0,
+                "overtravel_mm": 0.0}
+
+    def _check_path(self, a, b):
+        for t in np.linspace(0.0, 1.0, 50):          # a rapid never passes through the sphere
+            assert np.linalg.norm(a + t * (b - a) - self.c) > R - 1e-9, "rapid through the artefact"
+
+
+@pytest.mark.parametrize("error_mm", [[0.0, 0.0, 0.0], [1.9, -1.2, 0.5], [-3.5, 2.0, -2.5], [2.0, 3.8, 3.0]])
+def test_the_cycle_finds_a_sphere_millimetres_off_where_the_machine_expects_it(error_mm):
+    nominal = np.array([100.0, 0.0, -1150.0])
+    fake = FakeDaemon(nominal + error_mm)
+    r = probe_sphere(fake, nominal, [0.0, 0.0, 0.0], R)
+    assert fake.touches == 5
+    assert np.linalg.norm(r["centre_mm"] - fake.c) < 1e-6
+    assert r["residual_um"] < 1e-3
+
+
+def test_a_sphere_beyond_the_search_range_is_an_error_not_a_wrong_centre():
+    nominal = np.array([0.0, 0.0, -1150.0])
+    fake = FakeDaemon(nominal + [0.0, 0.0, -6.0])        # 6 mm lower: beyond overtravel + search (5 mm)
+    with pytest.raises(DaemonError, match="without the probe tripping"):
+        probe_sphere(fake, nominal, [0.0, 0.0, 0.0], R)
