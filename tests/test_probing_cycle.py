@@ -69,3 +69,46 @@ def test_a_sphere_beyond_the_search_range_is_an_error_not_a_wrong_centre():
     fake = FakeDaemon(nominal + [0.0, 0.0, -6.0])        # 6 mm lower: beyond overtravel + search (5 mm)
     with pytest.raises(DaemonError, match="without the probe tripping"):
         probe_sphere(fake, nominal, [0.0, 0.0, 0.0], R)
+
+
+# -- far readings: the machine really there (confirmed by the next reading) or the instrument's gross error --
+class FakeTracker:
+    def __init__(self, cfg, offsets_mm):
+        from hexacnc.kinematics import Hexapod
+        self.cfg, self.hx = cfg, Hexapod(cfg)
+        self.offsets = list(offsets_mm)          #: z offset of each successive reading
+        self.n = 0
+
+    def call(self, op, **kw):
+        if op == "program":
+            return {}
+        if op == "wait":
+            return {"state": "idle"}
+        if op == "status":
+            return {"struts_act_mm": list(self.hx.lengths(self.X))}
+        assert op == "measure"
+        dz = self.offsets[min(self.n, len(self.offsets) - 1)]
+        self.n += 1
+        q = (self.hx.lengths(self.X) - np.asarray(self.cfg.strut_offset_mm)).tolist()
+        vals = dict(zip("xyzabc", self.X))
+        vals["z"] += dz
+        import time
+        return {"values": vals, "q_mm": q, "target": "platform", "t_s": time.time() + 1.0, "pair_gap_s": 0.0}
+
+
+@pytest.mark.parametrize("offsets,kept,flag", [
+    ([3.0, 3.01], True, "confirmed"),             # an uncalibrated machine 3 mm off: kept
+    ([7.0, 0.001], True, "remeasured"),           # one gross reading, then a good one
+    ([7.0, 3.0, 5.0], False, "excluded"),         # far readings that disagree: the instrument
+    ([12.0, 12.0, 12.0], False, "excluded"),      # beyond gross_mm: a wrong configuration, not calibration
+])
+def test_a_far_reading_is_kept_only_when_the_next_reading_confirms_it(offsets, kept, flag):
+    from hexacnc.calib.cyclerun import RunOptions, measure_pose
+    from hexacnc.config import load_config
+    from hexacnc.kinematics import Hexapod
+    cfg = load_config(None)
+    fake = FakeTracker(cfg, offsets)
+    fake.X = np.asarray(cfg.home_pose, dtype=float)
+    r = measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, RunOptions(settle_s=0.0, progress=False))
+    assert bool(r.values) == kept
+    assert r.flag.startswith(flag), r.flag

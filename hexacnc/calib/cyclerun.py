@@ -6,10 +6,14 @@ the pose (so the backlash of every drive is taken up in the same direction), ``s
 rest, then one instrument reading through the daemon's ``measure`` op, which pairs it with the
 drive readings.  Readings are checked: *missing* (no reading), *late* (paired more than
 ``max_gap_s`` away from drive readings, or taken before the machine came to rest), *outlier*
-(the measured tool tip more than ``outlier_mm`` from where the controller's own model puts it -
-a gross error, far beyond any machine error calibration can remove).  A flagged reading is
-measured again (up to ``retries``); if it stays bad, the row is written with its drive readings,
-no measured coordinate and the reason in ``flag``.  Rows are appended and flushed as they are
+(the measured tool tip more than ``outlier_mm`` from where the controller's own model puts it, and
+not confirmed by the next reading).  An uncalibrated machine may really stand that far off (a
+machine at twice the synthetic tolerances: up to 3 mm), an instrument's gross error does not
+repeat: a far reading that the next reading of the same pose confirms (within ``confirm_mm`` /
+``confirm_deg``) is kept, flagged ``confirmed``, unless it is more than ``gross_mm`` off (no
+calibration removes that: a wrong configuration).  A flagged reading is measured again (up to
+``retries``); if it stays bad, the row is written with its drive readings, no measured coordinate
+and the reason in ``flag``.  Rows are appended and flushed as they are
 taken: an interrupted run resumes after the last written row (``resume``).
 
 Poses the machine cannot reach (pose or approach pose outside any strut or joint limit) are
@@ -48,6 +52,9 @@ class RunOptions:
     max_gap_s: float = 0.05
     outlier_mm: float = 2.0
     outlier_deg: float = 0.5
+    confirm_mm: float = 0.05          #: a far reading confirmed by the next one within this is kept
+    confirm_deg: float = 0.01
+    gross_mm: float = 10.0            #: never kept beyond this from the model
     progress: bool = True
     wait_s: float = 5.0
     probe_cycle: str = "touch"        #: probe: "touch" (5 G38.2 touches per sphere) or "result" (simulated result)
@@ -190,6 +197,18 @@ def _progress(k: int, n: int, flag: str, opts: RunOptions) -> None:
     sys.stderr.flush()
 
 
+def _deviation(cfg, hx: Hexapod, r: dict):
+    """(mm, deg) the reading is off the model's pose at its drive readings, or None (no pose)."""
+    vals = r.get("values") or {}
+    fk = hx.forward_readings(np.asarray(r["q_mm"], dtype=float))
+    if not fk.ok:
+        return None
+    model = fk.pose if r.get("target") == "platform" else tip_of(cfg, fk.pose)
+    dev = max([abs(vals[k] - model[i]) for i, k in enumerate(("x", "y", "z")) if k in vals] + [0.0])
+    dev_deg = max([abs(vals[k] - model[3 + i]) for i, k in enumerate(("a", "b", "c")) if k in vals] + [0.0])
+    return dev, dev_deg
+
+
 def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -> str:
     """'' if the reading is usable, else why not (missing / late / outlier)."""
     vals = r.get("values") or {}
@@ -197,15 +216,29 @@ def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -
         return "missing: no reading"
     if float(r.get("pair_gap_s", 0.0)) > opts.max_gap_s or float(r.get("t_s", 0.0)) < t_rest:
         return f"late: reading at {r.get('t_s')} paired {r.get('pair_gap_s')} s from drive readings"
-    fk = hx.forward_readings(np.asarray(r["q_mm"], dtype=float))
-    if not fk.ok:
+    d = _deviation(cfg, hx, r)
+    if d is None:
         return "outlier: the drive readings give no pose of the model"
-    model = fk.pose if r.get("target") == "platform" else tip_of(cfg, fk.pose)
-    dev = max([abs(vals[k] - model[i]) for i, k in enumerate(("x", "y", "z")) if k in vals] + [0.0])
-    dev_deg = max([abs(vals[k] - model[3 + i]) for i, k in enumerate(("a", "b", "c")) if k in vals] + [0.0])
+    dev, dev_deg = d
     if dev > opts.outlier_mm or dev_deg > opts.outlier_deg:
         return f"outlier: {dev:.3f} mm / {dev_deg:.4f} deg from the model's pose"
     return ""
+
+
+def _confirms(cfg, hx: Hexapod, r: dict, prev: dict | None, opts: RunOptions) -> bool:
+    """A far reading ``r`` that agrees with the previous far reading ``prev`` of the same pose (the
+    machine is there, not an instrument's gross error), not beyond ``gross_mm``."""
+    if prev is None:
+        return False
+    a, b = r.get("values") or {}, prev.get("values") or {}
+    if not a or set(a) != set(b):
+        return False
+    if max(abs(a[k] - b[k]) for k in a if k in "xyz") > opts.confirm_mm:
+        return False
+    if max([abs(a[k] - b[k]) for k in a if k in "abc"] + [0.0]) > opts.confirm_deg:
+        return False
+    d = _deviation(cfg, hx, r)
+    return d is not None and d[0] <= opts.gross_mm
 
 
 def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
@@ -283,6 +316,7 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
     t_rest = time.time() - 0.05
     why = []
     r: dict = {}
+    far = None                        #: the last reading far from the model (confirmed by the next?)
     for attempt in range(opts.retries + 1):
         try:
             r = client.call("measure", instrument=opts.instrument, wait_s=opts.wait_s, after_t_s=t_rest,
@@ -294,11 +328,15 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
             why.append(f"missing: {exc}")
             continue
         bad = _check_reading(cfg, hx, r, t_rest, opts)
+        if bad.startswith("outlier: ") and _confirms(cfg, hx, r, far, opts):
+            bad, why = "", [f"confirmed: {bad[len('outlier: '):]}, two readings agree"]
         if not bad:
-            flag = ("remeasured: " + "; ".join(why)) if why else ""
+            flag = why[0] if why and why[0].startswith("confirmed") else \
+                ("remeasured: " + "; ".join(why)) if why else ""
             return PoseResult(index, list(r["q_mm"]), dict(r["values"]), r.get("target", "platform"),
                               float(r["t_s"]), flag, tip_of(cfg, X_deg).tolist())
         why.append(bad)
+        far = r if bad.startswith("outlier: ") and "no pose" not in bad else None
     st = client.call("status")
     q = r.get("q_mm") or (np.asarray(st["struts_act_mm"]) - np.asarray(cfg.strut_offset_mm)).tolist()
     return PoseResult(index, list(q), {}, r.get("target", "platform"), time.time(),
