@@ -112,3 +112,34 @@ def test_a_far_reading_is_kept_only_when_the_next_reading_confirms_it(offsets, k
     r = measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, RunOptions(settle_s=0.0, progress=False))
     assert bool(r.values) == kept
     assert r.flag.startswith(flag), r.flag
+
+
+def test_the_rapid_between_poses_keeps_the_platform_on_its_straight_line():
+    """A straight tool-tip move with the orientation interpolated swings the platform out (it left the
+    [workspace] box near its edge): calib run cuts the rapid into short platform steps."""
+    import re as _re
+
+    from hexacnc.calib.cyclerun import RunOptions, approach_pose, move_program, platform_of_tip, tip_of
+    from hexacnc.config import load_config
+    from hexacnc.kinematics import Hexapod
+    cfg = load_config(None)
+    hx = Hexapod(cfg)
+    S = np.array([100.0, -80.0, -700.0, 12.0, -10.0, 8.0])
+    X = np.array([-100.0, 90.0, -760.0, -12.0, 11.0, -9.0])
+    pre = approach_pose(hx, X, 0.3)
+
+    def swing_mm(text):
+        tips = [np.array([float(v) for v in m.groups()]) for m in
+                _re.finditer(r"G0 X(\S+) Y(\S+) Z(\S+) A(\S+) B(\S+) C(\S+)", text)]
+        pts, prev = [], tip_of(cfg, S)
+        for T in tips:                       # the planner: tip straight, orientation interpolated
+            for t in np.linspace(0.0, 1.0, 21):
+                pts.append(platform_of_tip(cfg, prev + t * (T - prev))[:3])
+            prev = T
+        P, d = np.array(pts), pre[:3] - S[:3]
+        rel = P - S[:3]
+        off = rel - np.outer(rel @ d / (d @ d), d)
+        return float(np.max(np.linalg.norm(off, axis=1)))
+    one = swing_mm(move_program(cfg, hx, X, RunOptions()))           # no start known: one rapid
+    steps = swing_mm(move_program(cfg, hx, X, RunOptions(), S))
+    assert one > 3.0 and steps < 0.1, (one, steps)

@@ -177,13 +177,29 @@ def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str 
                         f"nothing moved")
 
 
-def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions) -> str:
-    pre = tip_of(cfg, approach_pose(hx, X_deg, opts.approach_mm))
+#: the rapid between poses is cut into straight platform steps of at most this rotation (deg): a tool-tip
+#: straight move with the orientation interpolated swings the platform out by |tip| * angle^2 / 8
+#: (250 mm tip, 0.6 rad: 11 mm, out of the [workspace] box near its edge); per 2 deg step: 0.04 mm
+ROTATION_STEP_DEG = 2.0
+
+
+def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions, start_deg=None) -> str:
+    """Rapid to the approach pose (from ``start_deg``, the platform pose now, in steps along the straight
+    platform line), then the slow feed into the pose."""
+    pre_X = approach_pose(hx, X_deg, opts.approach_mm)
+    pre = tip_of(cfg, pre_X)
     tip = tip_of(cfg, X_deg)
 
     def words(T):
         return " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", T))
-    return (f"G21 G90 G94\nG53 G0 {words(pre)}\nG53 G1 {words(tip)} F{opts.feed_mm_min:.3f}\nM2\n")
+    rapids = []
+    if start_deg is not None:
+        S = np.asarray(start_deg, dtype=float)
+        n = int(math.ceil(float(np.max(np.abs(pre_X[3:] - S[3:]))) / ROTATION_STEP_DEG))
+        rapids = [tip_of(cfg, S + (pre_X - S) * (k / n)) for k in range(1, n)]
+    rapids.append(pre)
+    return ("G21 G90 G94\n" + "".join(f"G53 G0 {words(T)}\n" for T in rapids)
+            + f"G53 G1 {words(tip)} F{opts.feed_mm_min:.3f}\nM2\n")
 
 
 def _progress(k: int, n: int, flag: str, opts: RunOptions) -> None:
@@ -278,7 +294,8 @@ def _refused(exc: BaseException) -> bool:
 def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> None:
     while True:
         try:
-            client.call("program", text=move_program(cfg, hx, X_deg, opts), name=f"calib-pose-{index + 1}",
+            start = client.call("status").get("pose_cmd")
+            client.call("program", text=move_program(cfg, hx, X_deg, opts, start), name=f"calib-pose-{index + 1}",
                         reply_timeout_s=120.0)
             st = client.call("wait", timeout_s=120.0)
         except ProtocolError as exc:
@@ -288,6 +305,9 @@ def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptio
         if st.get("state") == "idle":
             break
         why = (st.get("fault") or {}).get("message", "")
+        if st.get("state") == "refused" and client.call("status").get("state") != "fault":
+            raise DataError(f"pose {index + 1}: the daemon refused the move: {why}; "
+                            f"the rows taken so far are kept")
         if st.get("state") in ("fault", "refused") and opts.faults_reset < opts.reset_faults:
             opts.faults_reset += 1
             sys.stderr.write(f"\npose {index + 1}: {why}: reset ({opts.faults_reset}/{opts.reset_faults}), "
