@@ -183,6 +183,16 @@ def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str 
 ROTATION_STEP_DEG = 2.0
 
 
+def transit_tips(cfg, start_deg, X_deg) -> list:
+    """Tool-tip poses between platform poses ``start_deg`` (None: none) and ``X_deg`` (both excluded),
+    on the straight platform line, at most ``ROTATION_STEP_DEG`` apart in orientation."""
+    if start_deg is None:
+        return []
+    S, X = np.asarray(start_deg, dtype=float), np.asarray(X_deg, dtype=float)
+    n = int(math.ceil(float(np.max(np.abs(X[3:] - S[3:]))) / ROTATION_STEP_DEG))
+    return [tip_of(cfg, S + (X - S) * (k / n)) for k in range(1, n)]
+
+
 def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions, start_deg=None) -> str:
     """Rapid to the approach pose (from ``start_deg``, the platform pose now, in steps along the straight
     platform line), then the slow feed into the pose."""
@@ -192,12 +202,7 @@ def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions, start_deg=None) -> s
 
     def words(T):
         return " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", T))
-    rapids = []
-    if start_deg is not None:
-        S = np.asarray(start_deg, dtype=float)
-        n = int(math.ceil(float(np.max(np.abs(pre_X[3:] - S[3:]))) / ROTATION_STEP_DEG))
-        rapids = [tip_of(cfg, S + (pre_X - S) * (k / n)) for k in range(1, n)]
-    rapids.append(pre)
+    rapids = transit_tips(cfg, start_deg, pre_X) + [pre]
     return ("G21 G90 G94\n" + "".join(f"G53 G0 {words(T)}\n" for T in rapids)
             + f"G53 G1 {words(tip)} F{opts.feed_mm_min:.3f}\nM2\n")
 
@@ -263,7 +268,9 @@ def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOpt
     from .probing import probe_sphere
     c_nom = tip_of(cfg, X_deg)
     abc = np.asarray(X_deg[3:], dtype=float)
-    res = probe_sphere(client, c_nom[:3], abc, SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=opts.probe_log)
+    now = client.call("status").get("pose_cmd")
+    res = probe_sphere(client, c_nom[:3], abc, SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=opts.probe_log,
+                       lead_in=lambda T: transit_tips(cfg, now, platform_of_tip(cfg, T)))
     Xc = platform_of_tip(cfg, np.r_[res["centre_mm"], abc])
     _move_and_settle(client, cfg, hx, Xc, index, opts)
     st = client.call("status")

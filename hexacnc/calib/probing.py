@@ -58,10 +58,12 @@ def _words(p, abc) -> str:
 
 def probe_sphere(client, centre_mm, abc_deg, radius_mm: float, clearance_mm: float = 2.0,
                  overtravel_mm: float = 2.0, feed_mm_min: float = 300.0, log_path=None,
-                 search_mm: float = 3.0) -> dict:
+                 search_mm: float = 3.0, lead_in=None) -> dict:
     """Touch the sphere 5 times; the centre the controller sees and the contacts.  A machine whose
     error puts the sphere up to ``clearance_mm + search_mm`` nearer or ``overtravel_mm + search_mm``
-    farther than ``centre_mm`` along a touch still finds it."""
+    farther than ``centre_mm`` along a touch still finds it.  ``lead_in(tip_pose)``: tool-tip poses to
+    pass on the way from where the machine is to the first point over the sphere (calib run: steps
+    along the straight platform line)."""
     c0 = np.asarray(centre_mm, dtype=float)
     c = c0.copy()                                 # the centre as seen so far
     safe_z = c[2] + radius_mm + clearance_mm + search_mm + 3.0
@@ -73,8 +75,9 @@ def probe_sphere(client, centre_mm, abc_deg, radius_mm: float, clearance_mm: flo
         end = c + (radius_mm - overtravel_mm - extra) * n
         path = [] if here is None else [here, [here[0], here[1], safe_z]]
         path += [[start[0], start[1], safe_z], start]
-        _go(client, "G21 G90 G94\n" + "".join(f"G53 G0 {_words(p, abc_deg)}\n" for p in path) + "M2\n",
-            f"probe approach {k + 1}")
+        pre = [] if here is not None or lead_in is None else list(lead_in(np.r_[path[0], abc_deg]))
+        _go(client, "G21 G90 G94\n" + "".join(f"G53 G0 {_words(p[:3], p[3:])}\n" for p in pre)
+            + "".join(f"G53 G0 {_words(p, abc_deg)}\n" for p in path) + "M2\n", f"probe approach {k + 1}")
         r = client.call("probe", tip_mm=[float(v) for v in end] + [float(v) for v in abc_deg],
                         feed_mm_min=feed_mm_min, mode="38.2", reply_timeout_s=120.0)
         contacts.append(r)
