@@ -150,10 +150,12 @@ def _verify(args) -> int:
             before = json.loads(Path(args.before).read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise DataError(f"--before {args.before}: {exc}") from None
+    rows = str(args.json) + ".rows.jsonl" if args.json else None
     with connect(args, "hexacnc calib verify") as client:
-        rep = verify_poses(client, cfg, poses, opts)
+        rep = verify_poses(client, cfg, poses, opts, rows)
     if args.json:
         atomic_write_text(args.json, json.dumps(rep, indent=2) + "\n")
+        Path(rows).unlink(missing_ok=True)
     print(compare_text(before, rep))
     for e in rep["excluded"]:
         print(f"  pose {e['pose']}: {e['flag']}", file=sys.stderr)

@@ -1,4 +1,4 @@
-"""The probing cycle on an artefact sphere (calib.probing) against a fake daemon: where the sphere really is."""
+"""calib run pieces against fake daemons: the probing cycle, far readings, the platform path, resumed verification."""
 import re
 
 import numpy as np
@@ -143,3 +143,37 @@ def test_the_rapid_between_poses_keeps_the_platform_on_its_straight_line():
     one = swing_mm(move_program(cfg, hx, X, RunOptions()))           # no start known: one rapid
     steps = swing_mm(move_program(cfg, hx, X, RunOptions(), S))
     assert one > 3.0 and steps < 0.1, (one, steps)
+
+
+def test_an_interrupted_verification_resumes_after_its_last_row(tmp_path):
+    from hexacnc.calib.cyclerun import RunOptions
+    from hexacnc.calib.synth import sample_poses
+    from hexacnc.calib.verify import verify_poses
+    from hexacnc.config import load_config
+    cfg = load_config(None)
+    poses = sample_poses(cfg, np.random.default_rng(4), 5)
+    rows = tmp_path / "after.json.rows.jsonl"
+
+    class Lost(FakeTracker):
+        def call(self, op, **kw):
+            if op == "program":
+                self.X = self.poses[self.k]
+                self.k += 1
+                if self.k > self.fail_after:
+                    raise ConnectionError("the daemon closed the connection")
+            return super().call(op, **kw)
+    first = Lost(cfg, [0.0])
+    first.poses, first.k, first.fail_after, first.X = poses, 0, 3, poses[0]
+    opts = RunOptions(settle_s=0.0, progress=False)
+    with pytest.raises(ConnectionError):
+        verify_poses(first, cfg, poses, opts, rows)
+    assert len(rows.read_text().splitlines()) == 1 + 3
+    again = Lost(cfg, [0.0])
+    again.poses, again.k, again.fail_after, again.X = poses[3:], 0, 99, poses[0]
+    rep = verify_poses(again, cfg, poses, opts, rows)
+    assert again.k == 2 and rep["measured"] == 5 and [r["pose"] for r in rep["rows"]] == [1, 2, 3, 4, 5]
+    # other poses: not a resumption, measured from the start
+    other = Lost(cfg, [0.0])
+    other.poses, other.k, other.fail_after, other.X = poses[:4], 0, 99, poses[0]
+    verify_poses(other, cfg, poses[:4], opts, rows)
+    assert other.k == 4
