@@ -177,3 +177,23 @@ def test_an_interrupted_verification_resumes_after_its_last_row(tmp_path):
     other.poses, other.k, other.fail_after, other.X = poses[:4], 0, 99, poses[0]
     verify_poses(other, cfg, poses[:4], opts, rows)
     assert other.k == 4
+
+
+def test_the_last_direction_survives_a_missed_look_across_a_reversal():
+    """The simulated backlash follows each strut's last direction of motion; the supervisor looks every
+    10 ms but a loaded VM stalls it for longer: the rapid down to the approach pose and the 0.3 mm feed
+    back up fall between two looks.  Commanded travel (every cycle) tells the reversal."""
+    from hexacnc.daemon.calibops import last_direction
+    d = np.ones(3)
+    db = 0.0005
+    # strut 0: seen at 700.5 moving down (-50 mm/s); then down to 700.0, up to 700.3: travel 0.5 + 0.3
+    # strut 1: monotonic down by 0.2 (no reversal): -1;  strut 2: 0.2 um of jitter: unchanged
+    c0, T0, v0 = np.array([700.5, 650.0, 600.0]), np.array([10.0, 10.0, 10.0]), np.array([-50.0, -5.0, 0.0])
+    c1, T1 = np.array([700.3, 649.8, 600.0002]), np.array([10.8, 10.2, 10.0002])
+    out, decided = last_direction(d, c0, T0, v0, c1, T1, db)
+    assert out.tolist() == [1.0, -1.0, 1.0] and decided.tolist() == [True, True, False]
+    # the net move alone (what a sampler sees) would say 'retracting' for strut 0
+    assert np.sign(c1[0] - c0[0]) == -1
+    # a reversal whose return leg is within the dead band keeps the first leg's direction
+    out, _ = last_direction(np.ones(1), [700.0], [0.0], [-10.0], [699.8002], [0.2004], db)
+    assert out.tolist() == [-1.0]
