@@ -197,3 +197,35 @@ def test_the_last_direction_survives_a_missed_look_across_a_reversal():
     # a reversal whose return leg is within the dead band keeps the first leg's direction
     out, _ = last_direction(np.ones(1), [700.0], [0.0], [-10.0], [699.8002], [0.2004], db)
     assert out.tolist() == [-1.0]
+
+
+@pytest.mark.parametrize("code,measured", [("busy", True), ("limit", False)])
+def test_a_move_refused_while_a_stop_runs_is_sent_again_a_limit_is_not(code, measured):
+    from hexacnc.calib.cyclerun import RunOptions, measure_pose
+    from hexacnc.config import load_config
+    from hexacnc.errors import DataError
+    from hexacnc.kinematics import Hexapod
+    cfg = load_config(None)
+
+    class Refusing(FakeTracker):
+        refused = 0
+        state = "stopping"
+
+        def call(self, op, **kw):
+            if op == "program" and not self.refused:
+                self.refused = 1
+                raise DaemonError({"error": {"code": code, "message": "a stop is in progress; wait for idle"}})
+            if op == "status":
+                return dict(super().call(op), state=self.state)
+            if op == "wait":
+                self.state = "idle"
+            return super().call(op, **kw)
+    fake = Refusing(cfg, [0.0])
+    fake.X = np.asarray(cfg.home_pose, dtype=float)
+    opts = RunOptions(settle_s=0.0, progress=False, reset_faults=3)
+    if measured:
+        assert measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, opts).values
+        assert opts.faults_reset == 1
+    else:
+        with pytest.raises(DataError, match="refused the move"):
+            measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, opts)

@@ -298,6 +298,23 @@ def _refused(exc: BaseException) -> bool:
     return isinstance(exc, ProtocolError) and getattr(exc, "code", None) is not None
 
 
+#: error codes of a daemon that cannot take the move *now* (a fault, the stop after it still running)
+TRANSIENT = ("fault", "busy")
+
+
+def _transient_state(client) -> str:
+    """After a refusal: wait out a stop in progress; the state then ("fault", "idle", ...)."""
+    st = client.call("status").get("state")
+    if st not in ("fault", "idle"):
+        try:
+            st = client.call("wait", timeout_s=60.0).get("state")
+        except ProtocolError as exc:
+            if not _refused(exc):
+                raise
+            st = client.call("status").get("state")
+    return st
+
+
 def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> None:
     while True:
         try:
@@ -308,18 +325,19 @@ def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptio
         except ProtocolError as exc:
             if not _refused(exc):
                 raise
-            st = {"state": "refused", "fault": {"message": str(exc)}}
+            st = {"state": "refused", "fault": {"message": str(exc)}, "code": exc.code}
         if st.get("state") == "idle":
             break
         why = (st.get("fault") or {}).get("message", "")
-        if st.get("state") == "refused" and client.call("status").get("state") != "fault":
+        if st.get("state") == "refused" and st.get("code") not in TRANSIENT \
+                and client.call("status").get("state") != "fault":
             raise DataError(f"pose {index + 1}: the daemon refused the move: {why}; "
                             f"the rows taken so far are kept")
         if st.get("state") in ("fault", "refused") and opts.faults_reset < opts.reset_faults:
             opts.faults_reset += 1
             sys.stderr.write(f"\npose {index + 1}: {why}: reset ({opts.faults_reset}/{opts.reset_faults}), "
                              f"measuring the pose again\n")
-            if client.call("status").get("state") == "fault":
+            if _transient_state(client) == "fault":
                 _reset(client)
             continue
         raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: {why}); "
@@ -334,11 +352,16 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
             try:
                 return measure_probe_pose(client, cfg, hx, X_deg, index, opts)
             except (DataError, ProtocolError) as exc:
-                if (isinstance(exc, ProtocolError) and not _refused(exc)) or client.call("status").get("state") != "fault" or opts.faults_reset >= opts.reset_faults:
+                if isinstance(exc, ProtocolError) and not _refused(exc):
+                    raise
+                busy = getattr(exc, "code", None) == "busy"          # the stop after a fault still running
+                st = _transient_state(client)
+                if st != "fault" and not (busy and st == "idle") or opts.faults_reset >= opts.reset_faults:
                     raise
                 opts.faults_reset += 1
                 sys.stderr.write(f"\npose {index + 1}: {exc}: reset, probing the sphere again\n")
-                _reset(client)
+                if st == "fault":
+                    _reset(client)
     _move_and_settle(client, cfg, hx, X_deg, index, opts)
     t_rest = time.time() - 0.05
     why = []
