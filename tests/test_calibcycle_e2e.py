@@ -15,7 +15,7 @@ import time
 import numpy as np
 import pytest
 
-from hexacnc.calib.cyclerun import RunOptions, retarget_probe, run_plan, tip_of
+from hexacnc.calib.cyclerun import RunOptions, run_plan, tip_of
 from hexacnc.calib.output import dumps_toml
 from hexacnc.calib.plan import plan as calib_plan
 from hexacnc.calib.synth import sample_poses
