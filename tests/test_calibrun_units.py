@@ -229,3 +229,29 @@ def test_a_move_refused_while_a_stop_runs_is_sent_again_a_limit_is_not(code, mea
     else:
         with pytest.raises(DataError, match="refused the move"):
             measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, opts)
+
+
+def test_probe_poses_keep_the_whole_probing_cycle_inside_the_box():
+    """A tilted pose puts the platform |tip| sin(angle) beside its sphere and the touches go 18.5 mm
+    around it: the nearest sphere can take the platform over the [workspace] box (a bench validation
+    pose: platform y 151 > 150); retarget_probe picks one whose cycle fits, check_reachable refuses
+    poses whose cycle does not."""
+    from hexacnc.calib.cyclerun import check_reachable, platform_of_tip, probe_reach_offsets_mm, retarget_probe
+    from hexacnc.config import load_config
+    from hexacnc.errors import DataError
+    from hexacnc.sim.instruments import TouchProbe
+    cfg = load_config(None)
+    sp = TouchProbe().spheres
+    X = np.array([90.0, 100.0, -800.0, -9.9, -10.0, -2.0])            # tip near the (100, 100) column, tilted
+    nearest = platform_of_tip(cfg, np.r_[sp[np.argmin(np.linalg.norm(sp - tip_of_(cfg, X), axis=1))], X[3:]])
+    offs = probe_reach_offsets_mm()
+    with pytest.raises(DataError, match="cannot reach"):
+        check_reachable(cfg, nearest[None], 0.3, "valid.csv", offs)
+    R = retarget_probe(cfg, X[None], sp)
+    check_reachable(cfg, R, 0.3, "valid.csv", offs)
+    assert np.allclose(R[0, 3:], X[3:])                                  # orientation kept
+
+
+def tip_of_(cfg, X):
+    from hexacnc.calib.cyclerun import tip_of
+    return tip_of(cfg, X)[:3]

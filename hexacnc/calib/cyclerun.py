@@ -127,13 +127,36 @@ def approach_pose(hx: Hexapod, X_deg, approach_mm: float) -> np.ndarray:
     return np.r_[X[:3] + dX[:3], X[3:] + np.degrees(dX[3:])]
 
 
+def probe_reach_offsets_mm() -> np.ndarray:
+    """Tool-tip offsets (mm) the probing cycle of calib run travels around a sphere's centre."""
+    from ..sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM
+    from .probing import cycle_tip_offsets_mm
+    return cycle_tip_offsets_mm(SPHERE_RADIUS_MM + STYLUS_RADIUS_MM)
+
+
+def _shifted(cfg, X_deg: np.ndarray, offsets_mm: np.ndarray) -> np.ndarray:
+    """Platform poses with the tool tip of ``X_deg`` moved by each offset (orientation kept)."""
+    T = tip_of(cfg, X_deg)
+    return np.array([platform_of_tip(cfg, np.r_[T[:3] + d, T[3:]]) for d in offsets_mm])
+
+
 def retarget_probe(cfg, poses_deg: np.ndarray, spheres_mm: np.ndarray) -> np.ndarray:
-    """Each pose moved so that its tool tip sits at the nearest artefact sphere (orientation kept)."""
+    """Each pose moved so that its tool tip sits at an artefact sphere (orientation kept): the nearest
+    one whose probing cycle stays within the limits and the ``[workspace]`` box (tilted poses put the
+    platform up to |tip| sin(angle) beside the sphere, the touches 18.5 mm around it); the nearest
+    if none does (then refused by :func:`check_reachable`)."""
+    offs = probe_reach_offsets_mm()
     out = []
     for X in poses_deg:
         t = tip_of(cfg, X)
-        k = int(np.argmin(np.linalg.norm(spheres_mm - t[None, :3], axis=1)))
-        out.append(platform_of_tip(cfg, np.r_[spheres_mm[k], X[3:]]))
+        order = np.argsort(np.linalg.norm(spheres_mm - t[None, :3], axis=1))
+        cands = [platform_of_tip(cfg, np.r_[spheres_mm[k], X[3:]]) for k in order]
+        pick = cands[0]
+        for C in cands:
+            if not unreachable(cfg, np.vstack([C[None], _shifted(cfg, C, offs)])).any():
+                pick = C
+                break
+        out.append(pick)
     return np.asarray(out)
 
 
@@ -166,9 +189,14 @@ def unreachable(cfg, poses_deg: np.ndarray, approach_mm: float = 0.3) -> np.ndar
     return hx.batch_violations(P) | hx.batch_violations(pre) | outside_box(cfg, P) | outside_box(cfg, pre)
 
 
-def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan") -> None:
-    """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits."""
+def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan",
+                    tip_offsets_mm: np.ndarray | None = None) -> None:
+    """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits;
+    ``tip_offsets_mm``: the tool tip also travels this far around each pose (a probing cycle)."""
     bad = unreachable(cfg, poses_deg, approach_mm)
+    if tip_offsets_mm is not None:
+        bad = bad | np.array([unreachable(cfg, _shifted(cfg, X, tip_offsets_mm), approach_mm).any()
+                              for X in np.atleast_2d(poses_deg)])
     if bad.any():
         rows = np.where(bad)[0]
         raise DataError(f"{source}: {len(rows)} pose(s) the machine cannot reach within its strut and joint limits "

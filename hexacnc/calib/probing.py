@@ -29,6 +29,15 @@ DIRECTIONS = np.array([[0, 0, 1.0], [1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, 
 SEARCH = (True, True, False, True, False)
 
 
+def cycle_tip_offsets_mm(radius_mm: float, clearance_mm: float = 2.0, search_mm: float = 3.0) -> np.ndarray:
+    """Tool-tip offsets from the sphere centre (mm) that bound the probing cycle's travel: the first
+    touches' starts and the moves over the sphere at the safe height (for the reach checks)."""
+    e = radius_mm + clearance_mm + search_mm
+    up = e + 3.0
+    return np.array([[e, 0, 0], [-e, 0, 0], [0, e, 0], [0, -e, 0], [0, 0, up],
+                     [e, 0, up], [-e, 0, up], [0, e, up], [0, -e, up]], dtype=float)
+
+
 def fit_sphere_centre(points: np.ndarray, radius: float, c0: np.ndarray) -> np.ndarray:
     """Centre of a sphere of known radius through the points (Gauss-Newton)."""
     c = np.asarray(c0, dtype=float).copy()

@@ -95,12 +95,14 @@ def _synth_machine(args) -> int:
 
 
 def _poses(args, path, cfg, opts):
-    from ..calib.cyclerun import check_reachable, load_plan, retarget_probe
+    from ..calib.cyclerun import check_reachable, load_plan, probe_reach_offsets_mm, retarget_probe
     poses = load_plan(path)
+    offs = None
     if opts.instrument == "probe":
         from ..sim.instruments import TouchProbe
         poses = retarget_probe(cfg, poses, TouchProbe().spheres)
-    check_reachable(cfg, poses, opts.approach_mm, str(path))
+        offs = probe_reach_offsets_mm() if opts.probe_cycle == "touch" else None
+    check_reachable(cfg, poses, opts.approach_mm, str(path), offs)
     return poses
 
 
