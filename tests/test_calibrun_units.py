@@ -255,3 +255,28 @@ def test_probe_poses_keep_the_whole_probing_cycle_inside_the_box():
 def tip_of_(cfg, X):
     from hexacnc.calib.cyclerun import tip_of
     return tip_of(cfg, X)[:3]
+
+
+def test_a_move_reported_idle_short_of_its_pose_is_made_again_not_measured():
+    """Under load a program that a fault ended was once reported idle: the pose was measured where the
+    machine had stopped (52 mm short, with readings and tracker agreeing). The commanded pose is checked."""
+    from hexacnc.calib.cyclerun import RunOptions, measure_pose
+    from hexacnc.config import load_config
+    from hexacnc.kinematics import Hexapod
+    cfg = load_config(None)
+
+    class Short(FakeTracker):
+        programs = 0
+
+        def call(self, op, **kw):
+            if op == "program":
+                self.programs += 1
+            if op == "status":
+                pc = list(self.X) if self.programs >= 2 else list(self.X + [40.0, 30.0, 0, 0, 0, 0])
+                return dict(super().call(op), state="idle", pose_cmd=pc)
+            return super().call(op, **kw)
+    fake = Short(cfg, [0.0])
+    fake.X = np.asarray(cfg.home_pose, dtype=float)
+    opts = RunOptions(settle_s=0.0, progress=False, reset_faults=3)
+    r = measure_pose(fake, cfg, Hexapod(cfg), fake.X, 0, opts)
+    assert fake.programs == 2 and opts.faults_reset == 1 and r.values
