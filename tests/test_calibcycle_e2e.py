@@ -26,7 +26,7 @@ from hexacnc.daemon import calibops
 from hexacnc.daemon import core
 from hexacnc.daemon import protocol as P
 from hexacnc.daemon.server import SocketServer
-from hexacnc.sim.instruments import TouchProbe
+from hexacnc.sim.instruments import TouchProbe, noise_floor_um
 from hexacnc.sim.truth import parse_truth, synth_truth_doc
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -105,9 +105,11 @@ def test_closed_cycle_measure_resume_fit_apply_reload_verify(machine, client, wo
     assert client.call("wait", timeout_s=30.0)["state"] == "idle"
     after = verify_poses(client, load_config(cal), valid, _opts())
     assert before["measured"] == after["measured"] == 3
-    # offline over 40 seeds (same plan size, tracker noise): before >= 326 um, after/before <= 0.039
+    # the tracker's noise alone shows ~15 um on 3 poses (their RMS scatters up to ~1.6x that): a machine with
+    # little error (seed 1992010430: 196 um before) ends at the noise, not at 10 % of before
+    floor = noise_floor_um("tracker", np.c_[valid[:, :3], np.radians(valid[:, 3:])], cfg.tool.tip_platform_mm)
     assert before["rms_um"] > 100.0, (SEED, before["rms_um"])
-    assert after["rms_um"] < 0.1 * before["rms_um"], (SEED, before["rms_um"], after["rms_um"])
+    assert after["rms_um"] < max(0.1 * before["rms_um"], 2.0 * floor), (SEED, before["rms_um"], after["rms_um"], floor)
 
 
 def test_external_measurement_is_paired_with_drive_readings_and_late_ones_refused(machine, client):
