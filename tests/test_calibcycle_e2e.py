@@ -1,8 +1,13 @@
-"""The calibration cycle end to end against the daemon and its simulated drives on a true machine."""
+"""The calibration cycle end to end against the daemon and its simulated drives on a true machine.
+
+The true machine is drawn at test time (``synth-machine`` with a fresh seed; ``HEXACNC_CALIB_SEED``
+repeats one): the cycle must work on machines nobody tuned it for.  The seed is in every failure
+message."""
 from __future__ import annotations
 
 import json
 import os
+import random
 import shutil
 import tempfile
 import time
@@ -10,8 +15,9 @@ import time
 import numpy as np
 import pytest
 
-from hexacnc.calib.cyclerun import RunOptions, retarget_probe, run_plan, tip_of
+from hexacnc.calib.cyclerun import RunOptions, run_plan, tip_of
 from hexacnc.calib.output import dumps_toml
+from hexacnc.calib.plan import plan as calib_plan
 from hexacnc.calib.synth import sample_poses
 from hexacnc.calib.verify import verify_poses
 from hexacnc.cli import main as cli
@@ -20,7 +26,7 @@ from hexacnc.daemon import calibops
 from hexacnc.daemon import core
 from hexacnc.daemon import protocol as P
 from hexacnc.daemon.server import SocketServer
-from hexacnc.sim.instruments import TouchProbe
+from hexacnc.sim.instruments import TouchProbe, noise_floor_um
 from hexacnc.sim.truth import parse_truth, synth_truth_doc
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
@@ -45,10 +51,14 @@ def machine_file(work):
     return p
 
 
+SEED = int(os.environ.get("HEXACNC_CALIB_SEED") or random.SystemRandom().randrange(1, 2 ** 31))
+
+
 @pytest.fixture(scope="module")
 def machine(work, machine_file):
     cfg = load_config(machine_file)
-    truth = parse_truth(synth_truth_doc(cfg, 21), "<truth seed 21>")
+    print(f"true machine: synth-machine --seed {SEED} (HEXACNC_CALIB_SEED={SEED} repeats it)")
+    truth = parse_truth(synth_truth_doc(cfg, SEED), f"<truth seed {SEED}>")
     daemon = core.Daemon(cfg, realtime=False)
     calibops.attach(daemon, truth)
     srv = SocketServer(daemon, cfg, os.path.join(work, "cal.sock")).start()
@@ -75,8 +85,9 @@ def _opts(inst="tracker"):
 
 def test_closed_cycle_measure_resume_fit_apply_reload_verify(machine, client, work, machine_file):
     cfg, srv, truth = machine
-    rng = np.random.default_rng(5)
-    plan, valid = sample_poses(cfg, rng, 10), sample_poses(cfg, rng, 3)
+    rng = np.random.default_rng(SEED)
+    plan = calib_plan(cfg, 10, "xyzabc", 300, SEED)["poses"]        # calib plan: a small D-optimal plan
+    valid = sample_poses(cfg, rng, 3)
     before = verify_poses(client, cfg, valid, _opts())
     meas = os.path.join(work, "meas.csv")
     run_plan(client, cfg, plan[:4], meas, _opts(), {"instrument": "tracker", "sigma_mm": 0.008})   # interrupted
@@ -94,8 +105,11 @@ def test_closed_cycle_measure_resume_fit_apply_reload_verify(machine, client, wo
     assert client.call("wait", timeout_s=30.0)["state"] == "idle"
     after = verify_poses(client, load_config(cal), valid, _opts())
     assert before["measured"] == after["measured"] == 3
-    assert before["rms_um"] > 200.0
-    assert after["rms_um"] < 0.1 * before["rms_um"], (before["rms_um"], after["rms_um"])
+    # the tracker's noise alone shows ~15 um on 3 poses (their RMS scatters up to ~1.6x that): a machine with
+    # little error (seed 1992010430: 196 um before) ends at the noise, not at 10 % of before
+    floor = noise_floor_um("tracker", np.c_[valid[:, :3], np.radians(valid[:, 3:])], cfg.tool.tip_platform_mm)
+    assert before["rms_um"] > 100.0, (SEED, before["rms_um"])
+    assert after["rms_um"] < max(0.1 * before["rms_um"], 2.0 * floor), (SEED, before["rms_um"], after["rms_um"], floor)
 
 
 def test_external_measurement_is_paired_with_drive_readings_and_late_ones_refused(machine, client):

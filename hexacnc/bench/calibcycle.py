@@ -7,7 +7,9 @@ through :func:`hexacnc.cli.main`), no hand edits.  JSON: ``before`` / ``after`` 
 max errors (um) on validation poses that were not used for fitting, the instrument's noise floor
 (:func:`hexacnc.sim.instruments.noise_floor_um`), the causes of the true machine and the ones
 fitted, the machine time spent; plus, from the truth (not measurable on a real machine), the
-tool-tip error the instrument's noise hides (``true_after``).
+tool-tip errors without the instrument's noise (``true_before``, ``true_after``) and their reduction
+(``true_reduction_pct``): on a machine whose error is less than 20 times the noise floor the
+measured reduction cannot reach 95 % (the measured ``after`` is at least the floor).
 """
 from __future__ import annotations
 
@@ -70,27 +72,66 @@ def write_poses(path: Path, poses: np.ndarray) -> None:
                     encoding="utf-8")
 
 
+class Daemon:
+    """``hexacnc run --truth`` in its own process; SIGTERM (controlled stop) and join on :meth:`stop`."""
+
+    def __init__(self, truth: Path, sock: Path, log: Path):
+        self.truth, self.sock, self.log = truth, sock, log
+        self.proc: subprocess.Popen | None = None
+        self.restarts = 0
+
+    def start(self, machine: Path) -> None:
+        cmd = [sys.executable, "-m", "hexacnc", "run", "--config", str(machine), "--truth", str(self.truth),
+               "--socket", str(self.sock), "--no-realtime"]
+        self.sock.unlink(missing_ok=True)
+        with open(self.log, "a") as lf:
+            self.proc = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT)
+        t_end = time.monotonic() + 60.0
+        while not self.sock.exists():
+            if self.proc.poll() is not None or time.monotonic() > t_end:
+                raise RuntimeError(f"daemon did not start: {self.log.read_text()[-800:]}")
+            time.sleep(0.1)
+
+    def alive(self) -> bool:
+        return self.proc is not None and self.proc.poll() is None
+
+    def stop(self) -> None:
+        if self.proc is None:
+            return
+        self.proc.terminate()
+        try:
+            self.proc.wait(30.0)
+        except subprocess.TimeoutExpired:
+            self.proc.kill()
+            self.proc.wait(10.0)
+        self.proc = None
+
+    def step(self, argv: list[str], machine: Path, max_restarts: int = 5) -> tuple[int, str]:
+        """A CLI step against the daemon; a daemon that ended under it (a shared VM's stall: the hot
+        loop killed after 5 s without a cycle) is started again on ``machine`` and the step run again
+        (calib run and verify resume after their last row)."""
+        while True:
+            try:
+                return _cli(argv)
+            except (RuntimeError, SystemExit, OSError):
+                t_end = time.monotonic() + 20.0          # a daemon whose hot loop died is closing
+                while self.alive() and time.monotonic() < t_end:
+                    time.sleep(0.5)
+                if self.alive() or self.restarts >= max_restarts:
+                    raise
+            self.restarts += 1
+            self.stop()
+            self.start(machine)
+
+
 @contextlib.contextmanager
 def daemon_process(machine: Path, truth: Path, sock: Path, log: Path):
-    """``hexacnc run --truth`` in its own process; SIGTERM (controlled stop) and join on exit."""
-    cmd = [sys.executable, "-m", "hexacnc", "run", "--config", str(machine), "--truth", str(truth),
-           "--socket", str(sock), "--no-realtime"]
-    with open(log, "w") as lf:
-        proc = subprocess.Popen(cmd, stdout=lf, stderr=subprocess.STDOUT)
+    d = Daemon(truth, sock, log)
+    d.start(machine)
     try:
-        t_end = time.monotonic() + 60.0
-        while not sock.exists():
-            if proc.poll() is not None or time.monotonic() > t_end:
-                raise RuntimeError(f"daemon did not start: {log.read_text()[-800:]}")
-            time.sleep(0.1)
-        yield proc
+        yield d
     finally:
-        proc.terminate()
-        try:
-            proc.wait(30.0)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(10.0)
+        d.stop()
 
 
 def run_cycle(work: Path, machine: Path, truth: Path, instrument: str, plan: Path, valid: Path,
@@ -104,32 +145,32 @@ def run_cycle(work: Path, machine: Path, truth: Path, instrument: str, plan: Pat
         work / f"calibrated_{instrument}.toml"
     before, after = work / f"before_{instrument}.json", work / f"after_{instrument}.json"
     times = {}
-    with daemon_process(machine, truth, sock, work / f"daemon_{instrument}.log"):
+    with daemon_process(machine, truth, sock, work / f"daemon_{instrument}.log") as d:
         t = time.monotonic()
-        _cli(["calib", "verify", "--poses", str(valid), "--instrument", instrument, "--config", str(machine),
-              "--json", str(before), "-q"] + conn)
+        d.step(["calib", "verify", "--poses", str(valid), "--instrument", instrument, "--config", str(machine),
+                "--json", str(before), "-q"] + conn, machine)
         times["verify_before_s"] = time.monotonic() - t
         t = time.monotonic()
-        _cli(["calib", "run", str(plan), "--out", str(meas), "--instrument", instrument, "--config", str(machine),
-              "-q"] + conn)
+        d.step(["calib", "run", str(plan), "--out", str(meas), "--instrument", instrument, "--config",
+                str(machine), "-q"] + conn, machine)
         times["run_s"] = time.monotonic() - t
         t = time.monotonic()
         _, fit_out = _cli(["calib", "fit", "--config", str(machine), "--data", str(meas), "--out", str(cal)])
         times["fit_s"] = time.monotonic() - t
         _cli(["calib", "apply", str(cal), "--config", str(machine), "--out", str(calibrated)])
         t = time.monotonic()
-        _cli(["reload", str(calibrated), "--socket", str(sock)])
+        d.step(["reload", str(calibrated), "--socket", str(sock)], calibrated)
         times["reload_s"] = time.monotonic() - t
         t = time.monotonic()
-        _cli(["calib", "verify", "--poses", str(valid), "--instrument", instrument, "--config", str(calibrated),
-              "--json", str(after), "--before", str(before), "-q"] + conn)
+        d.step(["calib", "verify", "--poses", str(valid), "--instrument", instrument, "--config", str(calibrated),
+                "--json", str(after), "--before", str(before), "-q"] + conn, calibrated)
         times["verify_after_s"] = time.monotonic() - t
     b = json.loads(before.read_text())
     a = json.loads(after.read_text())
     fit = json.loads(fit_out)
     log = (work / f"daemon_{instrument}.log").read_text(errors="replace")
     return {"before": b, "after": a, "fit": fit, "times": times, "calibrated": str(calibrated),
-            "faults_reset": log.count(" ERROR FAULT ")}
+            "faults_reset": log.count(" ERROR FAULT "), "daemon_restarts": d.restarts}
 
 
 def _true_errors_um(truth, verify: dict) -> dict:
@@ -141,6 +182,14 @@ def _true_errors_um(truth, verify: dict) -> dict:
         e.append(float(np.linalg.norm(truth.tool_tip_mm(X) - np.asarray(r.get("tip_cmd_mm") or [np.nan] * 3))))
     e = np.asarray([v for v in e if np.isfinite(v)]) * 1e3
     return {"rms_um": float(np.sqrt(np.mean(e ** 2))) if e.size else None, "max_um": float(e.max()) if e.size else None}
+
+
+def _reduction(before: dict, after: dict) -> float | None:
+    """RMS reduction (%) of the tool-tip error the truth sees: the measured reduction is bounded by the
+    instrument's noise (after >= the noise floor), this one is not."""
+    if not before.get("rms_um") or after.get("rms_um") is None:
+        return None
+    return 100.0 * (1.0 - after["rms_um"] / before["rms_um"])
 
 
 def contact_errors_um(truth, probes_jsonl: Path) -> dict:
@@ -230,7 +279,9 @@ def main(args: argparse.Namespace) -> int:
                 "after": {"rms_um": a["rms_um"], "max_um": a["max_um"]},
                 "reduction_pct": 100.0 * (1.0 - a["rms_um"] / b["rms_um"]),
                 "noise_floor_um": floor, "after_over_noise_floor": a["rms_um"] / floor,
+                "true_before": _true_errors_um(truth, b),
                 "true_after": _true_errors_um(truth, a),
+                "true_reduction_pct": _reduction(_true_errors_um(truth, b), _true_errors_um(truth, a)),
                 "plan_poses": len(load_plan(plan)), "validation_poses": len(vp),
                 "excluded": {"run": r["fit"]["rows_excluded"], "verify": len(a["excluded"])},
                 "fitted": {"causes": ["geometry (42)"] + list(r["fit"]["applied"]),
@@ -238,7 +289,7 @@ def main(args: argparse.Namespace) -> int:
                 "machine_time_s": round(r["times"]["verify_before_s"] + r["times"]["run_s"]
                                         + r["times"]["verify_after_s"] + r["times"]["reload_s"], 1),
                 "times_s": {k: round(v, 2) for k, v in r["times"].items()},
-                "faults_reset": r["faults_reset"],
+                "faults_reset": r["faults_reset"], "daemon_restarts": r["daemon_restarts"],
             }
             if inst == "probe":
                 out["instruments"][inst]["contact_reading_error"] = contact_errors_um(

@@ -6,10 +6,14 @@ the pose (so the backlash of every drive is taken up in the same direction), ``s
 rest, then one instrument reading through the daemon's ``measure`` op, which pairs it with the
 drive readings.  Readings are checked: *missing* (no reading), *late* (paired more than
 ``max_gap_s`` away from drive readings, or taken before the machine came to rest), *outlier*
-(the measured tool tip more than ``outlier_mm`` from where the controller's own model puts it -
-a gross error, far beyond any machine error calibration can remove).  A flagged reading is
-measured again (up to ``retries``); if it stays bad, the row is written with its drive readings,
-no measured coordinate and the reason in ``flag``.  Rows are appended and flushed as they are
+(the measured tool tip more than ``outlier_mm`` from where the controller's own model puts it, and
+not confirmed by the next reading).  An uncalibrated machine may really stand that far off (a
+machine at twice the synthetic tolerances: up to 3 mm), an instrument's gross error does not
+repeat: a far reading that the next reading of the same pose confirms (within ``confirm_mm`` /
+``confirm_deg``) is kept, flagged ``confirmed``, unless it is more than ``gross_mm`` off (no
+calibration removes that: a wrong configuration).  A flagged reading is measured again (up to
+``retries``); if it stays bad, the row is written with its drive readings, no measured coordinate
+and the reason in ``flag``.  Rows are appended and flushed as they are
 taken: an interrupted run resumes after the last written row (``resume``).
 
 Poses the machine cannot reach (pose or approach pose outside any strut or joint limit) are
@@ -48,6 +52,9 @@ class RunOptions:
     max_gap_s: float = 0.05
     outlier_mm: float = 2.0
     outlier_deg: float = 0.5
+    confirm_mm: float = 0.05          #: a far reading confirmed by the next one within this is kept
+    confirm_deg: float = 0.01
+    gross_mm: float = 10.0            #: never kept beyond this from the model
     progress: bool = True
     wait_s: float = 5.0
     probe_cycle: str = "touch"        #: probe: "touch" (5 G38.2 touches per sphere) or "result" (simulated result)
@@ -120,13 +127,36 @@ def approach_pose(hx: Hexapod, X_deg, approach_mm: float) -> np.ndarray:
     return np.r_[X[:3] + dX[:3], X[3:] + np.degrees(dX[3:])]
 
 
+def probe_reach_offsets_mm() -> np.ndarray:
+    """Tool-tip offsets (mm) the probing cycle of calib run travels around a sphere's centre."""
+    from ..sim.probesignal import SPHERE_RADIUS_MM, STYLUS_RADIUS_MM
+    from .probing import cycle_tip_offsets_mm
+    return cycle_tip_offsets_mm(SPHERE_RADIUS_MM + STYLUS_RADIUS_MM)
+
+
+def _shifted(cfg, X_deg: np.ndarray, offsets_mm: np.ndarray) -> np.ndarray:
+    """Platform poses with the tool tip of ``X_deg`` moved by each offset (orientation kept)."""
+    T = tip_of(cfg, X_deg)
+    return np.array([platform_of_tip(cfg, np.r_[T[:3] + d, T[3:]]) for d in offsets_mm])
+
+
 def retarget_probe(cfg, poses_deg: np.ndarray, spheres_mm: np.ndarray) -> np.ndarray:
-    """Each pose moved so that its tool tip sits at the nearest artefact sphere (orientation kept)."""
+    """Each pose moved so that its tool tip sits at an artefact sphere (orientation kept): the nearest
+    one whose probing cycle stays within the limits and the ``[workspace]`` box (tilted poses put the
+    platform up to |tip| sin(angle) beside the sphere, the touches 18.5 mm around it); the nearest
+    if none does (then refused by :func:`check_reachable`)."""
+    offs = probe_reach_offsets_mm()
     out = []
     for X in poses_deg:
         t = tip_of(cfg, X)
-        k = int(np.argmin(np.linalg.norm(spheres_mm - t[None, :3], axis=1)))
-        out.append(platform_of_tip(cfg, np.r_[spheres_mm[k], X[3:]]))
+        order = np.argsort(np.linalg.norm(spheres_mm - t[None, :3], axis=1))
+        cands = [platform_of_tip(cfg, np.r_[spheres_mm[k], X[3:]]) for k in order]
+        pick = cands[0]
+        for C in cands:
+            if not unreachable(cfg, np.vstack([C[None], _shifted(cfg, C, offs)])).any():
+                pick = C
+                break
+        out.append(pick)
     return np.asarray(out)
 
 
@@ -159,9 +189,14 @@ def unreachable(cfg, poses_deg: np.ndarray, approach_mm: float = 0.3) -> np.ndar
     return hx.batch_violations(P) | hx.batch_violations(pre) | outside_box(cfg, P) | outside_box(cfg, pre)
 
 
-def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan") -> None:
-    """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits."""
+def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str = "plan",
+                    tip_offsets_mm: np.ndarray | None = None) -> None:
+    """Refuse (DataError, every bad row named) a plan with a pose or approach pose outside the limits;
+    ``tip_offsets_mm``: the tool tip also travels this far around each pose (a probing cycle)."""
     bad = unreachable(cfg, poses_deg, approach_mm)
+    if tip_offsets_mm is not None:
+        bad = bad | np.array([unreachable(cfg, _shifted(cfg, X, tip_offsets_mm), approach_mm).any()
+                              for X in np.atleast_2d(poses_deg)])
     if bad.any():
         rows = np.where(bad)[0]
         raise DataError(f"{source}: {len(rows)} pose(s) the machine cannot reach within its strut and joint limits "
@@ -170,13 +205,34 @@ def check_reachable(cfg, poses_deg: np.ndarray, approach_mm: float, source: str 
                         f"nothing moved")
 
 
-def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions) -> str:
-    pre = tip_of(cfg, approach_pose(hx, X_deg, opts.approach_mm))
+#: the rapid between poses is cut into straight platform steps of at most this rotation (deg): a tool-tip
+#: straight move with the orientation interpolated swings the platform out by |tip| * angle^2 / 8
+#: (250 mm tip, 0.6 rad: 11 mm, out of the [workspace] box near its edge); per 2 deg step: 0.04 mm
+ROTATION_STEP_DEG = 2.0
+
+
+def transit_tips(cfg, start_deg, X_deg) -> list:
+    """Tool-tip poses between platform poses ``start_deg`` (None: none) and ``X_deg`` (both excluded),
+    on the straight platform line, at most ``ROTATION_STEP_DEG`` apart in orientation."""
+    if start_deg is None:
+        return []
+    S, X = np.asarray(start_deg, dtype=float), np.asarray(X_deg, dtype=float)
+    n = int(math.ceil(float(np.max(np.abs(X[3:] - S[3:]))) / ROTATION_STEP_DEG))
+    return [tip_of(cfg, S + (X - S) * (k / n)) for k in range(1, n)]
+
+
+def move_program(cfg, hx: Hexapod, X_deg, opts: RunOptions, start_deg=None) -> str:
+    """Rapid to the approach pose (from ``start_deg``, the platform pose now, in steps along the straight
+    platform line), then the slow feed into the pose."""
+    pre_X = approach_pose(hx, X_deg, opts.approach_mm)
+    pre = tip_of(cfg, pre_X)
     tip = tip_of(cfg, X_deg)
 
     def words(T):
         return " ".join(f"{a}{v:.6f}" for a, v in zip("XYZABC", T))
-    return (f"G21 G90 G94\nG53 G0 {words(pre)}\nG53 G1 {words(tip)} F{opts.feed_mm_min:.3f}\nM2\n")
+    rapids = transit_tips(cfg, start_deg, pre_X) + [pre]
+    return ("G21 G90 G94\n" + "".join(f"G53 G0 {words(T)}\n" for T in rapids)
+            + f"G53 G1 {words(tip)} F{opts.feed_mm_min:.3f}\nM2\n")
 
 
 def _progress(k: int, n: int, flag: str, opts: RunOptions) -> None:
@@ -190,6 +246,18 @@ def _progress(k: int, n: int, flag: str, opts: RunOptions) -> None:
     sys.stderr.flush()
 
 
+def _deviation(cfg, hx: Hexapod, r: dict):
+    """(mm, deg) the reading is off the model's pose at its drive readings, or None (no pose)."""
+    vals = r.get("values") or {}
+    fk = hx.forward_readings(np.asarray(r["q_mm"], dtype=float))
+    if not fk.ok:
+        return None
+    model = fk.pose if r.get("target") == "platform" else tip_of(cfg, fk.pose)
+    dev = max([abs(vals[k] - model[i]) for i, k in enumerate(("x", "y", "z")) if k in vals] + [0.0])
+    dev_deg = max([abs(vals[k] - model[3 + i]) for i, k in enumerate(("a", "b", "c")) if k in vals] + [0.0])
+    return dev, dev_deg
+
+
 def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -> str:
     """'' if the reading is usable, else why not (missing / late / outlier)."""
     vals = r.get("values") or {}
@@ -197,15 +265,29 @@ def _check_reading(cfg, hx: Hexapod, r: dict, t_rest: float, opts: RunOptions) -
         return "missing: no reading"
     if float(r.get("pair_gap_s", 0.0)) > opts.max_gap_s or float(r.get("t_s", 0.0)) < t_rest:
         return f"late: reading at {r.get('t_s')} paired {r.get('pair_gap_s')} s from drive readings"
-    fk = hx.forward_readings(np.asarray(r["q_mm"], dtype=float))
-    if not fk.ok:
+    d = _deviation(cfg, hx, r)
+    if d is None:
         return "outlier: the drive readings give no pose of the model"
-    model = fk.pose if r.get("target") == "platform" else tip_of(cfg, fk.pose)
-    dev = max([abs(vals[k] - model[i]) for i, k in enumerate(("x", "y", "z")) if k in vals] + [0.0])
-    dev_deg = max([abs(vals[k] - model[3 + i]) for i, k in enumerate(("a", "b", "c")) if k in vals] + [0.0])
+    dev, dev_deg = d
     if dev > opts.outlier_mm or dev_deg > opts.outlier_deg:
         return f"outlier: {dev:.3f} mm / {dev_deg:.4f} deg from the model's pose"
     return ""
+
+
+def _confirms(cfg, hx: Hexapod, r: dict, prev: dict | None, opts: RunOptions) -> bool:
+    """A far reading ``r`` that agrees with the previous far reading ``prev`` of the same pose (the
+    machine is there, not an instrument's gross error), not beyond ``gross_mm``."""
+    if prev is None:
+        return False
+    a, b = r.get("values") or {}, prev.get("values") or {}
+    if not a or set(a) != set(b):
+        return False
+    if max(abs(a[k] - b[k]) for k in a if k in "xyz") > opts.confirm_mm:
+        return False
+    if max([abs(a[k] - b[k]) for k in a if k in "abc"] + [0.0]) > opts.confirm_deg:
+        return False
+    d = _deviation(cfg, hx, r)
+    return d is not None and d[0] <= opts.gross_mm
 
 
 def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> PoseResult:
@@ -214,7 +296,9 @@ def measure_probe_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOpt
     from .probing import probe_sphere
     c_nom = tip_of(cfg, X_deg)
     abc = np.asarray(X_deg[3:], dtype=float)
-    res = probe_sphere(client, c_nom[:3], abc, SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=opts.probe_log)
+    now = client.call("status").get("pose_cmd")
+    res = probe_sphere(client, c_nom[:3], abc, SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=opts.probe_log,
+                       lead_in=lambda T: transit_tips(cfg, now, platform_of_tip(cfg, T)))
     Xc = platform_of_tip(cfg, np.r_[res["centre_mm"], abc])
     _move_and_settle(client, cfg, hx, Xc, index, opts)
     st = client.call("status")
@@ -242,24 +326,61 @@ def _refused(exc: BaseException) -> bool:
     return isinstance(exc, ProtocolError) and getattr(exc, "code", None) is not None
 
 
+#: error codes of a daemon that cannot take the move *now* (a fault, the stop after it still running)
+TRANSIENT = ("fault", "busy")
+
+
+def _transient_state(client) -> str:
+    """After a refusal: wait out a stop in progress; the state then ("fault", "idle", ...)."""
+    st = client.call("status").get("state")
+    if st not in ("fault", "idle"):
+        try:
+            st = client.call("wait", timeout_s=60.0).get("state")
+        except ProtocolError as exc:
+            if not _refused(exc):
+                raise
+            st = client.call("status").get("state")
+    return st
+
+
+def _arrived(client, X_deg, tol_mm: float = 1e-3, tol_deg: float = 1e-4) -> str | None:
+    """None when the commanded platform pose is ``X_deg``, else why not: a program that a fault ended
+    may be reported idle (seen under load: pose 15 measured 52 mm short, where the machine stopped)."""
+    pc = client.call("status").get("pose_cmd")
+    if pc is None:
+        return None
+    d = np.abs(np.asarray(pc, dtype=float) - np.asarray(X_deg, dtype=float))
+    if float(np.max(d[:3])) <= tol_mm and float(np.max(d[3:])) <= tol_deg:
+        return None
+    return f"the move ended {float(np.max(d[:3])):.3f} mm / {float(np.max(d[3:])):.4f} deg short of the pose"
+
+
 def _move_and_settle(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) -> None:
     while True:
         try:
-            client.call("program", text=move_program(cfg, hx, X_deg, opts), name=f"calib-pose-{index + 1}",
+            start = client.call("status").get("pose_cmd")
+            client.call("program", text=move_program(cfg, hx, X_deg, opts, start), name=f"calib-pose-{index + 1}",
                         reply_timeout_s=120.0)
             st = client.call("wait", timeout_s=120.0)
         except ProtocolError as exc:
             if not _refused(exc):
                 raise
-            st = {"state": "refused", "fault": {"message": str(exc)}}
+            st = {"state": "refused", "fault": {"message": str(exc)}, "code": exc.code}
         if st.get("state") == "idle":
-            break
+            at = _arrived(client, X_deg)
+            if at is None:
+                break
+            st = {"state": "short", "fault": {"message": at}}   # a program ended by a fault read as idle
         why = (st.get("fault") or {}).get("message", "")
-        if st.get("state") in ("fault", "refused") and opts.faults_reset < opts.reset_faults:
+        if st.get("state") == "refused" and st.get("code") not in TRANSIENT \
+                and client.call("status").get("state") != "fault":
+            raise DataError(f"pose {index + 1}: the daemon refused the move: {why}; "
+                            f"the rows taken so far are kept")
+        if st.get("state") in ("fault", "refused", "short") and opts.faults_reset < opts.reset_faults:
             opts.faults_reset += 1
             sys.stderr.write(f"\npose {index + 1}: {why}: reset ({opts.faults_reset}/{opts.reset_faults}), "
                              f"measuring the pose again\n")
-            if client.call("status").get("state") == "fault":
+            if _transient_state(client) == "fault":
                 _reset(client)
             continue
         raise DataError(f"pose {index + 1}: the machine did not come to rest ({st.get('state')}: {why}); "
@@ -274,15 +395,21 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
             try:
                 return measure_probe_pose(client, cfg, hx, X_deg, index, opts)
             except (DataError, ProtocolError) as exc:
-                if (isinstance(exc, ProtocolError) and not _refused(exc)) or client.call("status").get("state") != "fault" or opts.faults_reset >= opts.reset_faults:
+                if isinstance(exc, ProtocolError) and not _refused(exc):
+                    raise
+                busy = getattr(exc, "code", None) == "busy"          # the stop after a fault still running
+                st = _transient_state(client)
+                if st != "fault" and not (busy and st == "idle") or opts.faults_reset >= opts.reset_faults:
                     raise
                 opts.faults_reset += 1
                 sys.stderr.write(f"\npose {index + 1}: {exc}: reset, probing the sphere again\n")
-                _reset(client)
+                if st == "fault":
+                    _reset(client)
     _move_and_settle(client, cfg, hx, X_deg, index, opts)
     t_rest = time.time() - 0.05
     why = []
     r: dict = {}
+    far = None                        #: the last reading far from the model (confirmed by the next?)
     for attempt in range(opts.retries + 1):
         try:
             r = client.call("measure", instrument=opts.instrument, wait_s=opts.wait_s, after_t_s=t_rest,
@@ -294,11 +421,15 @@ def measure_pose(client, cfg, hx: Hexapod, X_deg, index: int, opts: RunOptions) 
             why.append(f"missing: {exc}")
             continue
         bad = _check_reading(cfg, hx, r, t_rest, opts)
+        if bad.startswith("outlier: ") and _confirms(cfg, hx, r, far, opts):
+            bad, why = "", [f"confirmed: {bad[len('outlier: '):]}, two readings agree"]
         if not bad:
-            flag = ("remeasured: " + "; ".join(why)) if why else ""
+            flag = why[0] if why and why[0].startswith("confirmed") else \
+                ("remeasured: " + "; ".join(why)) if why else ""
             return PoseResult(index, list(r["q_mm"]), dict(r["values"]), r.get("target", "platform"),
                               float(r["t_s"]), flag, tip_of(cfg, X_deg).tolist())
         why.append(bad)
+        far = r if bad.startswith("outlier: ") and "no pose" not in bad else None
     st = client.call("status")
     q = r.get("q_mm") or (np.asarray(st["struts_act_mm"]) - np.asarray(cfg.strut_offset_mm)).tolist()
     return PoseResult(index, list(q), {}, r.get("target", "platform"), time.time(),

@@ -95,12 +95,14 @@ def _synth_machine(args) -> int:
 
 
 def _poses(args, path, cfg, opts):
-    from ..calib.cyclerun import check_reachable, load_plan, retarget_probe
+    from ..calib.cyclerun import check_reachable, load_plan, probe_reach_offsets_mm, retarget_probe
     poses = load_plan(path)
+    offs = None
     if opts.instrument == "probe":
         from ..sim.instruments import TouchProbe
         poses = retarget_probe(cfg, poses, TouchProbe().spheres)
-    check_reachable(cfg, poses, opts.approach_mm, str(path))
+        offs = probe_reach_offsets_mm() if opts.probe_cycle == "touch" else None
+    check_reachable(cfg, poses, opts.approach_mm, str(path), offs)
     return poses
 
 
@@ -150,10 +152,12 @@ def _verify(args) -> int:
             before = json.loads(Path(args.before).read_text(encoding="utf-8"))
         except (OSError, ValueError) as exc:
             raise DataError(f"--before {args.before}: {exc}") from None
+    rows = str(args.json) + ".rows.jsonl" if args.json else None
     with connect(args, "hexacnc calib verify") as client:
-        rep = verify_poses(client, cfg, poses, opts)
+        rep = verify_poses(client, cfg, poses, opts, rows)
     if args.json:
         atomic_write_text(args.json, json.dumps(rep, indent=2) + "\n")
+        Path(rows).unlink(missing_ok=True)
     print(compare_text(before, rep))
     for e in rep["excluded"]:
         print(f"  pose {e['pose']}: {e['flag']}", file=sys.stderr)

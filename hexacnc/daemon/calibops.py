@@ -49,8 +49,33 @@ OPS = {
 }
 
 
+def last_direction(d_prev: np.ndarray, c0, T0, v0, c1, T1, deadband_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each strut's last direction of motion (+1 extending) from two looks at its command ``c`` and
+    its cumulative commanded travel ``T`` (the hot loop adds every cycle's step, so nothing between
+    the looks is lost), ``v0`` the commanded velocity at the first look.  Travel beyond the net move
+    is a reversal in between: the first leg continues ``v0`` (else the last direction), the last leg
+    goes back.  Returns ``(direction, decided)``: ``decided`` where the looks moved it past the dead
+    band (the caller keeps its first look for the others, so slow moves add up)."""
+    net = np.asarray(c1, dtype=float) - np.asarray(c0, dtype=float)
+    dT = np.asarray(T1, dtype=float) - np.asarray(T0, dtype=float)
+    out = np.array(d_prev, dtype=float)
+    decided = np.zeros(len(out), dtype=bool)
+    for i in range(len(out)):
+        if dT[i] - abs(net[i]) > deadband_mm:             # went one way, then back
+            f = float(np.sign(v0[i])) if abs(v0[i]) > 1e-9 else out[i]
+            last_leg = 0.5 * (dT[i] - f * net[i])
+            out[i] = -f if last_leg > deadband_mm else f
+            decided[i] = True
+        elif abs(net[i]) > deadband_mm:
+            out[i] = float(np.sign(net[i]))
+            decided[i] = True
+    return out, decided
+
+
 class ReadingHistory(threading.Thread):
-    """Samples the drive readings (mm) every 10 ms; each strut's last direction of motion."""
+    """Samples the drive readings (mm) every 10 ms; each strut's last direction of motion (from the
+    hot loop's commands and cumulative commanded travel, :func:`last_direction`: a look missed
+    under load, a reversal between two looks included, does not flip the simulated backlash)."""
 
     def __init__(self, daemon: Any):
         super().__init__(name="hexacnc-readings", daemon=True)
@@ -60,7 +85,7 @@ class ReadingHistory(threading.Thread):
         self.t: deque = deque(maxlen=n)
         self.q: deque = deque(maxlen=n)
         self.direction = np.ones(6)
-        self._ref: np.ndarray | None = None
+        self._ref: tuple | None = None                 #: command, travel, velocity at the last decision
         self.lock = threading.Lock()
         self.stop_event = threading.Event()
         self.kept: deque = deque(maxlen=MAX_KEPT)      #: paired external measurements
@@ -74,14 +99,19 @@ class ReadingHistory(threading.Thread):
         while not self.stop_event.wait(SAMPLE_S):
             if self.daemon_.sh is None or self.daemon_.closed:
                 break
-            t, q = self.current()
+            h, s = self.daemon_.sh.read_status()
+            t = time.time()
+            q = np.asarray(s[S.S_STRUT_ACT:S.S_STRUT_ACT + 6], dtype=float) - self.off
+            look = (np.asarray(s[S.S_STRUT_CMD:S.S_STRUT_CMD + 6], dtype=float),
+                    np.asarray(s[S.S_TRAVEL:S.S_TRAVEL + 6], dtype=float),
+                    np.asarray(s[S.S_STRUT_VEL:S.S_STRUT_VEL + 6], dtype=float))
             with self.lock:
                 if self._ref is None:
-                    self._ref = q.copy()
-                d = q - self._ref
-                moved = np.abs(d) > DIRECTION_DEADBAND_MM
-                self.direction[moved] = np.sign(d[moved])
-                self._ref[moved] = q[moved]
+                    self._ref = look
+                c0, T0, v0 = self._ref
+                self.direction, moved = last_direction(self.direction, c0, T0, v0, look[0], look[1],
+                                                       DIRECTION_DEADBAND_MM)
+                self._ref = tuple(np.where(moved, a, b) for a, b in zip(look, self._ref))
                 self.t.append(t)
                 self.q.append(q)
 
