@@ -125,17 +125,26 @@ def netns_or_rerun(request, timeout_s: float = 180.0) -> bool:
     pytest.fail(f"inside the network namespace the test {outcome} (exit {r.returncode}):\n{tail}")
 
 
-def _read_maps(node, sdo_error, attempts: int = 10) -> None:
-    """``rpdo.read()`` and ``tpdo.read()`` of ``node``, repeated on an SDO exchange spoilt by another client."""
+def sdo_retry(exchange, attempts: int = 10, pause_s: float = 0.05):
+    """``exchange()`` (an idempotent SDO read or write of a test's client), repeated when canopen refuses
+    an answer: a test's client is a second SDO client on a drive's one SDO server channel, beside the
+    daemon's own (torque sampler at rest), and an answer meant for the daemon can reach it."""
+    import canopen
     for attempt in range(attempts):
         try:
-            node.rpdo.read()
-            node.tpdo.read()
-            return
-        except sdo_error:
+            return exchange()
+        except canopen.SdoCommunicationError:
             if attempt == attempts - 1:
                 raise
-            time.sleep(0.05)
+            time.sleep(pause_s)
+
+
+def _read_maps(node) -> None:
+    """``rpdo.read()`` and ``tpdo.read()`` of ``node``, repeated on an SDO exchange spoilt by another client."""
+    def read():
+        node.rpdo.read()
+        node.tpdo.read()
+    sdo_retry(read)
 
 
 class PdoDecoder:
@@ -174,7 +183,7 @@ class PdoDecoder:
         self.positions: list[list[int]] = [[] for _ in range(n)]
         self.statuswords: list[list[int]] = [[] for _ in range(n)]
         for i, node in enumerate(self.nodes):
-            _read_maps(node, canopen.SdoCommunicationError)
+            _read_maps(node)
             for m in node.rpdo.map.values():
                 if m.enabled:
                     m.add_callback(self._cb(i))

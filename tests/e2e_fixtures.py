@@ -70,6 +70,17 @@ def machine(cfg):
     yield from running_machine(cfg)
 
 
+def wait_state(c, state: str, timeout_s: float = 10.0) -> dict:
+    """Poll status until its ``state`` is ``state``; returns that status. Fails the test after ``timeout_s``."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        st = c.call("status")
+        if st["state"] == state:
+            return st
+        time.sleep(0.02)
+    raise AssertionError(f"not {state}: {c.call('status')}")
+
+
 def wait_standstill(client, timeout_s: float, interval_s: float = 0.1, polls: int = 1) -> dict:
     """Poll status until the commanded pose is the same ``polls`` polls in a row (``interval_s``
     apart); returns that status.  Fails the test if it still moves after ``timeout_s``."""

@@ -9,12 +9,11 @@ import math
 import os
 import time
 
-import canopen
 import numpy as np
 import pytest
 
 from drivers import cia402
-from drivers.testing import PdoDecoder, netns_or_rerun
+from drivers.testing import PdoDecoder, netns_or_rerun, sdo_retry
 from hexacnc.config import load_config
 from hexacnc.daemon.core import Daemon
 from hexacnc.daemon.feed import point_to_point
@@ -141,14 +140,10 @@ def _inject(dec, strut, sub, value):
     own (torque sampler at rest): an answer meant for the daemon can reach the decoder's client, which
     then gives up ("maybe there is another SDO client"). The write is idempotent, so it is repeated."""
     node = dec.nodes[strut - 1]
-    for attempt in range(5):
-        try:
-            node.sdo[0x2000][sub].raw = value
-            return
-        except canopen.SdoCommunicationError:
-            if attempt == 4:
-                raise
-            time.sleep(0.02)
+
+    def write():
+        node.sdo[0x2000][sub].raw = value
+    sdo_retry(write, attempts=5, pause_s=0.02)
 
 
 def _fault_run(cfg, action=None, target=(60.0, 0.0, -900.0, 0.0, 0.0, 0.0), feed=250.0):

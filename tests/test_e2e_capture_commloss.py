@@ -16,20 +16,10 @@ import pytest
 from drivers import cia402, pcap, pcapcheck
 from hexacnc.daemon import protocol as P
 
-from e2e_fixtures import cfg as base_cfg, machine_running  # noqa: F401  (shared fixtures)
+from e2e_fixtures import cfg as base_cfg, machine_running, wait_state  # noqa: F401  (shared fixtures)
 from test_e2e_socket import work
 
 pytestmark = [pytest.mark.e2e, pytest.mark.slow]
-
-
-def _wait_state(c, state, timeout_s=10.0):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        st = c.call("status")
-        if st["state"] == state:
-            return st
-        time.sleep(0.02)
-    raise AssertionError(f"not {state}: {c.call('status')}")
 
 
 def _u16(data: bytes) -> int:
@@ -43,19 +33,19 @@ def _session(c, cfg, daemon):
     assert c.call("wait", timeout_s=60.0)["fault"] is None
     slow = "G21 G90\n" + f"G1 {work(cfg, 10, -5, -1140)} F3000\n" + f"G1 {work(cfg, 10, -5, -1100)} F300\nM2\n"
     c.call("program", text=slow, name="cap-stop", reply_timeout_s=120.0)
-    _wait_state(c, "running")
+    wait_state(c, "running")
     time.sleep(0.3)
     c.call("stop")
     assert c.call("wait", timeout_s=30.0)["state"] == "idle"
     daemon.inject_drive("emcy", 3, 0x2310)
-    _wait_state(c, "fault", 5.0)
+    wait_state(c, "fault", 5.0)
     c.call("reset", reply_timeout_s=30.0)
     assert c.call("wait", timeout_s=30.0)["state"] == "idle"
     c.call("disable", reply_timeout_s=30.0)                     # normal disable: 0x0007, then 0x0000
     c.call("enable", reply_timeout_s=30.0)
     assert c.call("wait", timeout_s=30.0)["state"] == "idle"
     c.call("program", text=slow, name="cap-silent", reply_timeout_s=120.0)
-    _wait_state(c, "running")
+    wait_state(c, "running")
     time.sleep(0.5)                                             # on the F300 line: the struts move
 
 

@@ -14,7 +14,7 @@ import pytest
 from hexacnc.daemon import protocol as P
 from hexacnc.kinematics import Hexapod
 
-from e2e_fixtures import cfg as base_cfg, running_machine  # noqa: F401  (shared fixtures)
+from e2e_fixtures import cfg as base_cfg, running_machine, wait_state  # noqa: F401  (shared fixtures)
 from test_e2e_socket import expected_struts_cmd_mm, programmed_end_platform_pose, work
 
 pytestmark = pytest.mark.e2e
@@ -43,16 +43,6 @@ def _ends_on_ik(cfg, st, text):
     assert np.max(np.abs(np.asarray(st["struts_cmd_mm"]) - want)) <= 1.0 / cfg.bus.increments_per_mm
 
 
-def _wait_state(c, state, timeout_s=10.0):
-    t_end = time.monotonic() + timeout_s
-    while time.monotonic() < t_end:
-        st = c.call("status")
-        if st["state"] == state:
-            return st
-        time.sleep(0.02)
-    raise AssertionError(f"not {state}: {c.call('status')}")
-
-
 def test_session_boot_program_stop_fault_reset(profile_machine):
     profile, cfg, daemon, srv = profile_machine
     c = P.Client.unix(srv.socket_path)
@@ -68,13 +58,13 @@ def test_session_boot_program_stop_fault_reset(profile_machine):
         _ends_on_ik(cfg, st, text)
         slow = "G21 G90\n" + f"G1 {work(cfg, 10, -5, -1140)} F3000\n" + f"G1 {work(cfg, 10, -5, -1100)} F300\nM2\n"
         c.call("program", text=slow, name=f"{profile}-stop", reply_timeout_s=120.0)
-        _wait_state(c, "running")
+        wait_state(c, "running")
         time.sleep(0.3)
         c.call("stop")                                          # stop mid-program: controlled, ends idle
         st = c.call("wait", timeout_s=30.0)
         assert st["state"] == "idle" and st["fault"] is None
         daemon.inject_drive("emcy", 3, 0x2310)                  # a drive fault
-        st = _wait_state(c, "fault", 5.0)
+        st = wait_state(c, "fault", 5.0)
         assert st["fault"]["code"] == "emcy" and "EMCY from drive 3" in st["fault"]["message"], st["fault"]
         c.call("reset", reply_timeout_s=30.0)                   # reset: faults cleared, re-enabled
         st = c.call("wait", timeout_s=30.0)
@@ -104,7 +94,7 @@ def test_every_drive_fault_is_reset(profile_machine):
         assert c.call("wait", timeout_s=30.0)["state"] == "idle"
         for k in range(6):
             daemon.inject_drive("emcy", k + 1, 0x2310)
-            st = _wait_state(c, "fault", 5.0)
+            st = wait_state(c, "fault", 5.0)
             assert f"EMCY from drive {k + 1}" in st["fault"]["message"], st["fault"]
             time.sleep(0.013 * k)                           # the reset lands at a different loop phase
             c.call("reset", reply_timeout_s=30.0)

@@ -142,17 +142,21 @@ def identify_payload(hx: Hexapod, poses_deg, torques_permille, model: DriveTorqu
     s_est = max(sig, float(np.sqrt(r @ r / dof)))
     C = np.linalg.pinv(A.T @ A) * s_est ** 2
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-    m = float(sol[0])
-    h = sol[1:4]
+    m, cog, cog_sd = _mass_cog(sol, C)
+    return PayloadResult(m, float(sd[0]), cog, cog_sd, int(ok[:n_pay].sum()), float(np.sqrt(np.mean(r ** 2))),
+                         sol[4:] if fit_offsets else None)
+
+
+def _mass_cog(sol, C):
+    """Mass ``sol[0]`` (kg), COG ``h / m`` from the first moments ``h = sol[1:4]`` (kg mm), and the COG's
+    standard deviations by first-order propagation of the (m, h) block of the covariance ``C``."""
+    m, h = float(sol[0]), sol[1:4]
     cog = h / m if abs(m) > 1e-9 else np.full(3, np.nan)
-    # COG std by first-order propagation of (m, h)
     Jc = np.zeros((3, 4))
     if abs(m) > 1e-9:
         Jc[:, 0] = -h / m ** 2
         Jc[:, 1:] = np.eye(3) / m
-    cog_sd = np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
-    return PayloadResult(m, float(sd[0]), cog, cog_sd, int(ok[:n_pay].sum()), float(np.sqrt(np.mean(r ** 2))),
-                         sol[4:] if fit_offsets else None)
+    return m, cog, np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
 
 
 def identify_payload_in_motion(hx: Hexapod, poses_deg, torques_permille, velocity_mm_s, acceleration_mm_s2,
@@ -192,13 +196,7 @@ def identify_payload_in_motion(hx: Hexapod, poses_deg, torques_permille, velocit
     s_est = float(np.sqrt(r @ r / max(1, n_eq - 22)))
     C = np.linalg.pinv(A.T @ A) * s_est ** 2
     sd = np.sqrt(np.maximum(np.diag(C), 0.0))
-    m, h = float(sol[0]), sol[1:4]
-    cog = h / m if abs(m) > 1e-9 else np.full(3, np.nan)
-    Jc = np.zeros((3, 4))
-    if abs(m) > 1e-9:
-        Jc[:, 0] = -h / m ** 2
-        Jc[:, 1:] = np.eye(3) / m
-    cog_sd = np.sqrt(np.maximum(np.diag(Jc @ C[:4, :4] @ Jc.T), 0.0))
+    m, cog, cog_sd = _mass_cog(sol, C)
     return PayloadResult(m, float(sd[0]), cog, cog_sd, 0, float(np.sqrt(np.mean(r ** 2))), None,
                          {"samples": int(len(rows)), "strut_samples": n_eq, "coulomb_N": sol[4:10].tolist(),
                           "viscous_N_s_per_mm": sol[10:16].tolist(), "inertia_kg": sol[16:22].tolist()})
