@@ -21,7 +21,7 @@ def _row(zs, **kw):
 
 
 def test_honest_standard_errors_pass_the_pooled_check_and_the_chi_square_flags_small_ones():
-    rng = np.random.default_rng()
+    rng = np.random.default_rng(20261128)     # fixed: the bounds below are ~4 sigma, not certain
     honest = [_row(rng.standard_normal(int(rng.integers(1, 13)))) for _ in range(300)]
     s = B.summary(honest)["full_pose"]
     assert 0.85 <= s["parameter_z_rms_pooled"] <= 1.15
@@ -32,5 +32,5 @@ def test_honest_standard_errors_pass_the_pooled_check_and_the_chi_square_flags_s
     small = [_row(2.0 * rng.standard_normal(6)) for _ in range(100)]
     s2 = B.summary(small)["full_pose"]
     assert s2["parameter_z_rms_pooled"] > 1.6
-    assert s2["parameter_chi2_p_below_0p01"] > 50
+    assert s2["parameter_chi2_p_below_0p01"] > 45      # P(4 chi2_6 > chi2_6(0.99)) = 0.65: ~65 of 100, sd ~5
     assert B._chi2_p([]) is None and B._pooled_z([]) is None

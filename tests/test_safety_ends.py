@@ -105,7 +105,7 @@ class Run:
             if len(L) > 10 and np.max(np.abs(L[-1] - L[-11])) / (10 * self.cfg.cycle.period_s) > 20.0:
                 return
             time.sleep(0.02)
-        raise AssertionError("the drives never got a moving target")
+        raise AssertionError(f"the drives never got a moving target; the daemon's log:\n{self.text()[-3000:]}")
 
     def finish(self, timeout_s: float = 30.0) -> int:
         try:
