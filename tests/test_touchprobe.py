@@ -85,3 +85,30 @@ def test_probe_signal_is_the_true_tool_tips_distance_to_the_nearest_sphere():
             sig.count_step(d, float(t))
     assert got == pytest.approx(want, abs=1e-6)
     assert sig(5, 3.0) == sig(0, 3.0)               # one evaluation per step, the same for every drive
+
+
+def test_probe_signal_between_exact_evaluations_matches_the_exact_distance():
+    """The per-SYNC value (first order about the last exact evaluation) against a fresh exact one, along
+    a probing stroke at 2.5 um of strut travel per step, with the dynamic deflection changing."""
+    from hexacnc.config import load_config
+    from hexacnc.sim.probesignal import ProbeSignal
+    from hexacnc.sim.truth import parse_truth, synth_truth_doc
+    cfg = load_config(None)
+    tm = parse_truth(synth_truth_doc(cfg, 5))
+    X0 = np.array(cfg.home_pose, dtype=float)
+    X0[3:] = np.radians(X0[3:])
+    spheres = (tm.tool_tip_mm(X0) - [0.0, 0.0, 13.5 + 0.3])[None]     # 0.3 mm over the sphere, moving down
+    sig = ProbeSignal(tm, None, spheres, radius_mm=13.5)
+    q0 = tm.hx.lengths_rad(X0) - cfg.strut_offset_mm
+    dq = tm.hx.lengths_rad(X0 - np.r_[0, 0, 0.6, 0, 0, 0]) - cfg.strut_offset_mm - q0
+    worst, crossed = 0.0, False
+    for i in range(240):
+        q = q0 + dq * i / 239
+        extra = 1e-3 * np.sin(np.arange(6) + i / 30)
+        got = sig.distance_mm(q, i * 5e-4, extra)
+        ref = ProbeSignal(tm, None, spheres, radius_mm=13.5)
+        ref._X = sig._X.copy()
+        want = ref.exact_mm(ref.lengths_mm(q, i * 5e-4, extra), i * 5e-4)
+        worst = max(worst, abs(got - want))
+        crossed = crossed or got <= 0.0
+    assert crossed and worst < 1e-4, worst
