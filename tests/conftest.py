@@ -7,7 +7,10 @@ Layers (markers, registered in pyproject.toml):
 - ``bus``: frames between processes (shared-memory ring, pipe, ``udp_multicast`` in a private
   network namespace) and the simulated drives;
 - ``e2e``: the whole daemon (hot-loop process, simulated drives) behind its socket or CLI;
-- ``slow``: takes more than a few seconds; ``pytest -m "not slow"`` is the quick loop.
+- ``slow``: takes more than a few seconds; ``pytest -m "not slow"`` is the quick loop;
+- ``serial``: starts processes or keeps time (every ``bus``/``e2e``/``netns`` test, and the unit modules
+  marked so): run alone, never beside other tests.  The README's test command runs the rest on two
+  workers (``pytest -n 2 -m "not serial"``, pytest-xdist), then these one at a time (``-m serial``).
 
 Data that lives outside the repository (``../shared``) is reached through the fixtures below,
 which skip with the reason where it is absent (a user's fresh clone).
@@ -27,6 +30,8 @@ def pytest_collection_modifyitems(config, items):
     for item in items:
         if not any(item.get_closest_marker(m) for m in ("bus", "e2e")):
             item.add_marker(pytest.mark.unit)
+        if any(item.get_closest_marker(m) for m in ("bus", "e2e", "netns")):
+            item.add_marker(pytest.mark.serial)
 
 
 def _shared(sub: str) -> Path:

@@ -14,6 +14,8 @@ from hexacnc.cyclegen import generate_source
 from hexacnc.errors import ConfigError
 from hexacnc.strutmap import strut_map_from_config
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 
 def default_doc() -> dict:
     return tomllib.loads(default_config_path().read_text())

@@ -19,6 +19,8 @@ from hexacnc.calib.output import extended_config_texts, fit_config_texts
 from hexacnc.config import default_config_path, load_config
 from hexacnc.csvio import write_text_atomic
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 REPO = Path(__file__).resolve().parents[1]
 JUGGLEBOT = REPO.parent / "shared" / "data" / "jugglebot"
 

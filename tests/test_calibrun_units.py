@@ -7,7 +7,7 @@ import pytest
 from hexacnc.calib.probing import probe_sphere
 from hexacnc.daemon.protocol import DaemonError
 
-pytestmark = pytest.mark.unit
+pytestmark = [pytest.mark.unit, pytest.mark.serial]   # starts processes or keeps time: runs alone
 
 R = 13.5
 

@@ -8,6 +8,9 @@ from drivers import cia402
 from hexacnc.sim.rig import SimRig
 
 from test_drivers_commloss import Recorder, move
+import pytest
+
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
 
 ENGAGE_MS, RELEASE_MS = 60, 40
 

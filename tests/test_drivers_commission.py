@@ -11,6 +11,8 @@ from drivers.description import DEFAULT_EDS, STRICT_EDS, load_description
 from hexacnc.sim.rig import SimRig
 from hexacnc.errors import BusError
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 STRICT_ID = (0x000001A7, 0x00402C53, 0x00030002)
 
 

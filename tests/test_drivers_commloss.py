@@ -10,6 +10,9 @@ from drivers import cia402
 from drivers.canbus import open_buses
 from drivers.cyclic import SEND_OK
 from hexacnc.sim.rig import SimRig
+import pytest
+
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
 
 
 class Recorder:

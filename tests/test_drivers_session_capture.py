@@ -13,6 +13,8 @@ import pytest
 
 from drivers import cia402, pcap, pcapcheck
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 

@@ -8,6 +8,9 @@ from drivers.simreact import sync_loss_timeout_s
 from hexacnc.sim.rig import SimRig
 
 from test_drivers_commloss import Recorder, move
+import pytest
+
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
 
 
 def test_sync_loss_timeout_rule():

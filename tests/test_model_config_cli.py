@@ -16,6 +16,8 @@ from hexacnc.errors import ConfigError
 from hexacnc.kinematics import Hexapod
 from hexacnc import transform as T
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 REPO = Path(__file__).resolve().parents[1]
 
 

@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 REPO = Path(__file__).resolve().parents[1]
 
 

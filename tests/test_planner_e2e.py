@@ -11,6 +11,8 @@ from e2e_fixtures import cfg, machine, client  # noqa: E402,F401  (shared fixtur
 
 from test_e2e_socket import work  # noqa: E402
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 
 @pytest.mark.parametrize("text", ["", "(comment only)\n", "M2\n", "G4 P0.05\nM2\n"])
 def test_programs_without_motion_end_cleanly_through_the_daemon(client, text):

@@ -17,6 +17,8 @@ from hexacnc.planner import FLAG_END, plan_program
 from hexacnc.planner.softlimits import outside
 from test_planner_motion import run, utilisation
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 
 @pytest.fixture(scope="module")
 def cfg():

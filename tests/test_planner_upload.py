@@ -17,6 +17,8 @@ from hexacnc.daemon.upload import UploadError, Uploads
 
 from test_protocol_fake import FakeDaemon
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 
 def test_uploads_accept_chunks_in_order_and_refuse_the_rest_without_losing_anything():
     up = Uploads(max_program_bytes=100, max_open_bytes=150)

@@ -9,6 +9,7 @@ and the exit status (0 after a clean stop, non-zero after a fault).
 from __future__ import annotations
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -37,6 +38,9 @@ PROGRAM = "G21 G90 G64 P0.02\nG0 X30 Y0 Z20\n" + "G2 X30 Y0 I-30 J0 F9000\n" * 6
 def machine_file(tmp: Path, extra_struts: str = "max_following_error_mm = 5.0\n") -> Path:
     """The embedded default machine, tolerant of this loaded test VM's stalls (deadline bursts)."""
     text = machine_text().replace("[struts]\n", "[struts]\n" + extra_struts, 1)
+    # the drives' RPDO deadline tolerant of the VM's stalls too (e2e_fixtures does the same): a stall of the
+    # non-real-time hot loop must not quick-stop the drives before the end under test
+    text = re.sub(r"(?m)^comm_loss_timeout_s = .*$", "comm_loss_timeout_s = 0.5", text)
     p = tmp / "machine.toml"
     p.write_text(text)
     return p
@@ -89,22 +93,37 @@ class Run:
         assert set(self.kids) == {"hot", "sim"}, self.kids
         return self
 
+    def cli(self, *args: str) -> subprocess.CompletedProcess:
+        env = dict(os.environ, PYTHONPATH=str(REPO))
+        return subprocess.run([sys.executable, "-m", "hexacnc", *args, "--socket", self.sock],
+                              env=env, capture_output=True, text=True, timeout=120)
+
     def send(self, program: str = PROGRAM) -> None:
+        """Send the program; a fault the loaded VM caused before it (logged: a stall at rest) is reset once
+        and the program sent again -- the end under test comes after the motion starts."""
         p = self.tmp / "part.ngc"
         p.write_text(program)
-        env = dict(os.environ, PYTHONPATH=str(REPO))
-        r = subprocess.run([sys.executable, "-m", "hexacnc", "send", str(p), "--no-wait", "--socket", self.sock],
-                           env=env, capture_output=True, text=True, timeout=120)
-        assert r.returncode == 0, r.stderr
+        r = self.cli("send", str(p), "--no-wait")
+        if r.returncode != 0 and "in fault" in r.stderr:
+            print("fault before the program (reset, sent again):", r.stderr, self.text()[-1500:])
+            rr = self.cli("reset")
+            assert rr.returncode == 0, rr.stderr
+            r = self.cli("send", str(p), "--no-wait")
+        assert r.returncode == 0, r.stderr + self.text()[-2000:]
 
-    def moving(self, timeout_s: float = 30.0) -> None:
-        """Wait until the targets the drives get move at > 20 mm/s on some strut."""
+    def moving(self, timeout_s: float = 30.0, after_s: float = 0.0) -> None:
+        """Wait until the targets the drives get move at > 20 mm/s on some strut, ``after_s`` or more
+        after they first did (past the rapid and its corner, on the circles: the VM's stalls make a fixed
+        sleep land at the corner now and then)."""
         t_end = time.monotonic() + timeout_s
+        t_first = None
         while time.monotonic() < t_end:
             t, L = self.tap.lengths_mm(time.monotonic() - 0.05)
             if len(L) > 10 and np.max(np.abs(L[-1] - L[-11])) / (10 * self.cfg.cycle.period_s) > 20.0:
-                return
-            time.sleep(0.02)
+                t_first = t_first or time.monotonic()
+                if time.monotonic() - t_first >= after_s:
+                    return
+            time.sleep(0.01)
         raise AssertionError(f"the drives never got a moving target; the daemon's log:\n{self.text()[-3000:]}")
 
     def finish(self, timeout_s: float = 30.0) -> int:
@@ -156,8 +175,7 @@ def test_signal_ends_in_a_controlled_stop_and_exit_zero(tmp_path, target, sig):
     run = Run(tmp_path, machine_file(tmp_path)).start()
     try:
         run.send()
-        run.moving()
-        time.sleep(0.5)                                  # on the circles, past the rapid's end
+        run.moving(after_s=0.8)                          # on the circles, past the rapid and its corner
         t_sig = time.monotonic()
         if target == "group":
             os.killpg(run.proc.pid, sig)
@@ -174,8 +192,7 @@ def test_supervisor_killed_the_hot_loop_stops_and_disables(tmp_path):
     run = Run(tmp_path, machine_file(tmp_path)).start()
     try:
         run.send()
-        run.moving()
-        time.sleep(0.5)                                  # on the circles, past the rapid's end
+        run.moving(after_s=0.8)                          # on the circles, past the rapid and its corner
         t_sig = time.monotonic()
         os.kill(run.proc.pid, signal.SIGKILL)
         hot = run.kids["hot"]

@@ -20,6 +20,8 @@ from hexacnc.daemon.procs import acquire_lock, classify_exit, release_lock
 from hexacnc.daemon.supervise import DriveSupervisor, following_limits_mm, history_slots
 from hexacnc.errors import BusError
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 MS = 1_000_000
 
 

@@ -25,14 +25,16 @@ def tmpdir_():
 
 # -- tokens -------------------------------------------------------------------
 @pytest.mark.parametrize("token", ["s3cret", "a" * 64, "0123456789abcdef" * 1, "correcthorsebatterystaple",
-                                   " " + secrets.token_hex(32), "1234567890" * 3])
+                                   " " + secrets.token_hex(32), "1234567890" * 3],
+                         ids=["short", "one-letter", "hex16", "words", "leading-space", "digits"])
 def test_weak_tokens_are_refused_with_a_reason(token):
     why = tcpauth.token_weakness(token)
     assert why and token.strip() not in why          # the reason, never the value
 
 
 @pytest.mark.parametrize("token", [secrets.token_hex(16), secrets.token_hex(32), secrets.token_urlsafe(22),
-                                   secrets.token_urlsafe(32)])
+                                   secrets.token_urlsafe(32)],
+                         ids=["hex16", "hex32", "urlsafe22", "urlsafe32"])   # stable ids: drawn values differ per process
 def test_random_tokens_of_128_bits_are_accepted(token):
     assert tcpauth.token_bits(token) >= 128
     assert tcpauth.token_weakness(token) == ""

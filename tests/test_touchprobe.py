@@ -7,6 +7,8 @@ import pytest
 from drivers.touchprobe import (FN_CONTINUOUS, FN_ENABLE, FN_NEG_EDGE, FN_POS_EDGE, ST_ENABLED, ST_NEG_STORED,
                                 ST_POS_STORED, TouchProbe)
 
+pytestmark = pytest.mark.serial        # starts processes or keeps time: runs alone (not beside other tests)
+
 
 def test_latch_interpolates_the_edge_and_keeps_the_first_event():
     tp = TouchProbe()

@@ -17,8 +17,6 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
-from scipy.interpolate import CubicSpline
-from scipy.ndimage import maximum_filter1d, minimum_filter1d, uniform_filter1d
 
 from .path import platform_struts
 
@@ -129,6 +127,7 @@ def _room(uv, ua, uj, uf, targets) -> np.ndarray:
 
 def _smooth_rate(R: np.ndarray, w: int) -> np.ndarray:
     """A rate at most R everywhere, changing over ``w`` rows (erosion over 2w+1, two box filters of w/2)."""
+    from scipy.ndimage import minimum_filter1d, uniform_filter1d
     r = minimum_filter1d(R, 2 * w + 1, mode="nearest")
     h = max(1, w // 2)
     r = uniform_filter1d(uniform_filter1d(r, h, mode="nearest"), h, mode="nearest")
@@ -142,6 +141,7 @@ def _slope_room(R: np.ndarray, rates, dt: float, lims, m: int) -> np.ndarray:
     ``|r'| <= (A_i - |l2_i| Rc^2) / (|l1_i| Rc)`` and, for a slope-D profile smoothed by a box of ``m`` rows
     (``|r''| <= 2 D / (m dt)``), ``|l1| Rc D^2 + (3 |l2| Rc^2 + 2 |l1| Rc^2 / (m dt)) D <= J_i - |l3| Rc^3``.
     Both bounds only grow as R is lowered: the slope of the first R stays valid for every lower one."""
+    from scipy.ndimage import minimum_filter1d
     d1, d2, d3 = rates
     vmax, amax, jmax, targets, _ = lims
     Rc = 1.0 + RATE_LEVEL * (R - 1.0)
@@ -164,6 +164,7 @@ def _shaped_rate(R: np.ndarray, D: np.ndarray, dt: float, m: int) -> np.ndarray:
     change fast, so it can rise between two slow corners.  The level ``1 + RATE_LEVEL (R - 1)`` (the rest of
     the room is left for the change) eroded over m rows, limited to slope D forwards and backwards (min-plus
     scans), smoothed by a box of m rows."""
+    from scipy.ndimage import minimum_filter1d, uniform_filter1d
     Rc = 1.0 + RATE_LEVEL * (R - 1.0)
     r0 = minimum_filter1d(Rc, m + 1, mode="nearest")
     C = np.concatenate([[0.0], np.cumsum(D[1:] * dt)])
@@ -218,6 +219,7 @@ def _quantise(r: np.ndarray, dt: float) -> np.ndarray:
 def _apply(s_old: np.ndarray, r: np.ndarray, dt: float):
     """The table run at rate r (per old row): new rows at the cycle period, the new time of each old row
     and the old time (in rows) of each new row."""
+    from scipy.interpolate import CubicSpline      # scipy only when retiming (import ~1 s)
     n = s_old.shape[0]
     t_old = np.arange(n) * dt
     t_new = np.concatenate([[0.0], np.cumsum(dt * 2.0 / (r[:-1] + r[1:]))])
@@ -272,6 +274,7 @@ def _predict(rates, uf, r: np.ndarray, dt: float, lims, idx: np.ndarray) -> np.n
 def _lower(R: np.ndarray, rows_bad: np.ndarray, back: int) -> np.ndarray:
     """R with its excess over 1 halved within a window of the old rows ``rows_bad`` and ``back`` rows
     before them (a row without room of its own exceeds when the time saved before it moved its phase)."""
+    from scipy.ndimage import maximum_filter1d
     n = R.shape[0]
     hit = np.zeros(n)
     hit[rows_bad] = 1.0
@@ -317,6 +320,7 @@ def retime(path, hx, s_tab: np.ndarray, dt: float, vmax, amax, jmax, targets,
     every stretch is decided on its own: the rate is lowered where the chain rule on the old rows predicts
     an excess (cheap), the new rows are measured, a stretch within the targets is kept as it is, one over
     them is lowered and measured again, and after MAX_ROUNDS dropped (rate 1)."""
+    from scipy.ndimage import maximum_filter1d
     vmax, amax, jmax = (np.asarray(x, dtype=float) for x in (vmax, amax, jmax))
     n = s_tab.shape[0]
     keep = Retimed(s_tab, np.arange(n) * dt, -1, 1.0)
