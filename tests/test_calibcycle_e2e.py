@@ -45,6 +45,7 @@ def machine_file(work):
     doc = dict(base.raw)
     # shared 2-core test VM without SCHED_FIFO: tolerate stall bursts (as tests/e2e_fixtures.py)
     doc["cycle"] = dict(doc.get("cycle", {}), max_overruns_in_row=1000, following_error_mm=25.0)
+    doc["bus"] = dict(doc.get("bus", {}), comm_loss_timeout_s=0.5)      # nor the drives' RPDO deadline
     p = os.path.join(work, "machine.toml")
     with open(p, "w") as f:
         f.write(dumps_toml(doc))

@@ -30,7 +30,8 @@ LINES = 80_000
 def _cfg():
     base = load_config(None)
     return base.replace(daemon=dataclasses.replace(base.daemon, max_plan_s=60.0),
-                        cycle=dataclasses.replace(base.cycle, max_overruns_in_row=1000))
+                        cycle=dataclasses.replace(base.cycle, max_overruns_in_row=1000),
+                        bus=dataclasses.replace(base.bus, comm_loss_timeout_s=0.5))     # VM stalls: as e2e_fixtures
 
 
 def _program(lines: int) -> str:

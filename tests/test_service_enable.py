@@ -23,7 +23,8 @@ pytestmark = pytest.mark.e2e
 def cfg():
     base = load_config(None)
     cycle = dataclasses.replace(base.cycle, max_overruns_in_row=1000, following_error_mm=25.0)
-    return base.replace(cycle=cycle, daemon=dataclasses.replace(base.daemon, enable_at_start=False))
+    return base.replace(cycle=cycle, daemon=dataclasses.replace(base.daemon, enable_at_start=False),
+                        bus=dataclasses.replace(base.bus, comm_loss_timeout_s=0.5))     # VM stalls: as e2e_fixtures
 
 
 @pytest.mark.slow

@@ -111,6 +111,7 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         self.sh.h[S.H_SUP_PID] = os.getpid()
         self._keep_off_hot_cpu()
         try:
+            self.thermal = thermal_supervisor(self.cfg, self.sh, self.status_state)
             self.sim = busio.start_simulation(self.cfg, mode, self.period_s, self.sim_faults, self.channel)
             self.hot = _spawn_hot({"cfg": self.cfg, "shm": self.sh.name, "io_mode": mode,
                                    "period_s": self.period_s, "realtime": self.realtime,
@@ -119,9 +120,6 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
                                   busio.pass_fds(self.sim))
             if hasattr(self.sim, "close_fds"):
                 self.sim.close_fds()          # the hot process holds its ends now
-            # the thermal observer (scipy, a Riccati solve: ~0.5 s) while the hot process boots the bus;
-            # its thread starts once the drives are enabled
-            self.thermal = thermal_supervisor(self.cfg, self.sh, self.status_state)
             t_end = time.monotonic() + timeout_s
             msg = self.hot.wait_report(timeout_s)
             if msg is None or msg[0] != "ready":
