@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import DataError
 from ..kinematics import Hexapod
 from .payload import DriveTorqueModel, carrier_update, identify_payload, identify_payload_in_motion, rest_forces
-from .recording import Recording
+from .recording import Recording, strut_rates
 
 #: a per-strut coefficient is an outlier beyond this many robust standard deviations of the others
 OUTLIER_Z = 6.0
@@ -102,8 +102,7 @@ def _outliers(values: np.ndarray, se: np.ndarray, ref: np.ndarray | None, ratio:
 def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_permille: float) -> dict:
     """Per strut, from samples in motion: Coulomb friction (N) from torques or following error, and the
     following error's compliance to the static force (mm/kN)."""
-    t = rec["t_s"]
-    v = np.gradient(rec["struts_cmd_mm"], t, axis=0)
+    v, _ = strut_rates(rec)
     moving = np.abs(v) > 1.0
     idx = np.where(moving.any(axis=1))[0]
     step = max(1, len(idx) // 3000)      # bounded cost whatever the recording's length
@@ -129,10 +128,7 @@ def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_p
 
 def _in_motion(rec, hx, model) -> dict:
     """Payload from the torques sampled while moving (drive torque TPDO3), when the recording has them."""
-    t = rec["t_s"]
-    L = rec["struts_cmd_mm"]
-    v = np.gradient(L, t, axis=0)
-    a = np.gradient(v, t, axis=0)
+    v, a = strut_rates(rec)
     try:
         res = identify_payload_in_motion(hx, rec["pose_cmd"], rec["torque_permille"], v, a, model)
     except DataError as exc:
