@@ -148,6 +148,26 @@ def test_in_motion_payload_differentiates_over_the_loop_time_not_the_stream_deli
     assert bad["residual_rms_N"] > 1.5 * clean["residual_rms_N"], (msg, bad["residual_rms_N"], clean["residual_rms_N"])
 
 
+def test_a_rest_with_the_drives_disabled_is_no_rest_pose_of_the_payload(cfg):
+    """A fault (or a disable) leaves the commanded struts still, but its drives hold no load (torque 0):
+    such a stretch is not a rest pose (drives_enabled 0 in the recording)."""
+    from hexacnc.calib.health import rest_windows
+    seed = fresh_seed()
+    m_true = float(np.random.default_rng(seed).uniform(40.0, 150.0))
+    rec = simulate(cfg, seed, Drift(payload_kg=m_true), n_moves=8)
+    w = rest_windows(rec)
+    k = w[len(w) // 2]
+    t = rec["t_s"]
+    off = (t >= t[k[0]] - 0.1) & (t <= t[k[-1]])          # the drives faulted during that rest
+    rec.data["torque_permille"][off] = 0.0
+    rec.data["drives_enabled"][off] = 0.0
+    rep = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)
+    p = rep["payload"]
+    msg = (seed, m_true, p["mass_kg"])
+    assert p["rest_poses"] == len(w) - 1, msg
+    assert abs(p["mass_kg"] - m_true) <= 0.05 * m_true, msg
+
+
 def test_recorder_keeps_the_loop_time_and_rates_skip_a_snapshot_read_twice():
     from hexacnc.calib.recorder import Recorder, parse_trigger
     r = Recorder(parse_trigger("none"), 10)

@@ -40,13 +40,16 @@ THERMAL_TOL_MM = 0.005
 
 
 def rest_windows(rec: Recording, min_s: float = 0.3, v_mm_s: float = 0.05) -> list[np.ndarray]:
-    """Sample indices of each rest (commanded struts still for ``min_s``), the first 40 % of each dropped."""
+    """Sample indices of each rest (commanded struts still for ``min_s`` with the drives enabled: a fault
+    or a disabled machine also leaves the commands still, but its drives hold no load), the first 40 % of
+    each dropped."""
     t = rec["t_s"]
     L = rec["struts_cmd_mm"]
     if rec.n < 3:
         return []
     v = np.max(np.abs(np.gradient(L, t, axis=0)), axis=1)
-    still = v < v_mm_s
+    en = rec.data.get("drives_enabled")
+    still = (v < v_mm_s) & ~(en == 0.0 if en is not None else np.zeros(rec.n, dtype=bool))
     out, k = [], 0
     while k < rec.n:
         if not still[k]:

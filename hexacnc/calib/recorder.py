@@ -96,7 +96,8 @@ def row_from_status(st: dict) -> dict:
             "temperature_C": temp, "thermal_offsets_mm": _vec(st.get("thermal_offsets_mm")),
             "pose_cmd": pc, "pose_act": pa, "fk_residual_mm": float(np.linalg.norm(pc[:3] - pa[:3])),
             "payload_kg": float(pl) if isinstance(pl, (int, float)) else math.nan,
-            "t_loop_s": float(lt) if isinstance(lt := st.get("loop_time_s"), (int, float)) else math.nan}
+            "t_loop_s": float(lt) if isinstance(lt := st.get("loop_time_s"), (int, float)) else math.nan,
+            "drives_enabled": float(en) if isinstance(en := st.get("drives_enabled"), bool) else math.nan}
 
 
 class Recorder:

@@ -29,6 +29,8 @@ name                       shape    meaning
 ``t_loop_s``               (N,)     the daemon loop's time of each sample (status ``loop_time_s``: cycle
                                     count x period, from the first sample); the time base of the
                                     commanded values, free of the stream's delivery jitter (NaN: unknown)
+``drives_enabled``         (N,)     1 when the drives were enabled (status ``drives_enabled``), 0 when not
+                                    (a fault, disabled: the drives hold no load), NaN: unknown
 =========================  =======  ==================================================
 """
 from __future__ import annotations
@@ -44,7 +46,7 @@ from ..errors import DataError
 
 STRUT_SIGNALS = ("struts_cmd_mm", "struts_act_mm", "following_error_mm", "torque_permille", "current_permille",
                  "temperature_C", "thermal_offsets_mm", "pose_cmd", "pose_act")
-SCALAR_SIGNALS = ("t_s", "fk_residual_mm", "payload_kg", "t_loop_s")
+SCALAR_SIGNALS = ("t_s", "fk_residual_mm", "payload_kg", "t_loop_s", "drives_enabled")
 SIGNALS = SCALAR_SIGNALS[:1] + STRUT_SIGNALS + SCALAR_SIGNALS[1:]
 #: bound on a recording's length (samples): memory stays bounded whatever the duration asked
 MAX_SAMPLES = 2_000_000
