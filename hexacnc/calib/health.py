@@ -132,8 +132,12 @@ def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_p
 def _in_motion(rec, hx, model) -> dict:
     """Payload from the torques sampled while moving (drive torque TPDO3), when the recording has them."""
     v, a = strut_rates(rec)
+    T = rec["torque_permille"].copy()
+    en = rec.data.get("drives_enabled")
+    if en is not None:
+        T[en == 0.0] = np.nan          # drives disabled (a fault's stop): they hold no load
     try:
-        res = identify_payload_in_motion(hx, rec["pose_cmd"], rec["torque_permille"], v, a, model)
+        res = identify_payload_in_motion(hx, rec["pose_cmd"], T, v, a, model)
     except DataError as exc:
         return {"available": False, "reason": str(exc)}
     return {"available": True, "mass_kg": res.mass_kg, "mass_std_kg": res.mass_std_kg,
