@@ -124,6 +124,67 @@ def test_health_separates_drift_by_cause(cfg, reference, case):
         assert "[carrier]" in upd["toml"] and upd["sag_change_at_home"]["position_um"] > 0
 
 
+def test_in_motion_payload_differentiates_over_the_loop_time_not_the_stream_delivery_time(cfg):
+    """Under load the status stream arrives with tens of ms of jitter: the recorder's clock ``t_s`` is not
+    the samples' time, and rates from it spoil the payload in motion (84 kg against a true 81.8 kg on the
+    loaded VM).  The recording's ``t_loop_s`` (the daemon loop's time) is the time base health uses."""
+    seed = fresh_seed()
+    rng = np.random.default_rng(seed)
+    m_true = float(rng.uniform(40.0, 150.0))
+    rec = simulate(cfg, seed, Drift(payload_kg=m_true), n_moves=10, rate_hz=25.0)
+    clean = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)["payload"]["in_motion"]
+    t = rec["t_s"]
+    late = np.maximum.accumulate(t + rng.uniform(0.0, 0.06, len(t)))      # delivery delays of 0-60 ms
+    rec.data["t_s"] = late + 1e-6 * np.arange(len(t))
+    jit = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)["payload"]["in_motion"]
+    msg = (seed, m_true, clean["mass_kg"], jit["mass_kg"])
+    assert jit["mass_kg"] == pytest.approx(clean["mass_kg"], rel=1e-9), msg
+    assert abs(jit["mass_kg"] - m_true) <= 0.05 * m_true, msg
+    v, _ = recording.strut_rates(rec)
+    np.testing.assert_allclose(v, np.gradient(rec["struts_cmd_mm"], t, axis=0), atol=1e-9)
+    # without the loop time the rates come from the jittered clock: the fit is visibly worse
+    rec.data["t_loop_s"] = np.full(len(t), np.nan)
+    bad = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)["payload"]["in_motion"]
+    assert bad["residual_rms_N"] > 1.5 * clean["residual_rms_N"], (msg, bad["residual_rms_N"], clean["residual_rms_N"])
+
+
+def test_a_rest_with_the_drives_disabled_is_no_rest_pose_of_the_payload(cfg):
+    """A fault (or a disable) leaves the commanded struts still, but its drives hold no load (torque 0):
+    such a stretch is not a rest pose (drives_enabled 0 in the recording), nor is the part of it the status
+    still reported enabled (it reports the drop late: here 0.4 s after the torques fell)."""
+    from hexacnc.calib.health import rest_windows
+    seed = fresh_seed()
+    m_true = float(np.random.default_rng(seed).uniform(40.0, 150.0))
+    rec = simulate(cfg, seed, Drift(payload_kg=m_true), n_moves=8)
+    w = rest_windows(rec)
+    k = w[len(w) // 2]
+    t = rec["t_s"]
+    off = (t >= t[k[0]] - 0.1) & (t <= t[k[-1]])          # the drives faulted during that rest
+    rec.data["torque_permille"][off] = 0.0
+    rec.data["drives_enabled"][off & (t >= t[k[0]] + 0.3)] = 0.0
+    rep = analyse(cfg, rec, DriveTorqueModel(), None, 0.0)
+    p = rep["payload"]
+    msg = (seed, m_true, p["mass_kg"])
+    assert p["rest_poses"] == len(w) - 1, msg
+    assert abs(p["mass_kg"] - m_true) <= 0.05 * m_true, msg
+
+
+def test_recorder_keeps_the_loop_time_and_rates_skip_a_snapshot_read_twice():
+    from hexacnc.calib.recorder import Recorder, parse_trigger
+    r = Recorder(parse_trigger("none"), 10)
+    loop_s = [100.0, 100.004, 100.004, 100.012, 100.016]     # the third reading is the second snapshot again
+    for k, tl in enumerate(loop_s):
+        L = [1000.0 + 10.0 * (tl - 100.0)] * 6
+        r.add({"state": "running", "struts_cmd_mm": L, "struts_act_mm": L, "loop_time_s": tl}, 5.0 + 0.03 * k)
+    rec = r.recording({})
+    np.testing.assert_allclose(rec["t_loop_s"], np.array(loop_s) - 100.0, atol=1e-12)
+    v, a = recording.strut_rates(rec)
+    np.testing.assert_allclose(v, 10.0, rtol=1e-6)                  # 10 mm/s, not skewed by the recorder's clock
+    np.testing.assert_allclose(a, 0.0, atol=1e-6)
+    rec.data["t_loop_s"][:] = np.nan                                 # no loop time: the recorder's clock
+    np.testing.assert_allclose(recording.sample_times(rec), rec["t_s"])
+
+
 def test_recording_files_open_in_numpy_and_roundtrip(cfg, tmp_path):
     rec = simulate(cfg, 3, Drift(), n_moves=3)
     for ext in ("npz", "csv"):

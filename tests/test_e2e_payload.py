@@ -68,8 +68,6 @@ def _visit(daemon, poses) -> None:
         time.sleep(0.7)                # a rest pose: >= 0.3 s still for hexacnc.calib.health.rest_windows
 
 
-@pytest.mark.xfail(strict=False, reason="failed once in CI on a slow VM: 84.18 kg identified against a true 90.40 kg "
-                   "(6.9 %); cause not found: load or a bias of the identification (issue 17, open)")
 def test_payload_identified_within_5_percent_from_a_live_recording_with_torques_in_motion(cfg, loaded):  # noqa: F811
     daemon, srv, truth, d, seed = loaded
     poses = plan_rest_poses(cfg, 5, seed=seed, candidates=400, offsets=False)

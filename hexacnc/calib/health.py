@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import DataError
 from ..kinematics import Hexapod
 from .payload import DriveTorqueModel, carrier_update, identify_payload, identify_payload_in_motion, rest_forces
-from .recording import Recording
+from .recording import Recording, strut_rates
 
 #: a per-strut coefficient is an outlier beyond this many robust standard deviations of the others
 OUTLIER_Z = 6.0
@@ -39,14 +39,35 @@ COMPLIANCE_MM_PER_KN = 0.2
 THERMAL_TOL_MM = 0.005
 
 
+#: a rest ends this long (s, recorder clock) before the drives are seen disabled and starts this long after
+#: they are seen enabled again: the status reports a fault's disable (and a reset's enable) after the drives
+#: already dropped (or not yet took) the load, so torques near it are of unloaded drives
+ENABLE_GUARD_S = 0.5
+
+
+def unloaded(rec: Recording) -> np.ndarray:
+    """(N,) True where the drives were disabled, or within :data:`ENABLE_GUARD_S` of such a sample."""
+    t = rec["t_s"]
+    en = rec.data.get("drives_enabled")
+    if en is None or not np.any(en == 0.0):
+        return np.zeros(rec.n, dtype=bool)
+    off = t[en == 0.0]
+    k = np.searchsorted(off, t)                          # the nearest disabled samples before and after
+    before = np.where(k > 0, t - off[np.maximum(k - 1, 0)], np.inf)
+    after = np.where(k < len(off), off[np.minimum(k, len(off) - 1)] - t, np.inf)
+    return np.minimum(before, after) <= ENABLE_GUARD_S
+
+
 def rest_windows(rec: Recording, min_s: float = 0.3, v_mm_s: float = 0.05) -> list[np.ndarray]:
-    """Sample indices of each rest (commanded struts still for ``min_s``), the first 40 % of each dropped."""
+    """Sample indices of each rest (commanded struts still for ``min_s`` with the drives enabled, and not
+    within :data:`ENABLE_GUARD_S` of a sample with them disabled: a fault or a disabled machine also leaves
+    the commands still, but its drives hold no load), the first 40 % of each dropped."""
     t = rec["t_s"]
     L = rec["struts_cmd_mm"]
     if rec.n < 3:
         return []
     v = np.max(np.abs(np.gradient(L, t, axis=0)), axis=1)
-    still = v < v_mm_s
+    still = (v < v_mm_s) & ~unloaded(rec)
     out, k = [], 0
     while k < rec.n:
         if not still[k]:
@@ -102,8 +123,7 @@ def _outliers(values: np.ndarray, se: np.ndarray, ref: np.ndarray | None, ratio:
 def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_permille: float) -> dict:
     """Per strut, from samples in motion: Coulomb friction (N) from torques or following error, and the
     following error's compliance to the static force (mm/kN)."""
-    t = rec["t_s"]
-    v = np.gradient(rec["struts_cmd_mm"], t, axis=0)
+    v, _ = strut_rates(rec)
     moving = np.abs(v) > 1.0
     idx = np.where(moving.any(axis=1))[0]
     step = max(1, len(idx) // 3000)      # bounded cost whatever the recording's length
@@ -129,12 +149,11 @@ def strut_coefficients(rec: Recording, hx: Hexapod, payload_kg: float, k_N_per_p
 
 def _in_motion(rec, hx, model) -> dict:
     """Payload from the torques sampled while moving (drive torque TPDO3), when the recording has them."""
-    t = rec["t_s"]
-    L = rec["struts_cmd_mm"]
-    v = np.gradient(L, t, axis=0)
-    a = np.gradient(v, t, axis=0)
+    v, a = strut_rates(rec)
+    T = rec["torque_permille"].copy()
+    T[unloaded(rec)] = np.nan          # drives disabled (a fault's stop) or about to be: they hold no load
     try:
-        res = identify_payload_in_motion(hx, rec["pose_cmd"], rec["torque_permille"], v, a, model)
+        res = identify_payload_in_motion(hx, rec["pose_cmd"], T, v, a, model)
     except DataError as exc:
         return {"available": False, "reason": str(exc)}
     return {"available": True, "mass_kg": res.mass_kg, "mass_std_kg": res.mass_std_kg,

@@ -79,6 +79,8 @@ def simulate(cfg, seed: int, drift: Drift, n_moves: int = 40, move_s: float = 0.
     growth = alpha * L * (T - 20.0)
     d = empty_like_signals(n)
     d["t_s"] = t
+    d["t_loop_s"] = t
+    d["drives_enabled"] = np.ones(n)
     d["struts_cmd_mm"] = L
     d["struts_act_mm"] = L - follow
     d["following_error_mm"] = follow

@@ -95,7 +95,9 @@ def row_from_status(st: dict) -> dict:
             "torque_permille": _first(st, TORQUE_KEYS), "current_permille": _first(st, CURRENT_KEYS),
             "temperature_C": temp, "thermal_offsets_mm": _vec(st.get("thermal_offsets_mm")),
             "pose_cmd": pc, "pose_act": pa, "fk_residual_mm": float(np.linalg.norm(pc[:3] - pa[:3])),
-            "payload_kg": float(pl) if isinstance(pl, (int, float)) else math.nan}
+            "payload_kg": float(pl) if isinstance(pl, (int, float)) else math.nan,
+            "t_loop_s": float(lt) if isinstance(lt := st.get("loop_time_s"), (int, float)) else math.nan,
+            "drives_enabled": float(en) if isinstance(en := st.get("drives_enabled"), bool) else math.nan}
 
 
 class Recorder:
@@ -138,6 +140,9 @@ class Recorder:
         for nm in SIGNALS[1:]:
             data[nm] = np.array([r[nm] for _, r in self.rows], dtype=float).reshape((n, 6) if nm in STRUT_SIGNALS
                                                                                     else (n,))
+        tl = data["t_loop_s"]
+        if np.isfinite(tl[0]):
+            data["t_loop_s"] = tl - tl[0]
         m = dict(meta)
         m["trigger"] = {"kind": self.trigger.kind, "value": self.trigger.value,
                         "at_s": None if self.triggered_at is None else self.triggered_at - t0}

@@ -26,6 +26,11 @@ name                       shape    meaning
 ``pose_act``               (N,6)    platform pose from the actual struts (forward kinematics; mm, deg)
 ``fk_residual_mm``         (N,)     position distance between pose_cmd and pose_act
 ``payload_kg``             (N,)     payload the cycle's sag model assumes (NaN: unknown)
+``t_loop_s``               (N,)     the daemon loop's time of each sample (status ``loop_time_s``: cycle
+                                    count x period, from the first sample); the time base of the
+                                    commanded values, free of the stream's delivery jitter (NaN: unknown)
+``drives_enabled``         (N,)     1 when the drives were enabled (status ``drives_enabled``), 0 when not
+                                    (a fault, disabled: the drives hold no load), NaN: unknown
 =========================  =======  ==================================================
 """
 from __future__ import annotations
@@ -41,7 +46,7 @@ from ..errors import DataError
 
 STRUT_SIGNALS = ("struts_cmd_mm", "struts_act_mm", "following_error_mm", "torque_permille", "current_permille",
                  "temperature_C", "thermal_offsets_mm", "pose_cmd", "pose_act")
-SCALAR_SIGNALS = ("t_s", "fk_residual_mm", "payload_kg")
+SCALAR_SIGNALS = ("t_s", "fk_residual_mm", "payload_kg", "t_loop_s", "drives_enabled")
 SIGNALS = SCALAR_SIGNALS[:1] + STRUT_SIGNALS + SCALAR_SIGNALS[1:]
 #: bound on a recording's length (samples): memory stays bounded whatever the duration asked
 MAX_SAMPLES = 2_000_000
@@ -62,6 +67,34 @@ class Recording:
     def available(self, name: str) -> bool:
         a = self.data.get(name)
         return a is not None and bool(np.any(np.isfinite(a)))
+
+
+def sample_times(rec: Recording) -> np.ndarray:
+    """The samples' times (s) to differentiate the commanded values over: the daemon loop's (``t_loop_s``)
+    when every sample has it and it never goes back, else the recorder's clock ``t_s`` (which carries the
+    delivery jitter of the status stream: under load tens of ms, so rates from it are noisy)."""
+    t = rec.data.get("t_loop_s")
+    if t is not None and len(t) == rec.n and rec.n > 1 and np.all(np.isfinite(t)) and np.all(np.diff(t) >= 0) \
+            and t[-1] > t[0]:
+        return t - t[0]
+    return rec["t_s"]
+
+
+def strut_rates(rec: Recording, name: str = "struts_cmd_mm") -> tuple[np.ndarray, np.ndarray]:
+    """(N,6) velocity (mm/s) and acceleration (mm/s^2) of the strut signal ``name`` over
+    :func:`sample_times`; samples of the same loop time (one status snapshot read twice) share the rates
+    of its first reading."""
+    t = sample_times(rec)
+    L = rec[name]
+    first = np.r_[True, np.diff(t) > 0]
+    tu, Lu = t[first], L[first]
+    if len(tu) < 3:
+        z = np.zeros_like(L)
+        return z, z.copy()
+    v = np.gradient(Lu, tu, axis=0)
+    a = np.gradient(v, tu, axis=0)
+    idx = np.cumsum(first) - 1
+    return v[idx], a[idx]
 
 
 def empty_like_signals(n: int) -> dict:

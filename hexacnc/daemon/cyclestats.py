@@ -101,6 +101,7 @@ def publish_status(self) -> None:
     s = sh.s
     ct = self.ct
     h[S.H_STATUS_SEQ] += 1
+    h[S.H_STATUS_CYCLE] = h[S.H_CYCLES]
     h[S.H_STATE] = self.state
     h[S.H_FAULT] = self.fault
     h[S.H_FAULT_STRUT] = self.fault_strut

@@ -64,6 +64,7 @@ H_SUP_PID = 56          #: the supervisor's pid (the hot loop stops if it is no 
 H_FAULT_NS = 57         #: monotonic ns when the fault was latched (detection latency)
 H_BOOTUPS = 58          #: boot-up messages seen from the drives since the start (any state; hexacnc.daemon.reference)
 H_ENCODER_ERRORS = 59   #: EMCYs with an encoder (position sensor, 0x73xx) error code since the start
+H_STATUS_CYCLE = 60    #: the cycle count (H_CYCLES) of the status block's snapshot, under the seqlock
 H_HOME_RESULT = 61      #: CiA 402 homing: 0 never, 1 running, 2 done, < 0 error (hexacnc.daemon.homeloop)
 H_HOME_STRUT = 62       #: 1-based strut of the homing error, 0 n/a
 N_PHASES = 6

@@ -148,6 +148,9 @@ class StatusMixin:
             "spindle_growth_mm": s[S.S_SPINDLE_APP],
             "statuswords": h[S.H_STATUSWORDS:S.H_STATUSWORDS + 6],
             "line": h[S.H_LINE],
+            # the loop's time of this snapshot (its cycle count x the period: the setpoints' time base, free of
+            # the jitter of the message's delivery; hexacnc record differentiates the commanded lengths over it)
+            "loop_time_s": h[S.H_STATUS_CYCLE] * self.period_s,
             "fault": fault,
             "waiting": waiting_reason(hstate, fault, self.awaiting_enable),
             "cycle": self.cycle_stats(),
