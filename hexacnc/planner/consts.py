@@ -37,7 +37,9 @@ FD_PIECE_STEPS = 8
 FD_MIN_STEP = 1e-4
 #: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
 REST_PIECE_INTERVALS = 32
-#: grid intervals at least on every other piece shorter than PIECE_MIN_INTERVALS * GRADE_MM[0] (0.2 mm), spaced
+#: grid intervals at least on every other programmed piece (not on corner blends: on 1 um G64 moves, whose
+#: blends take the whole path, that moved the hills' plateaus and opened a four-cycle dip) shorter than
+#: PIECE_MIN_INTERVALS * GRADE_MM[0] (0.2 mm), spaced
 #: by a fraction of it: the grid of a short piece scales with the piece, and at that length its points are
 #: those the GRADE_MM offsets give a longer one (with one interval a 0.1 mm line from rest ran at one constant
 #: path acceleration to the blend after it, about twice the time of a ramp, until its length passed 0.1 mm and

@@ -58,9 +58,11 @@ def build_grid(path: P.Path, hx, cfg, events) -> Grid:
     if two.any():
         nint = np.where(two, REST_PIECE_INTERVALS, nint)
         h_p = np.where(two, path.slen / REST_PIECE_INTERVALS, h_p)
-    # every other short piece: at least PIECE_MIN_INTERVALS, a fraction of its length (its grid scales with
-    # it; at PIECE_MIN_INTERVALS * GRADE_MM[0] those points are the GRADE_MM offsets a longer piece gets)
-    few = (nint < PIECE_MIN_INTERVALS) & (path.slen > 0) & (path.slen < PIECE_MIN_INTERVALS * GRADE_MM[0])
+    # every other short programmed piece (not a corner blend): at least PIECE_MIN_INTERVALS, a fraction of its
+    # length (its grid scales with it; at PIECE_MIN_INTERVALS * GRADE_MM[0] those points are the GRADE_MM
+    # offsets a longer piece gets)
+    few = ((nint < PIECE_MIN_INTERVALS) & (path.slen > 0) & (path.slen < PIECE_MIN_INTERVALS * GRADE_MM[0])
+           & (path.kind != P.BLEND))
     if few.any():
         nint = np.where(few, PIECE_MIN_INTERVALS, nint)
         h_p = np.where(few, path.slen / PIECE_MIN_INTERVALS, h_p)
