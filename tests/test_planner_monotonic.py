@@ -68,17 +68,20 @@ def _random_directions(rng, k: int, rotation: bool) -> np.ndarray:
     return U / np.linalg.norm(U, axis=1, keepdims=True)
 
 
-def _sweep_and_check(cfg, rng, seed, plan_of, n: int, n_rows: int):
+def _sweep_and_check(cfg, rng, seed, plan_of, n: int, n_rows: int, known_dips: str = ""):
     """Durations of the plans ``plan_of(length)`` over the swept lengths (no dip); the rows of n_rows random
-    ones within the limits."""
+    ones within the limits.  ``known_dips``: a dip is a known failure (xfail, naming the dips) described by
+    it; the utilisation is checked first all the same."""
     L = _lengths_mm(rng, n)
     plans = [plan_of(d) for d in L]
     dur = [p.duration_s for p in plans]
-    assert not _dips(L, dur), f"seed {seed}: {_dips(L, dur)}"
     for i in rng.choice(len(plans), n_rows, replace=False):
         p = plans[i]
         u = utilisation(cfg, run(p.sampler()), p.dt)
         assert max(u) <= 1.0, f"seed {seed}, {L[i]:.6f} mm: utilisation {u}"
+    if known_dips and _dips(L, dur):
+        pytest.xfail(f"{known_dips}; seed {seed}: {_dips(L, dur)}")
+    assert not _dips(L, dur), f"seed {seed}: {_dips(L, dur)}"
 
 
 @pytest.mark.slow
@@ -96,6 +99,43 @@ def test_back_to_back_exact_stop_moves_in_random_order_dense(cfg, seed):
     U = [np.array(DIRS[k % 6], float) / np.linalg.norm(DIRS[k % 6]) * rng.choice([-1.0, 1.0]) for k in range(12)]
     U = [np.concatenate([u, np.zeros(3)]) for u in rng.permutation(U)]
     _sweep_and_check(cfg, rng, seed, lambda d: _plan(cfg, _moves(U, d, "G61")), 48, 2)
+
+
+@pytest.mark.slow
+def test_back_to_back_g64_moves_in_random_directions(cfg, seed):
+    """Twelve G64 P0.01 moves in random directions, every other one with a rotation of up to the same size
+    (blends between translations and blends with rotations in one sweep).  A short line between blends had
+    too few grid points: see :func:`test_a_short_line_between_rotary_blends_is_not_slower_than_a_longer_one`."""
+    rng = np.random.default_rng(seed)
+    U = np.empty((12, 6))
+    U[0::2] = _random_directions(rng, 6, False)
+    U[1::2] = _random_directions(rng, 6, True)
+    _sweep_and_check(cfg, rng, seed, lambda d: _plan(cfg, _moves(U, d, "G64 P0.01")), 48, 2, known_dips=(
+        "known: 1-8 cycle dips at 1-4 um, where the blends take the whole path and the hills' plateaus shift "
+        "(seeds 103, 104, 110, also on main)"))
+
+
+@pytest.mark.slow
+def test_back_to_back_exact_stop_moves_in_random_directions_with_rotations(cfg, seed):
+    """Six G61 moves in random directions with rotations: the path scales exactly with the length."""
+    rng = np.random.default_rng(seed)
+    U = _random_directions(rng, 6, True)
+    _sweep_and_check(cfg, rng, seed, lambda d: _plan(cfg, _moves(U, d, "G61")), 48, 1, known_dips=(
+        "known: 1-3 cycle dips at 0.01-0.04 mm (seeds 108, 115, also on main): a move's plateau ends one grid "
+        "interval earlier where the backward pass cannot stop within the last interval, and its level drops"))
+
+
+def test_a_short_line_between_rotary_blends_is_not_slower_than_a_longer_one(cfg):
+    """Seed 9 of the random G64 sweep with rotations: its first line (0.0988 mm, from rest) had one grid
+    interval until it passed 0.1 mm (a GRADE_MM point at 0.05 mm): the constant path acceleration from rest
+    over the whole interval took about twice the time of a ramp, and the twelve moves planned 0.7525 s at
+    0.12589 mm but 0.6335 s at 0.12741 mm."""
+    rng = np.random.default_rng(9)
+    U = _random_directions(rng, 12, True)
+    d = [0.125894, 0.127412]
+    t = [_plan(cfg, _moves(U, x, "G64 P0.01")).duration_s for x in d]
+    assert t[0] <= t[1] + 1e-9, t
+    assert t[1] / t[0] < 1.05, t
 
 
 @pytest.mark.slow

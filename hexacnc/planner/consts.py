@@ -37,6 +37,21 @@ FD_PIECE_STEPS = 8
 FD_MIN_STEP = 1e-4
 #: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
 REST_PIECE_INTERVALS = 32
+#: grid intervals at least on every other programmed piece (not on corner blends: on 1 um G64 moves, whose
+#: blends take the whole path, that moved the hills' plateaus and opened a four-cycle dip) shorter than
+#: PIECE_MIN_INTERVALS * GRADE_MM[0] (0.2 mm), spaced
+#: by a fraction of it: the grid of a short piece scales with the piece, and at that length its points are
+#: those the GRADE_MM offsets give a longer one (with one interval a 0.1 mm line from rest ran at one constant
+#: path acceleration to the blend after it, about twice the time of a ramp, until its length passed 0.1 mm and
+#: a GRADE_MM point split it: twelve random G64 moves planned 16 % shorter for 1 % longer lines).  Not on
+#: longer pieces: points at fractions of a piece move against the speed limits spread from the blends at its
+#: ends as it grows (twelve 0.84 mm G64 moves then planned 1 % longer than 0.86 mm ones)
+PIECE_MIN_INTERVALS = 4
+#: the verification's lowering factor at a small violation: the target ratio r (target / measured) times
+#: ``1 - LOWER_MARGIN_SLOPE (1/r - 1)``, at least the class's fixed margin (v 0.98, a 0.97, j 0.9), so that a
+#: limit is lowered by little where a sample barely crosses its target (a fixed margin lowered it by at
+#: least 2-10 % as soon as a sample crossed it: the planned time jumped there)
+LOWER_MARGIN_SLOPE = 5.0
 #: samples whose interval bound stays below this are not measured by exact inverse kinematics
 SCREEN = 0.5
 #: thresholds above which a model pass evaluates a sample (v, a, j): its violation thresholds

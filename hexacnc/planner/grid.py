@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import path as P
-from .consts import FD_MIN_STEP, FD_PIECE_STEPS, GRADE_MM, REST_PIECE_INTERVALS
+from .consts import FD_MIN_STEP, FD_PIECE_STEPS, GRADE_MM, PIECE_MIN_INTERVALS, REST_PIECE_INTERVALS
 from .limits import _check_limits
 from .softlimits import check_box
 from .verify import FD_STEP
@@ -58,6 +58,14 @@ def build_grid(path: P.Path, hx, cfg, events) -> Grid:
     if two.any():
         nint = np.where(two, REST_PIECE_INTERVALS, nint)
         h_p = np.where(two, path.slen / REST_PIECE_INTERVALS, h_p)
+    # every other short programmed piece (not a corner blend): at least PIECE_MIN_INTERVALS, a fraction of its
+    # length (its grid scales with it; at PIECE_MIN_INTERVALS * GRADE_MM[0] those points are the GRADE_MM
+    # offsets a longer piece gets)
+    few = ((nint < PIECE_MIN_INTERVALS) & (path.slen > 0) & (path.slen < PIECE_MIN_INTERVALS * GRADE_MM[0])
+           & (path.kind != P.BLEND))
+    if few.any():
+        nint = np.where(few, PIECE_MIN_INTERVALS, nint)
+        h_p = np.where(few, path.slen / PIECE_MIN_INTERVALS, h_p)
     pidx, u_loc, counts = P.grid_offsets(path, h_p, nint, GRADE_MM)
     first = np.concatenate([[0], np.cumsum(counts)[:-1]])
     sg = path.s0[pidx] + u_loc

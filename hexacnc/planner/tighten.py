@@ -11,7 +11,8 @@ import numpy as np
 
 from ..errors import PlanError
 from . import path as P
-from .consts import CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, MAX_ITERATIONS, MODEL_SCREEN, SCREEN, SPREAD_REACH
+from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_MARGIN_SLOPE, MAX_ITERATIONS, MODEL_SCREEN, SCREEN,
+                     SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
@@ -31,6 +32,13 @@ class Profile:
     TH: np.ndarray
     meas: tuple
     iterations: int
+
+
+def _margin(r: np.ndarray, floor: float) -> np.ndarray:
+    """The extra factor on a lowering to the target ratio ``r`` (target / measured, < 1 where violated):
+    ``floor`` for a clear violation, rising to 1 as the violation vanishes, so that the lowered limit, and
+    the planned time, do not jump where a sample crosses its target (:data:`~.consts.LOWER_MARGIN_SLOPE`)."""
+    return np.clip(1.0 - LOWER_MARGIN_SLOPE * (1.0 / np.maximum(r, 1e-12) - 1.0), floor, 1.0)
 
 
 class Tightener:
@@ -150,9 +158,12 @@ class Tightener:
         bad = viol_v | viol_a | viol_j
         fac = np.ones(s_f.shape[0])
         with np.errstate(divide="ignore"):
-            fac = np.where(viol_v, np.minimum(fac, (ETA_V * 0.999 / np.maximum(uv, 1e-12)) ** 2 * 0.98), fac)
-            fac = np.where(viol_a, np.minimum(fac, ETA / np.maximum(ua, 1e-12) * 0.97), fac)
-            fac = np.where(viol_j, np.minimum(fac, ETA / np.maximum(uj, 1e-12) * 0.9), fac)
+            rv = ETA_V * 0.9995 / np.maximum(uv, 1e-12)
+            ra = ETA / np.maximum(ua, 1e-12)
+            rj = ETA / np.maximum(uj, 1e-12)
+            fac = np.where(viol_v, np.minimum(fac, rv * rv * _margin(rv, 0.98)), fac)
+            fac = np.where(viol_a, np.minimum(fac, ra * _margin(ra, 0.97)), fac)
+            fac = np.where(viol_j, np.minimum(fac, rj * _margin(rj, 0.9)), fac)
         fac = np.maximum(fac, 0.3)
         if iters > 25 or exact_iters > 8:
             fac = np.minimum(fac, 0.7)
