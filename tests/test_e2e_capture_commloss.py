@@ -59,15 +59,17 @@ def _check_bus(frames, nodes, comm_loss_s):
         sw = [(t, cia402.state_from_status(_u16(d))) for t, cid, d, _ in frames if cid == 0x280 + node]
         emcy = [(t, _u16(d)) for t, cid, d, _ in frames if cid == 0x80 + node and len(d) == 8]
         vals = [v for _, v in cw]
-        # the normal disable walk per 0x605C: 0x0007, Switched on reported, then 0x0000
-        k = next(i for i in range(len(vals) - 1) if vals[i:i + 2] == [cia402.CW_DISABLE_OPERATION,
-                                                                       cia402.CW_DISABLE_VOLTAGE])
-        assert any(cw[k][0] <= t <= cw[k + 1][0] and s == cia402.SWITCHED_ON for t, s in sw), (node, cw[k:k + 2])
+        t_r = 0.0
         if node == 3:                                           # the injected fault and its reset (edge of bit 7)
             t_f = next(t for t, code in emcy if code == 0x2310)
             t_r = next(t for t, v in cw if t > t_f and v == cia402.CW_FAULT_RESET)
             assert any(s == cia402.FAULT for t, s in sw if t_f <= t <= t_r)
             assert any(s == cia402.SWITCH_ON_DISABLED for t, s in sw if t > t_r)
+        # the normal disable walk per 0x605C: 0x0007, Switched on reported, then 0x0000 (the faulted drive: the
+        # walk after its reset; the stop that followed its fault walked it too, while it was still in Fault)
+        k = next(i for i in range(len(vals) - 1) if cw[i][0] > t_r and vals[i:i + 2] == [
+            cia402.CW_DISABLE_OPERATION, cia402.CW_DISABLE_VOLTAGE])
+        assert any(cw[k][0] <= t <= cw[k + 1][0] and s == cia402.SWITCHED_ON for t, s in sw), (node, cw[k:k + 2])
         # the master fell silent: the drive's own reaction, within the configured time
         late = [(t, code) for t, code in emcy if t > t_silent - 0.01]
         assert late and late[0][1] in (cia402.EMCY_RPDO_TIMEOUT, cia402.EMCY_SYNC_LOSS), (node, late)
