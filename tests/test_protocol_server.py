@@ -524,9 +524,15 @@ def test_per_client_subscription_cap(served):
     assert c.req("subscribe", rate_hz=1.0)["ok"]
 
 
-def test_motion_op_flood_is_bounded(served):
+def test_motion_op_flood_is_bounded(served, monkeypatch):
     srv, d = served
     c = Raw(srv.socket_path)
+    reset = d.reset
+
+    def slow_reset():           # each reset takes 20 ms: a flood of them outpaces the (one) control worker
+        time.sleep(0.02)        # however fast this machine is (resets do not wait behind the program's load)
+        return reset()
+    monkeypatch.setattr(d, "reset", slow_reset)
     c.send_obj({"id": 0, "op": "program", "text": "SLOWLOAD\nG1 X1\n", "name": "slow"})
     for i in range(1, 200):
         c.send_obj({"id": i, "op": "reset"})
