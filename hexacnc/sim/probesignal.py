@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..pose import matrix_from_euler
+from ..pose import matrix_from_euler, rate_matrix
 
 SPHERE_RADIUS_MM = 12.5
 STYLUS_RADIUS_MM = 1.0
@@ -115,18 +115,14 @@ class ProbeSignal:
             if float(np.max(np.abs(dX))) < 1e-8:
                 break
         self._X = X
-        R = matrix_from_euler(*X[3:6])
-        tip = X[:3] + R @ tm.tip
+        arm = matrix_from_euler(*X[3:6]) @ tm.tip          # platform origin to tool tip, base frame
+        tip = X[:3] + arm
         d = np.linalg.norm(self.spheres - tip[None], axis=1)
         k = int(np.argmin(d))
         n = (tip - self.spheres[k]) / d[k] if d[k] > 0 else np.zeros(3)
-        dS_dX = np.empty(6)                # d distance / d pose: the angles by central differences
-        dS_dX[:3] = n
-        for j in range(3):
-            e = np.zeros(3)
-            e[j] = 1e-6
-            a, b = X[3:6] + e, X[3:6] - e
-            dS_dX[3 + j] = float(n @ ((matrix_from_euler(*a) - matrix_from_euler(*b)) @ tm.tip)) / 2e-6
+        # d distance / d pose: n along the translation; an angle rate turns the arm at omega = E @ rates,
+        # d tip = omega x arm, so d distance / d angles = E^T (arm x n)
+        dS_dX = np.concatenate([n, rate_matrix(*X[3:6]).T @ np.cross(arm, n)])
         s = float(d[k] - self.radius)
         self._ref = (L, s, dS_dX @ self._Jinv, now)
         return s
