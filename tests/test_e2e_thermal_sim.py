@@ -54,6 +54,14 @@ def _expected_cmd(cfg, hx, st):
     return hx.lengths(p) + sagmod.sag_compensation_mm(hx, p) - np.array(st["thermal"]["offsets_mm"])
 
 
+def _queue_moves(daemon, home) -> None:
+    """Out, across and back twice at 400 mm/s: the struts travel, the simulated plant heats."""
+    for _ in range(2):
+        daemon.move_to(home + [120.0, 0.0, 0.0, 0.0, 0.0, 0.0], 400.0, name="out")
+        daemon.move_to(home + [0.0, 80.0, -60.0, 0.0, 0.0, 0.0], 400.0, name="across")
+        daemon.move_to(home, 400.0, name="back")
+
+
 @pytest.mark.slow
 def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, client):
     daemon, srv = machine
@@ -64,10 +72,7 @@ def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, cl
     th0 = st0["thermal"]
     assert th0["source"] == "sim" and th0["time_scale"] == SCALE
     sub = client.send("subscribe", rate_hz=50.0)
-    for _ in range(2):
-        daemon.move_to(home + [120.0, 0.0, 0.0, 0.0, 0.0, 0.0], 400.0, name="out")
-        daemon.move_to(home + [0.0, 80.0, -60.0, 0.0, 0.0, 0.0], 400.0, name="across")
-        daemon.move_to(home, 400.0, name="back")
+    _queue_moves(daemon, home)
     wid = client.send("wait", timeout_s=60.0)
     samples = []
     while True:
@@ -117,11 +122,7 @@ def test_simulated_plant_drives_offsets_into_the_strut_commands(cfg, machine, cl
 def test_drift_with_and_without_compensation_is_reported(cfg, machine, client):
     th = client.call("status")["thermal"]
     if th["sim"]["peak_drift_z_um"]["uncompensated"] <= 5.0:      # run alone: heat the plant by motion first
-        daemon, home = machine[0], np.asarray(cfg.home_pose, dtype=float)
-        for _ in range(2):
-            daemon.move_to(home + [120.0, 0.0, 0.0, 0.0, 0.0, 0.0], 400.0, name="out")
-            daemon.move_to(home + [0.0, 80.0, -60.0, 0.0, 0.0, 0.0], 400.0, name="across")
-            daemon.move_to(home, 400.0, name="back")
+        _queue_moves(machine[0], np.asarray(cfg.home_pose, dtype=float))
         client.call("wait", timeout_s=60.0)
         th = client.call("status")["thermal"]
     d = th["sim"]["drift_um"]
