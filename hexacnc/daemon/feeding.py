@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -73,12 +74,16 @@ class FeedMixin:
 
     def _feed_loop(self) -> None:
         sh = self.sh
+        self.info["feeder_sched_fifo"] = False
         if self.realtime:   # this thread only: keep the ring filled on a loaded machine (when permitted)
             try:
                 os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
                 self.info["feeder_sched_fifo"] = True
             except (OSError, AttributeError):
-                self.info["feeder_sched_fifo"] = False
+                pass
+        if not self.info["feeder_sched_fifo"]:      # else a raised nice value, as the simulated drives'
+            from .rt import raise_nice
+            raise_nice([threading.get_native_id()])
         ahead = self._ahead_rows
         while not self.closed and sh is not None:
             try:
@@ -93,6 +98,8 @@ class FeedMixin:
 
     def _feed_once(self, sh: S.Shared, ahead: int) -> None:
         with self.lock:
+            if self._last_fault_logged and not sh.h[S.H_FAULT]:
+                self._last_fault_logged = 0         # a new fault after a reset is logged too
             if self.ref_watch is not None:      # every latched fault, boot-up or encoder error seen
                 self.ref_watch.poll(sh.h)
             hstate = sh.h[S.H_STATE]

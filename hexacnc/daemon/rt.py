@@ -40,6 +40,23 @@ def sched_fifo(priority: int) -> tuple[bool, str]:
         return False, f"SCHED_FIFO {priority} refused: {exc.strerror}{hint}; running SCHED_OTHER"
 
 
+#: nice value of the simulated drives' process (and the feeder thread when not real-time): above the
+#: supervisor's other threads, yet fair.  Not SCHED_FIFO: on the supervisor's CPU a FIFO simulation
+#: (~50 % of a core of Python) ran in stretches of 100-300 ms in which the supervisor was not
+#: scheduled at all and the hot loop's setpoint ring ran empty while moving
+SIM_NICE = -5
+
+
+def raise_nice(tids, nice: int = SIM_NICE) -> tuple[bool, str]:
+    """Set the nice value of the threads ``tids`` (0: the calling thread) when permitted."""
+    try:
+        for tid in tids:
+            os.setpriority(os.PRIO_PROCESS, tid, nice)
+        return True, f"nice {nice}"
+    except (OSError, AttributeError) as exc:
+        return False, f"nice {nice} refused: {exc}; normal priority"
+
+
 def pin_cpu(cpu: int) -> tuple[int, str]:
     """Pin to ``cpu`` (-1: the last allowed CPU). Returns (cpu or -1, message)."""
     if not hasattr(os, "sched_setaffinity"):

@@ -248,18 +248,13 @@ class Shared:
                 pass
 
 
-def percentiles_us(hist: list[int], qs=(0.5, 0.99, 0.999)) -> list[float | None]:
-    """Percentiles (microseconds, bin upper edge) from a 1 us histogram."""
-    total = sum(hist)
+def percentiles_us(hist, qs=(0.5, 0.99, 0.999)) -> list[float | None]:
+    """Percentiles (microseconds, bin upper edge) from a 1 us histogram (a sequence of counts or the
+    shared block's memoryview: copied, no view of it is kept)."""
+    import numpy as np
+    counts = np.array(hist, dtype=np.int64)
+    cum = np.cumsum(counts)
+    total = int(cum[-1]) if len(cum) else 0
     if total == 0:
         return [None for _ in qs]
-    out = []
-    for q in qs:
-        target = q * total
-        acc = 0
-        for i, c in enumerate(hist):
-            acc += c
-            if acc >= target:
-                out.append(float(i + 1))
-                break
-    return out
+    return [float(np.searchsorted(cum, q * total, side="left") + 1) for q in qs]

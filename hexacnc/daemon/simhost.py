@@ -183,13 +183,12 @@ def main() -> int:
     from ..sim.drives import sim_drives
     from .pipebus import PipeBus
     cfg = args["cfg"]
-    # the simulated drives stand for hardware that keeps time: real-time priority just below the
-    # hot loop when permitted (inherited by the canopen threads started below)
-    prio = int(args.get("priority", max(1, cfg.cycle.realtime_priority - 10)))
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
-    except (OSError, AttributeError) as exc:
-        log.warning("simulated drives without SCHED_FIFO: %s", exc)
+    # the simulated drives stand for hardware that keeps time: a raised (not real-time) priority, set
+    # before the canopen threads start (they inherit it); see rt.SIM_NICE
+    from .rt import raise_nice
+    ok, msg = raise_nice([0])
+    if not ok:
+        log.warning("simulated drives: %s", msg)
     # look for frames on a timer instead of being woken by each write: the wake-up would be paid by
     # the hot loop on its CPU every cycle (see PipeBus); the drives answer within this interval
     poll_s = float(args.get("poll_interval_s", POLL_INTERVAL_S))

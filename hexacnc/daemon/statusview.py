@@ -68,8 +68,8 @@ class StatusMixin:
             return cached
         sh = self.sh
         h = sh.h
-        lat = S.percentiles_us(sh.hist_late.tolist())
-        comp = S.percentiles_us(sh.hist_comp.tolist())
+        lat = S.percentiles_us(sh.hist_late)
+        comp = S.percentiles_us(sh.hist_comp)
         cycles = h[S.H_CYCLES] - h[S.H_STATS_CYCLES0]
         out = {
             "period_s": self.period_s, "cycles": cycles,
@@ -105,16 +105,7 @@ class StatusMixin:
         hstate = h[S.H_STATE]
         with self.lock:
             job = self.current
-            if hstate == S.ST_FAULT:
-                state = "fault"
-            elif hstate == S.ST_STOPPING or self.stop_requested:
-                state = "stopping"
-            elif job is not None and getattr(job.source, "paused", False):
-                state = "paused"
-            elif job is not None or self.queue or hstate == S.ST_RUNNING:
-                state = "running"
-            else:
-                state = "idle"
+            state = self._motion_state(hstate)
             if job is not None:
                 line, pct, left = job.source.progress()
                 prog = {"name": job.name, "line": line, "percent": round(pct, 2), "time_left_s": round(left, 3),
@@ -160,15 +151,38 @@ class StatusMixin:
             **status_keys(s, time.monotonic()),       # drive torque / current (0x6077 / 0x6078), when sampled
         }
 
+    def _motion_state(self, hstate: int) -> str:
+        """The status key ``state`` from the loop state and the job queue (caller holds the lock)."""
+        job = self.current
+        if hstate == S.ST_FAULT:
+            return "fault"
+        if hstate == S.ST_STOPPING or self.stop_requested:
+            return "stopping"
+        if job is not None and getattr(job.source, "paused", False):
+            return "paused"
+        if job is not None or self.queue or hstate == S.ST_RUNNING:
+            return "running"
+        return "idle"
+
     def wait(self, timeout_s: float) -> dict:
-        """Block until idle (no motion queued or running) or fault, or the timeout; returns the status."""
+        """Block until idle (no motion queued or running) or fault, or the timeout; returns the status.
+
+        Polls the cheap state (not the whole status: its statistics and thermal report would take
+        the interpreter from the feeder thread every 20 ms of every waiting client)."""
         t_end = time.monotonic() + max(0.0, float(timeout_s))
         while True:
-            st = self.status()
-            if st["state"] in ("idle", "fault"):
-                return st
+            sh = self.sh
+            if sh is None or not self.alive:
+                return self.status()
+            with self.lock:
+                state = self._motion_state(sh.h[S.H_STATE])
+            if state in ("idle", "fault"):
+                st = self.status()
+                if st["state"] in ("idle", "fault"):
+                    return st
             left = t_end - time.monotonic()
             if left <= 0:
+                st = self.status()
                 st["timeout"] = True
                 return st
             with self.cv:
