@@ -21,6 +21,7 @@ import logging
 import os
 
 from ..errors import BusError
+from .rt import sim_drives_priority
 
 log = logging.getLogger("hexacnc.busio")
 
@@ -186,23 +187,24 @@ def start_simulation(cfg, mode: str, period_s: float, faults=(), channel: str | 
     ch = channel or cfg.bus.channel
     log.info("starting simulated drives (%s %s)", cfg.bus.interface, ch)
     proc = simdrive.spawn(cfg.path, interface=cfg.bus.interface, channel=ch, faults=list(faults))
-    drives_priority(proc.pid)
+    drives_realtime(proc.pid, sim_drives_priority(cfg.cycle.realtime_priority))
     return proc
 
 
-def drives_priority(pid: int) -> bool:
-    """The raised priority of :data:`.rt.SIM_NICE` for every thread of the simulated drives process,
-    when permitted (they stand for hardware that keeps time).  Returns False (logged) when not."""
-    from .rt import raise_nice
+def drives_realtime(pid: int, priority: int) -> bool:
+    """SCHED_FIFO for every thread of the simulated drives process, when permitted.
+
+    The simulated drives stand for hardware that keeps time; on a loaded machine a normal-priority
+    process misses SYNCs and SDO answers.  Returns False (logged) when not permitted.
+    """
     try:
         tids = [int(t) for t in os.listdir(f"/proc/{pid}/task")]
-    except (OSError, ValueError) as exc:
+        for tid in tids:
+            os.sched_setscheduler(tid, os.SCHED_FIFO, os.sched_param(priority))
+        return True
+    except (OSError, AttributeError, ValueError) as exc:
         log.warning("simulated drives at normal priority: %s", exc)
         return False
-    ok, msg = raise_nice(tids)
-    if not ok:
-        log.warning("simulated drives: %s", msg)
-    return ok
 
 
 def child_args(sim, channel: str | None = None) -> dict:

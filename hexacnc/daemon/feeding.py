@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import logging
 import os
-import threading
 import time
 from collections import deque
 from dataclasses import dataclass, field
@@ -74,16 +73,13 @@ class FeedMixin:
 
     def _feed_loop(self) -> None:
         sh = self.sh
-        self.info["feeder_sched_fifo"] = False
-        if self.realtime:   # this thread only: keep the ring filled on a loaded machine (when permitted)
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
-                self.info["feeder_sched_fifo"] = True
-            except (OSError, AttributeError):
-                pass
-        if not self.info["feeder_sched_fifo"]:      # else a raised nice value, as the simulated drives'
-            from .rt import raise_nice
-            raise_nice([threading.get_native_id()])
+        # this thread only, real-time or not (when permitted): the ring must stay filled on a loaded machine,
+        # and nothing of ours that runs SCHED_FIFO on this CPU (the simulated drives) may starve it
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
+            self.info["feeder_sched_fifo"] = True
+        except (OSError, AttributeError):
+            self.info["feeder_sched_fifo"] = False
         ahead = self._ahead_rows
         while not self.closed and sh is not None:
             try:

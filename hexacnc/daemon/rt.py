@@ -40,21 +40,15 @@ def sched_fifo(priority: int) -> tuple[bool, str]:
         return False, f"SCHED_FIFO {priority} refused: {exc.strerror}{hint}; running SCHED_OTHER"
 
 
-#: nice value of the simulated drives' process (and the feeder thread when not real-time): above the
-#: supervisor's other threads, yet fair.  Not SCHED_FIFO: on the supervisor's CPU a FIFO simulation
-#: (~50 % of a core of Python) ran in stretches of 100-300 ms in which the supervisor was not
-#: scheduled at all and the hot loop's setpoint ring ran empty while moving
-SIM_NICE = -5
+def sim_drives_priority(realtime_priority: int) -> int:
+    """SCHED_FIFO priority of the simulated drives' process: below the supervisor's feeder thread
+    (``realtime_priority - 30``) and control worker (``- 31``), above every normal thread.
 
-
-def raise_nice(tids, nice: int = SIM_NICE) -> tuple[bool, str]:
-    """Set the nice value of the threads ``tids`` (0: the calling thread) when permitted."""
-    try:
-        for tid in tids:
-            os.setpriority(os.PRIO_PROCESS, tid, nice)
-        return True, f"nice {nice}"
-    except (OSError, AttributeError) as exc:
-        return False, f"nice {nice} refused: {exc}; normal priority"
+    The simulation (~50 % of a core of Python, on the supervisor's CPU) runs in stretches of
+    100-300 ms now and then; above the feeder it kept the supervisor from being scheduled that long
+    and the hot loop's setpoint ring ran empty while moving (stack dumps: every supervisor thread
+    idle, the feeder mid-push). At normal priority the drives themselves missed their deadlines."""
+    return max(1, realtime_priority - 40)
 
 
 def pin_cpu(cpu: int) -> tuple[int, str]:

@@ -183,12 +183,14 @@ def main() -> int:
     from ..sim.drives import sim_drives
     from .pipebus import PipeBus
     cfg = args["cfg"]
-    # the simulated drives stand for hardware that keeps time: a raised (not real-time) priority, set
-    # before the canopen threads start (they inherit it); see rt.SIM_NICE
-    from .rt import raise_nice
-    ok, msg = raise_nice([0])
-    if not ok:
-        log.warning("simulated drives: %s", msg)
+    # the simulated drives stand for hardware that keeps time: real-time priority when permitted
+    # (inherited by the canopen threads started below), below the supervisor's feeder (rt.sim_drives_priority)
+    from .rt import sim_drives_priority
+    prio = int(args.get("priority", sim_drives_priority(cfg.cycle.realtime_priority)))
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(prio))
+    except (OSError, AttributeError) as exc:
+        log.warning("simulated drives without SCHED_FIFO: %s", exc)
     # look for frames on a timer instead of being woken by each write: the wake-up would be paid by
     # the hot loop on its CPU every cycle (see PipeBus); the drives answer within this interval
     poll_s = float(args.get("poll_interval_s", POLL_INTERVAL_S))
