@@ -147,6 +147,14 @@ def test_ring_and_histogram_percentiles():
         hist[200] = 1
         hist[4095] = 1
         assert S.percentiles_us(hist) == [11.0, 11.0, 201.0]
+        assert S.percentiles_us([0] * 16) == [None, None, None]
+        # rows written across the ring's end, in order; the write index published once
+        sh.h[S.H_RING_R] = sh.h[S.H_RING_W] = S.RING_ROWS - 3
+        more = np.random.default_rng(3).normal(size=(7, 8))
+        assert sh.push_rows(more) == 7 and sh.h[S.H_RING_W] == S.RING_ROWS + 4
+        got = [[sh.ring[((S.RING_ROWS - 3 + k) % S.RING_ROWS) * 8 + j] for j in range(8)] for k in range(7)]
+        assert got == more.tolist()
+        assert sh.push_rows(np.zeros((0, 8))) == 0 and sh.ring_fill() == 7
     finally:
         sh.close()
 

@@ -73,13 +73,12 @@ class FeedMixin:
 
     def _feed_loop(self) -> None:
         sh = self.sh
-        # this thread only, real-time or not (when permitted): the ring must stay filled on a loaded machine,
-        # and nothing of ours that runs SCHED_FIFO on this CPU (the simulated drives) may starve it
-        try:
-            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
-            self.info["feeder_sched_fifo"] = True
-        except (OSError, AttributeError):
-            self.info["feeder_sched_fifo"] = False
+        if self.realtime:   # this thread only: keep the ring filled on a loaded machine (when permitted)
+            try:
+                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(max(1, self.cfg.cycle.realtime_priority - 30)))
+                self.info["feeder_sched_fifo"] = True
+            except (OSError, AttributeError):
+                self.info["feeder_sched_fifo"] = False
         ahead = self._ahead_rows
         while not self.closed and sh is not None:
             try:
@@ -141,20 +140,33 @@ class FeedMixin:
                 self.cv.notify_all()
 
     def _push(self, job: Job, sh: S.Shared, need: int) -> None:
-        """Queue up to ``need`` rows of ``job`` in chunks, keeping a rewind mark at each chunk."""
+        """Queue up to ``need`` rows of ``job`` in chunks, keeping a rewind mark at each chunk.
+
+        Chunks are published as they come while the hot loop is running on queued rows; on an empty
+        ring (the loop holds: a job's start, or after a pause) all of them are published at once,
+        so the motion starts with ``FEED_AHEAD_S`` queued and a supervisor descheduled right after
+        the first chunk cannot run the ring dry (it did: 32-64 rows queued, 40-130 ms unscheduled)."""
         src = job.source
         marks = job.marks
         can_mark = hasattr(src, "snapshot")
         r = sh.h[S.H_RING_R]
         while len(marks) > 1 and marks[1][0] <= r:      # keep the mark of the row being run
             marks.popleft()
+        held = [] if sh.ring_fill() == 0 else None      # rows generated, not yet published
+        w = sh.h[S.H_RING_W]
         while need > 0 and not src.finished:
             if can_mark:
-                marks.append((sh.h[S.H_RING_W], src.snapshot()))
+                marks.append((w, src.snapshot()))
             rows = src.next_rows(min(need, FEED_CHUNK_ROWS))
             if len(rows):
-                sh.push_rows(rows)
+                if held is None:
+                    sh.push_rows(rows)
+                else:
+                    held.append(rows)
+            w += len(rows)
             need -= max(1, len(rows))
+        if held:
+            sh.push_rows(np.concatenate(held))
         if src.finished and job.end_index < 0:
             job.end_index = sh.h[S.H_RING_W]
 

@@ -430,7 +430,7 @@ class Operator:
 
     def _watchdog(self) -> None:
         d = self.daemon
-        if d is not None:       # a stop must not wait behind normal work on a loaded machine (when permitted)
+        if getattr(d, "realtime", False):       # a stop must not wait behind normal work on a loaded machine
             from .rt import sched_fifo
             sched_fifo(max(1, self.cfg.cycle.realtime_priority - 31))
         while not self._closed:

@@ -56,10 +56,9 @@ _AUTH_TIMEOUT_S = tcpauth.AUTH_TIMEOUT_S
 
 def _control_priority(daemon) -> None:
     """The control worker (stop, pause, override, ...) runs SCHED_FIFO just below the feeder thread when
-    permitted, real-time daemon or not: a loaded machine (or the simulated drives, see
-    :func:`.rt.sim_drives_priority`) must not delay a stop behind normal work."""
+    the daemon is real-time (permitted): a loaded machine must not delay a stop behind normal work."""
     cfg = getattr(daemon, "cfg", None)
-    if cfg is not None:
+    if getattr(daemon, "realtime", False) and cfg is not None:
         from .rt import sched_fifo
         sched_fifo(max(1, cfg.cycle.realtime_priority - 31))
 

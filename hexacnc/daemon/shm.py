@@ -188,15 +188,19 @@ class Shared:
 
     def push_rows(self, rows) -> int:
         """Append rows ((N,8) float array); returns how many fitted."""
+        import numpy as np
         w = self.h[H_RING_W]
         n = min(len(rows), self.ring_free())
-        ring = self.ring
-        for k in range(n):
-            base = ((w + k) % RING_ROWS) * ROW
-            r = rows[k]
-            for j in range(ROW):
-                ring[base + j] = float(r[j])
-        self.h[H_RING_W] = w + n
+        if n <= 0:
+            return 0
+        flat = np.ascontiguousarray(np.asarray(rows, dtype=np.float64)[:n]).reshape(-1)
+        ring = self.ring        # memoryview slices: copied in, no numpy view of the shared buffer kept
+        a = (w % RING_ROWS) * ROW
+        first = min(len(flat), RING_ROWS * ROW - a)
+        ring[a:a + first] = memoryview(flat[:first])
+        if first < len(flat):                                       # wrapped around the end
+            ring[0:len(flat) - first] = memoryview(flat[first:])
+        self.h[H_RING_W] = w + n          # published after the rows are written
         return n
 
     def retract(self, k: int) -> bool:
