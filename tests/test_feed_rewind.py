@@ -28,6 +28,7 @@ class Feeder(FeedMixin):
         self.rewinds = [0, 0]
         self._rewind_rows = int(round(REWIND_LEAD_S / DT))
         self._ahead_rows = 600
+        self._start_rows = 500
         self.current = Job("t", src, np.zeros(6), np.zeros(6), marks=deque())
 
 

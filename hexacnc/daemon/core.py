@@ -29,7 +29,7 @@ from ..kinematics import Hexapod
 from ..transform import CycleTransform
 from . import shm as S
 from .faults import fault_message
-from .feeding import (FEED_AHEAD_S, FEED_CHUNK_ROWS, FEED_PERIOD_S, REWIND_ATTEMPTS,  # noqa: F401 (re-export)
+from .feeding import (FEED_AHEAD_S, FEED_CHUNK_ROWS, FEED_PERIOD_S, FEED_START_S, REWIND_ATTEMPTS,  # noqa: F401 (re-export)
                       REWIND_LEAD_S, FeedMixin, Job)
 from .motion import MotionMixin
 from .procs import HotEnd, HotProcess, HotWatch, acquire_lock, bus_lock_path, release_lock
@@ -55,6 +55,7 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         self.period_s = float(period_s or cfg.cycle.period_s)
         self._rewind_rows = max(8, int(math.ceil(REWIND_LEAD_S / self.period_s)))
         self._ahead_rows = max(50, int(FEED_AHEAD_S / self.period_s))
+        self._start_rows = min(self._ahead_rows, max(FEED_CHUNK_ROWS, int(FEED_START_S / self.period_s)))
         self.rewinds = [0, 0]           #: commands that took queued rows back / acted at the queue's end
         self.io_mode = io_mode
         self.sim_faults = list(sim_faults)

@@ -21,8 +21,13 @@ from . import shm as S
 
 log = logging.getLogger("hexacnc.daemon")
 
-#: rows kept queued in the ring while streaming (seconds of motion)
+#: rows kept queued in the ring while streaming (seconds of motion).  Commands that can take rows back act
+#: from ``REWIND_LEAD_S`` on; one that cannot (a failed rewind) acts after this queue, so it is not made
+#: longer against supervisor stalls (1.0 s was tried: a jog's dead-man stop then ran to the soft limit)
 FEED_AHEAD_S = 0.3
+#: a job's first rows are published together once this much is queued (an empty ring: the loop holds),
+#: the rest chunk by chunk, so a supervisor descheduled right after the first chunk cannot run it dry
+FEED_START_S = 0.25
 #: a pause, resume, stop or override takes back the queued rows beyond this lead (seconds) and
 #: re-plans them from the source's state there: commands act within it (regenerated from the last
 #: mark, no chunk granularity), not after FEED_AHEAD_S.  It covers the supervisor's time from
@@ -143,9 +148,9 @@ class FeedMixin:
         """Queue up to ``need`` rows of ``job`` in chunks, keeping a rewind mark at each chunk.
 
         Chunks are published as they come while the hot loop is running on queued rows; on an empty
-        ring (the loop holds: a job's start, or after a pause) all of them are published at once,
-        so the motion starts with ``FEED_AHEAD_S`` queued and a supervisor descheduled right after
-        the first chunk cannot run the ring dry (it did: 32-64 rows queued, 40-130 ms unscheduled)."""
+        ring (the loop holds: a job's start) the first ``FEED_START_S`` of them are published at once,
+        so a supervisor descheduled right after the first chunk cannot run the ring dry (it did:
+        32-64 rows queued, 40-130 ms unscheduled)."""
         src = job.source
         marks = job.marks
         can_mark = hasattr(src, "snapshot")
@@ -153,6 +158,7 @@ class FeedMixin:
         while len(marks) > 1 and marks[1][0] <= r:      # keep the mark of the row being run
             marks.popleft()
         held = [] if sh.ring_fill() == 0 else None      # rows generated, not yet published
+        n_held, start_rows = 0, self._start_rows
         w = sh.h[S.H_RING_W]
         while need > 0 and not src.finished:
             if can_mark:
@@ -163,6 +169,10 @@ class FeedMixin:
                     sh.push_rows(rows)
                 else:
                     held.append(rows)
+                    n_held += len(rows)
+                    if n_held >= start_rows:
+                        sh.push_rows(np.concatenate(held))
+                        held = None
             w += len(rows)
             need -= max(1, len(rows))
         if held:
