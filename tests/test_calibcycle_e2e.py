@@ -140,7 +140,8 @@ def test_probing_stops_on_contact_and_reports_the_readings_at_the_edge(machine, 
             r = probe_sphere(client, c, [0.0, 0.0, 0.0], SPHERE_RADIUS_MM + STYLUS_RADIUS_MM, log_path=log)
             break
         except Exception:
-            if attempt == 4 or client.call("status")["state"] != "fault":
+            # the fault's controlled stop may still run ("stopping"): wait for the daemon to settle first
+            if attempt == 4 or client.call("wait", timeout_s=30.0)["state"] != "fault":
                 raise
             client.call("reset", reply_timeout_s=30.0)
             if os.path.exists(log):

@@ -47,7 +47,7 @@ def _run(client, text, name="probe.ngc"):
         try:
             return client.call("program", text=text, name=name, reply_timeout_s=120.0)
         except P.DaemonError:
-            if attempt == 2 or client.call("status")["state"] != "fault":
+            if attempt == 2 or client.call("wait", timeout_s=30.0)["state"] != "fault":
                 raise
             client.call("reset", reply_timeout_s=30.0)
 
