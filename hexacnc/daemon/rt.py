@@ -48,7 +48,7 @@ def sim_drives_priority(realtime_priority: int) -> int:
     raised nice value instead of FIFO, the drives themselves missed their deadlines (lost heartbeats,
     stale feedback, following errors: the supervisor's threads holding the interpreter lock while
     the simulation waited); so the simulation keeps its place and the supervisor is made to need
-    less of the CPU (``FeedMixin._push`` starts a job with ``FEED_AHEAD_S`` queued)."""
+    less of the CPU (``FeedMixin._push`` starts a job with ``FEED_START_S`` queued)."""
     return max(1, realtime_priority - 10)
 
 

@@ -184,7 +184,7 @@ def main() -> int:
     from .pipebus import PipeBus
     cfg = args["cfg"]
     # the simulated drives stand for hardware that keeps time: real-time priority when permitted
-    # (inherited by the canopen threads started below), below the supervisor's feeder (rt.sim_drives_priority)
+    # (inherited by the canopen threads started below), just below the hot loop (rt.sim_drives_priority)
     from .rt import sim_drives_priority
     prio = int(args.get("priority", sim_drives_priority(cfg.cycle.realtime_priority)))
     try:
