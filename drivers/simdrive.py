@@ -41,6 +41,7 @@ import can
 import canopen
 
 from .errors import ConfigError
+from .framerec import DATA_OFFSET, F_EXT, F_RTR, HEADER, RECORD, supports_batch
 
 from . import EDS_PATH
 from .description import STRICT_EDS, load_description
@@ -56,6 +57,9 @@ __all__ = ["SimDrives", "SimDrive", "FaultSpec", "StrutModel", "SecondOrderStrut
            "default_model_factory", "load_model_factory"]
 
 log = logging.getLogger("hexacnc.simdrive")
+
+#: how often the record reader looks for frames when a bus names no ``poll_interval_s`` (s)
+RX_POLL_S = 0.0002
 
 
 # --------------------------------------------------------------------------------------------
@@ -115,6 +119,7 @@ class SimDrives:
             net.subscribe(0x080, self._make_sync_handler(b))
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._rx: threading.Thread | None = None
         self._fd = self.plan.fd
 
     def _make_nmt_handler(self, b: int):
@@ -163,15 +168,57 @@ class SimDrives:
             log.warning("bus %d: cannot send 0x%03X: %s", bus_index, cob_id, exc)
 
     def start(self) -> "SimDrives":
-        """Attach to the buses, boot every node (boot-up message, pre-operational)."""
-        for net in self.networks:
-            net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
+        """Attach to the buses, boot every node (boot-up message, pre-operational).
+
+        Buses with the record batch interface (:mod:`.framerec`: the daemon's shared-memory and
+        pipe buses) are read by one thread for all of them (:meth:`_receive_records`); others
+        (SocketCAN, udp_multicast, virtual) by a python-can notifier per bus."""
+        if all(supports_batch(b) for b in self.buses):
+            self._rx = threading.Thread(target=self._receive_records, name="simdrive-rx", daemon=True)
+            self._rx.start()
+        else:
+            for net in self.networks:
+                net.notifier = can.Notifier(net.bus, net.listeners, 0.05)
         with self.lock:
             for d in self.drives:
                 d.boot()
         self._thread = threading.Thread(target=self._housekeeping, name="simdrive-housekeeping", daemon=True)
         self._thread.start()
         return self
+
+    def _receive_records(self) -> None:
+        """Hand every frame that arrived on any bus to canopen's subscribers for its COB-ID (what
+        canopen's MessageListener does, without a ``can.Message`` per frame or a thread per bus),
+        then sleep for the buses' poll interval: a CAN controller nobody has to wake."""
+        subs = [net.subscribers for net in self.networks]
+        buses = self.buses
+        poll_s = min(float(getattr(b, "poll_interval_s", RX_POLL_S) or RX_POLL_S) for b in buses)
+        unpack = HEADER.unpack_from
+        skip = F_RTR | F_EXT
+        while not self._stop.is_set():
+            for b, bus in enumerate(buses):
+                try:
+                    buf, i, end = bus.drain_records(256)
+                except can.CanError as exc:
+                    log.error("bus %d: receiving stopped: %s", b, exc)
+                    return
+                if i == end:
+                    continue
+                ts = time.time()
+                sb = subs[b]
+                while i < end:
+                    arb, flags, n = unpack(buf, i)
+                    if not flags & skip:
+                        cbs = sb.get(arb)
+                        if cbs:
+                            data = bytes(buf[i + DATA_OFFSET:i + DATA_OFFSET + n])
+                            for cb in cbs:
+                                try:
+                                    cb(arb, data, ts)
+                                except Exception:     # as canopen's MessageListener: log, go on
+                                    log.exception("bus %d: frame 0x%03X", b, arb)
+                    i += RECORD
+            time.sleep(poll_s)
 
     def _housekeeping(self) -> None:
         while not self._stop.wait(TICK_S):
@@ -190,6 +237,9 @@ class SimDrives:
             self._thread.join(1.0)
         for d in self.drives:
             d.node.nmt.stop_heartbeat()
+        if self._rx is not None:
+            self._rx.join(2.0)
+            self._rx = None
         for net in self.networks:
             if net.notifier is not None:
                 net.notifier.stop(2.0)

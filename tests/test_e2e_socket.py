@@ -273,7 +273,7 @@ def test_feed_hold_acts_on_the_rows_the_drives_get_next_not_after_the_queue(cfg,
     lead_s = core.REWIND_LEAD_S + core.FEED_CHUNK_ROWS * cfg.cycle.period_s
     # lead at full speed, plus a deceleration of at most 0.15 s at full speed (measured 0.06-0.1 s)
     assert travel_mm <= v_mm_s * (lead_s + 0.15), travel_mm
-    assert travel_mm < v_mm_s * core.FEED_AHEAD_S * 0.75       # well short of the old behaviour
+    assert travel_mm < v_mm_s * cfg.daemon.feed_ahead_s * 0.75       # well short of the queue
     assert np.all(np.abs(np.asarray(st["pose_cmd"][1:3]) - at_pause[1:3]) < 1e-6)   # on the line
     client.call("resume")
     st = client.call("wait", timeout_s=30.0)

@@ -9,7 +9,7 @@ the commanded pose at that moment) until the commanded pose stands still:
 * ``time_to_rest_s``: time until the commanded pose stops changing (polled every 2 ms, so the
   figure is late by up to the poll interval);
 * ``queue_only_mm``: the distance the queued rows alone would have taken at that speed before the
-  supervisor took them back (``FEED_AHEAD_S`` x speed) - what a pause cost before the rewind.
+  supervisor took them back (``[daemon] feed_ahead_s`` x speed) - what a pause cost before the rewind.
 
 Prints one JSON object; ``loadavg`` says how busy the machine was.
 """
@@ -84,7 +84,7 @@ def main(args: argparse.Namespace) -> int:
     srv = SocketServer(daemon, cfg, os.path.join(tmp, "hold.sock")).start()
     client = P.Client.unix(srv.socket_path)
     out: dict = {"lead_s": core.REWIND_LEAD_S, "feed_chunk_rows": core.FEED_CHUNK_ROWS,
-                 "queue_s": core.FEED_AHEAD_S, "period_s": daemon.period_s, "speeds": {},
+                 "queue_s": cfg.daemon.feed_ahead_s, "period_s": daemon.period_s, "speeds": {},
                  "relaxed": {"max_overruns_in_row": 1000, "following_error_mm": 25.0}}
     try:
         for v in speeds:
@@ -112,7 +112,7 @@ def main(args: argparse.Namespace) -> int:
                     time.sleep(0.05)
             client.call("wait", timeout_s=60.0)
             out["speeds"][f"{v:g}"] = {
-                "speed_mm_s": v, "queue_only_mm": round(v * core.FEED_AHEAD_S, 2),
+                "speed_mm_s": v, "queue_only_mm": round(v * cfg.daemon.feed_ahead_s, 2),
                 "pause": rows["pause"], "stop": rows["stop"],
                 "pause_travel_mm_max": max(r["travel_mm"] for r in rows["pause"]),
                 "pause_time_to_rest_s_max": max(r["time_to_rest_s"] for r in rows["pause"]),

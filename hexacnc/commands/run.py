@@ -214,7 +214,7 @@ def _serve(daemon, server, args, stop: threading.Event, log) -> int:
         if getattr(server, "calib_reloading", False):
             continue
         if not daemon.alive:
-            end = daemon.hot_end
+            end = daemon.await_hot_end(2.0)     # the watch thread classifies the exit (it polls)
             msg = end.message if end is not None else (daemon.status().get("fault") or {}).get("message")
             if end is not None and end.clean:
                 log.warning("%s; exiting", msg)

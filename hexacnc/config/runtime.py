@@ -93,6 +93,11 @@ class DaemonConfig:
     max_plan_memory_mb: int = 4096
     #: ... and at most this long (s); over either it is refused naming the limit and the line reached
     max_plan_s: float = 300.0
+    #: seconds of a program's or move's setpoints kept queued ahead of the hot loop: how long the
+    #: supervisor (not real-time) may go unscheduled before the loop runs dry and stops the motion.
+    #: Pause, stop and override take queued rows back (a 5 ms lead), so they do not wait behind it;
+    #: jogs keep a short queue (hexacnc.daemon.feeding.JOG_AHEAD_S) for their dead-man stop
+    feed_ahead_s: float = 1.0
 
 
 def parse_cycle(cy: Section, s: Section) -> tuple[CycleConfig, np.ndarray | None]:
@@ -203,6 +208,7 @@ def _daemon_config(d: Section, bus: BusConfig) -> DaemonConfig:
         max_message_bytes=d.getint("max_message_bytes", dd.max_message_bytes, minval=4096, maxval=1 << 30),
         max_plan_memory_mb=d.getint("max_plan_memory_mb", dd.max_plan_memory_mb, minval=512, maxval=1 << 20),
         max_plan_s=d.getfloat("max_plan_s", dd.max_plan_s, above=0.0, maxval=86400.0),
+        feed_ahead_s=d.getfloat("feed_ahead_s", dd.feed_ahead_s, minval=0.05, maxval=8.0),
         token_file=_expand_user_vars(d.getstr("token_file", dd.token_file)),
         controller_group=d.getstr("controller_group", dd.controller_group),
         observer_group=d.getstr("observer_group", dd.observer_group),

@@ -54,7 +54,7 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
         self.cfg = cfg
         self.period_s = float(period_s or cfg.cycle.period_s)
         self._rewind_rows = max(8, int(math.ceil(REWIND_LEAD_S / self.period_s)))
-        self._ahead_rows = max(50, int(FEED_AHEAD_S / self.period_s))
+        self._ahead_rows = max(50, int(cfg.daemon.feed_ahead_s / self.period_s))
         self._start_rows = min(self._ahead_rows, max(FEED_CHUNK_ROWS, int(FEED_START_S / self.period_s)))
         self.rewinds = [0, 0]           #: commands that took queued rows back / acted at the queue's end
         self.io_mode = io_mode
@@ -226,11 +226,18 @@ class Daemon(MotionMixin, FeedMixin, StatusMixin):
 
     def _hot_ended(self, end: HotEnd) -> None:
         """The hot loop ended or hung without being told to (the watch thread)."""
-        (log.warning if end.clean else log.error)("%s", end.message)
         with self.lock:
             self.hot_end = end
             self._abort_jobs(end.message)
             self.cv.notify_all()
+        (log.warning if end.clean else log.error)("%s", end.message)
+
+    def await_hot_end(self, timeout_s: float) -> HotEnd | None:
+        """How the hot loop ended, once the watch thread has classified its exit (it polls); None if
+        it has not within ``timeout_s`` (or the loop still runs)."""
+        with self.lock:
+            self.cv.wait_for(lambda: self.hot_end is not None, timeout_s)
+            return self.hot_end
 
     @property
     def alive(self) -> bool:

@@ -21,10 +21,14 @@ from . import shm as S
 
 log = logging.getLogger("hexacnc.daemon")
 
-#: rows kept queued in the ring while streaming (seconds of motion).  Commands that can take rows back act
-#: from ``REWIND_LEAD_S`` on; one that cannot (a failed rewind) acts after this queue, so it is not made
-#: longer against supervisor stalls (1.0 s was tried: a jog's dead-man stop then ran to the soft limit)
-FEED_AHEAD_S = 0.3
+#: rows kept queued in the ring while streaming a program or move (seconds of motion; the default of
+#: ``[daemon] feed_ahead_s``): how long the supervisor may go unscheduled before the ring runs dry (a
+#: stop, fault "dead setpoint source").  Commands that can take rows back act from ``REWIND_LEAD_S``
+#: on; one that cannot (a failed rewind: the supervisor starved through five leads) acts after the queue.
+#: 0.3 s was too short on a loaded 2-core machine (CI: the supervisor unscheduled 0.3-0.4 s mid-move)
+FEED_AHEAD_S = 1.0
+#: ... for a jog: its dead-man stop is the supervisor's, so a short queue (1.0 s ran to the soft limit)
+JOG_AHEAD_S = 0.3
 #: a job's first rows are published together once this much is queued (an empty ring: the loop holds),
 #: the rest chunk by chunk, so a supervisor descheduled right after the first chunk cannot run it dry
 FEED_START_S = 0.25
@@ -58,6 +62,7 @@ class Job:
     end_index: int = -1               #: ring index after the END row, once pushed
     started: bool = False
     marks: deque = field(default_factory=deque)   #: (ring index, source snapshot before that row)
+    ahead_s: float | None = None      #: rows kept queued (s); None: ``[daemon] feed_ahead_s``
     extra: dict = field(default_factory=dict)
 
 
@@ -128,7 +133,7 @@ class FeedMixin:
             if self.feed_hold:
                 return
             if job.end_index < 0:
-                self._push(job, sh, ahead - sh.ring_fill())
+                self._push(job, sh, self._job_ahead_rows(job, ahead) - sh.ring_fill())
             elif sh.h[S.H_END_SEEN] >= job.end_index and hstate == S.ST_IDLE:
                 line, pct, left = src.progress()
                 self.last_program = {"name": job.name, "line": line, "percent": 100.0 if not src.stopping
@@ -227,9 +232,11 @@ class FeedMixin:
                     job.marks.pop()
                 job.marks.extend(marks)
                 job.end_index = sh.h[S.H_RING_W] if src.finished else -1
-                # the rest of the queue at once (the reaction is already fixed: the hot loop reads the
-                # new rows), so the ring holds FEED_AHEAD_S again, not only lead + batch
-                self._push(job, sh, self._ahead_rows - sh.ring_fill())
+                # more of the queue at once (the reaction is already fixed: the hot loop reads the new
+                # rows), so the ring holds FEED_START_S again, not only lead + batch; the feeder
+                # tops it up (a whole 1 s queue here would hold the lock ~40 ms)
+                self._push(job, sh, min(self._job_ahead_rows(job, self._ahead_rows), self._start_rows)
+                           - sh.ring_fill())
                 self.rewinds[0] += 1
                 return True
             src.restore(end_snap)           # the hot loop got there first: a longer lead
@@ -237,6 +244,12 @@ class FeedMixin:
         action()
         self.rewinds[1] += 1
         return False
+
+    def _job_ahead_rows(self, job: Job, default_rows: int) -> int:
+        """Rows to keep queued for ``job``: its own ``ahead_s`` (jogs) or the daemon's."""
+        if job.ahead_s is None:
+            return default_rows
+        return max(50, min(default_rows, int(job.ahead_s / self.period_s)))
 
     @staticmethod
     def _rewind_point(job: Job, src, sh: S.Shared, k_min: int):

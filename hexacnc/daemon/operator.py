@@ -350,6 +350,7 @@ class Operator:
             direction: int | None = None, speed: float = 1.0) -> dict:
         """Incremental (``distance``) or continuous (``direction`` +1/-1, deadman) jog."""
         from .core import Job
+        from .feeding import JOG_AHEAD_S
         d = self.daemon
         axis = str(axis).lower()
         cart = axis in ("x", "y", "z", "a", "b", "c")
@@ -379,7 +380,8 @@ class Operator:
         src = JogSource(plan, target, d.period_s, name=f"jog {axis}")
         end = plan.pose_of([target])[0]
         job = Job(name=src.name, source=src, start_rad=np.asarray(start, dtype=float),
-                  end_rad=np.r_[end[:3], np.radians(end[3:6])], blocks=1, duration_s=src.duration_s)
+                  end_rad=np.r_[end[:3], np.radians(end[3:6])], blocks=1, duration_s=src.duration_s,
+                  ahead_s=JOG_AHEAD_S)
         with self.lock:
             self.jog_src = src
             self.jog_job = job
