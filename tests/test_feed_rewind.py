@@ -86,3 +86,29 @@ def test_nothing_left_to_take_back_acts_at_the_end_of_the_queue(plan):
         assert f.rewinds == [0, 1] and src.sampler.state == "pausing"
     finally:
         sh.close()
+
+
+def test_feed_ahead_is_a_range_checked_daemon_key_and_jogs_keep_a_short_queue(tmp_path):
+    from importlib import resources
+    from hexacnc.errors import ConfigError
+    from hexacnc.daemon.feeding import FEED_AHEAD_S, JOG_AHEAD_S
+    assert load_config(None).daemon.feed_ahead_s == FEED_AHEAD_S
+    text = (resources.files("hexacnc") / "data" / "default.toml").read_text()
+    p = tmp_path / "m.toml"
+    p.write_text(text.replace("[daemon]\n", "[daemon]\nfeed_ahead_s = 2.5\n", 1))
+    assert load_config(str(p)).daemon.feed_ahead_s == 2.5
+    p.write_text(text.replace("[daemon]\n", "[daemon]\nfeed_ahead_s = 0.01\n", 1))
+    with pytest.raises(ConfigError, match=r"\[daemon\] feed_ahead_s"):
+        load_config(str(p))
+    sh = S.Shared(create=True)
+    try:
+        f = Feeder(sh, None)
+        f.period_s = DT
+        f._ahead_rows = int(2.5 / DT)
+        assert f._job_ahead_rows(Job("p", None, np.zeros(6), np.zeros(6)), f._ahead_rows) == int(2.5 / DT)
+        jog = Job("jog x", None, np.zeros(6), np.zeros(6), ahead_s=JOG_AHEAD_S)
+        assert f._job_ahead_rows(jog, f._ahead_rows) == int(JOG_AHEAD_S / DT)
+        f._ahead_rows = int(0.1 / DT)       # a daemon queue shorter than a jog's: the shorter
+        assert f._job_ahead_rows(jog, f._ahead_rows) == int(0.1 / DT)
+    finally:
+        sh.close()

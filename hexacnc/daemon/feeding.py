@@ -49,6 +49,8 @@ REWIND_ATTEMPTS = 5
 REWIND_BATCH_ROWS = 2 * FEED_CHUNK_ROWS
 #: feeder thread period
 FEED_PERIOD_S = 0.002
+#: a job's planned start and the commanded pose (mm / rad) agree within this (else it is dropped)
+START_TOL = 1e-6
 
 @dataclass
 class Job:
@@ -119,7 +121,7 @@ class FeedMixin:
                     return
                 job = self.queue[0]
                 pose = self._pose_cmd_rad()
-                if float(np.max(np.abs(pose - job.start_rad))) > 1e-6:
+                if float(np.max(np.abs(pose - job.start_rad))) > START_TOL:
                     # the machine is not where the job was planned from (e.g. after a stop): this
                     # job and those queued behind it are dropped, each with the reason
                     self._abort_jobs("the machine moved since the job was planned; send it again")

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import HexacncError
 from . import shm as S
 from .feed import ArraySource, point_to_point
-from .feeding import Job
+from .feeding import START_TOL, Job
 
 
 def scan_words(daemon, text, patterns: dict, name: str, stops: int | None) -> set:
@@ -77,7 +77,9 @@ class MotionMixin:
         job = Job(name=name, source=src, start_rad=start, end_rad=rows[-1, :6].copy(), blocks=1,
                   duration_s=(len(rows) - 1) * self.period_s)
         with self.lock:
-            if float(np.max(np.abs(self._planned_start() - start))) > 1e-9:
+            # the feeder's own start check (FeedMixin._feed_once) allows 1e-6: the job planned from
+            # may have ended meanwhile, and the start is then read back from the status block
+            if float(np.max(np.abs(self._planned_start() - start))) > START_TOL:
                 raise HexacncError("another motion was queued meanwhile; plan again")
             self._queue(job)
         return {"blocks": 1, "duration_s": job.duration_s}
