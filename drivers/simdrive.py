@@ -33,6 +33,7 @@ this layer imports nothing from ``hexacnc``.
 from __future__ import annotations
 
 import logging
+import os
 import threading
 import time
 from typing import Sequence
@@ -60,6 +61,8 @@ log = logging.getLogger("hexacnc.simdrive")
 
 #: how often the record reader looks for frames when a bus names no ``poll_interval_s`` (s)
 RX_POLL_S = 0.0002
+#: records taken from one bus before the next bus's turn (~2-3 cycles of the default layout's frames)
+RX_BATCH = 16
 
 
 # --------------------------------------------------------------------------------------------
@@ -188,22 +191,32 @@ class SimDrives:
 
     def _receive_records(self) -> None:
         """Hand every frame that arrived on any bus to canopen's subscribers for its COB-ID (what
-        canopen's MessageListener does, without a ``can.Message`` per frame or a thread per bus),
-        then sleep for the buses' poll interval: a CAN controller nobody has to wake."""
+        canopen's MessageListener does, without a ``can.Message`` per frame or a thread per bus).
+
+        The buses take turns in batches of ``RX_BATCH`` records, so after a stall of this process
+        their backlogs drain side by side, as on separate CAN controllers (a bus drained 256 records
+        at a time fell silent for ~8 ms meanwhile: the master took its drives for caught up and
+        tagged their late samples with too new SYNCs, a spurious following error). Between turns
+        the CPU is yielded (same-priority SCHED_FIFO threads: the heartbeat producers) and, once
+        every bus is empty, the thread sleeps for the buses' poll interval: a CAN controller
+        nobody has to wake."""
         subs = [net.subscribers for net in self.networks]
         buses = self.buses
         poll_s = min(float(getattr(b, "poll_interval_s", RX_POLL_S) or RX_POLL_S) for b in buses)
         unpack = HEADER.unpack_from
         skip = F_RTR | F_EXT
+        yield_cpu = getattr(os, "sched_yield", None) or (lambda: time.sleep(0))
         while not self._stop.is_set():
+            busy = False
             for b, bus in enumerate(buses):
                 try:
-                    buf, i, end = bus.drain_records(256)
+                    buf, i, end = bus.drain_records(RX_BATCH)
                 except can.CanError as exc:
                     log.error("bus %d: receiving stopped: %s", b, exc)
                     return
                 if i == end:
                     continue
+                busy = True
                 ts = time.time()
                 sb = subs[b]
                 while i < end:
@@ -218,7 +231,10 @@ class SimDrives:
                                 except Exception:     # as canopen's MessageListener: log, go on
                                     log.exception("bus %d: frame 0x%03X", b, arb)
                     i += RECORD
-            time.sleep(poll_s)
+            if busy:
+                yield_cpu()
+            else:
+                time.sleep(poll_s)
 
     def _housekeeping(self) -> None:
         while not self._stop.wait(TICK_S):
