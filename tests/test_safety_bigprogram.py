@@ -69,10 +69,6 @@ def _planning(daemon, timeout_s: float = 60.0) -> StreamPlan:
                          f"(planning: {daemon._planning})")
 
 
-# known failure on a slow VM: the machine faults on stale feedback / an empty setpoint ring while the
-# 80,000-line program is validated beside it (a load fault, not the stop); issue 13, open
-@pytest.mark.xfail(strict=False, reason="load faults (stale feedback, setpoint ring empty) on a slow VM while "
-                   "the large program is validated (issue 13, open)")
 @pytest.mark.parametrize("chunked", [False, True])
 def test_stop_while_a_large_program_is_planned_ends_motion_and_planning(chunked):
     cfg = _cfg()

@@ -262,20 +262,27 @@ class _Child:
                 return
 
     def send(self, msg) -> None:
+        """Send to the child; nothing happens once it is gone or killed (a stop while the text is sent)."""
         with self._lock:
             try:
                 self.conn.send(msg)
-            except (OSError, ValueError):
+            except (OSError, ValueError, TypeError):    # TypeError: closed meanwhile (handle None)
                 pass
 
     def kill(self) -> None:
         if self.proc.is_alive():
             self.proc.kill()
         self.proc.join(1.0)
+        # a send in progress ends with EPIPE now that the child is dead: close after it, never under
+        # it (multiprocessing's Connection is not thread-safe: the sender then met a None handle)
+        locked = self._lock.acquire(timeout=2.0)
         try:
             self.conn.close()
         except OSError:
             pass
+        finally:
+            if locked:
+                self._lock.release()
 
 
 class StreamPlan:
