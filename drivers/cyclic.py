@@ -56,6 +56,9 @@ _I16 = struct.Struct("<h")
 CALM_POLLS = 8
 #: polls in a row without a position frame on a bus that count as a stall of its drives
 QUIET_POLLS = 16
+#: after a stall, a bus's tags are re-anchored only once its backlog no longer shrinks over this many
+#: polls (a catch-up at 1.1x the SYNC rate has runs of CALM_POLLS single samples: it looked caught up)
+CATCHUP_POLLS = 64
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 
 
@@ -446,6 +449,9 @@ class CyclicIO:
         self._fresh_mask = 0
         self._bus_calm = [0] * plan.buses
         self._bus_quiet = [0] * plan.buses
+        self._bus_behind = [False] * plan.buses      #: stalled, catching up: no re-anchoring
+        self._bus_lag = [0] * plan.buses             #: SYNCs the bus's last tag trailed at the last check
+        self._bus_lag_polls = [0] * plan.buses       #: polls since that check
         self.pos_sync: list[int] = [0] * self.n
 
     def _tag_sample(self, i: int) -> None:
@@ -464,13 +470,19 @@ class CyclicIO:
         self._fresh_mask |= 1 << i
 
     def _settle_tags(self) -> None:
-        """End of a poll: on buses that keep pace, no tag older than ``divider + 1`` SYNCs."""
+        """End of a poll: on buses that keep pace, no tag older than ``divider + 1`` SYNCs.
+
+        After a stall (``QUIET_POLLS``) a bus is *behind* until its tags trail the SYNCs sent by no
+        more than ``divider + 1`` or that lag stops shrinking over ``CATCHUP_POLLS`` polls (what is
+        left then is lost frames): a slow catch-up is never taken for a bus that keeps pace."""
         d = self._fb_div
-        lb = self.cycles - d - 1
+        cycles = self.cycles
+        lb = cycles - d - 1
         rx = self._bus_rx
         calm = self._bus_calm
         pace = self._bus_pace
         quiet = self._bus_quiet
+        behind = self._bus_behind
         for b in range(len(rx)):
             n = rx[b]
             if n > pace[b]:             # a backlog being drained
@@ -480,14 +492,31 @@ class CyclicIO:
                 calm[b] += 1
             else:
                 quiet[b] += 1
-                calm[b] = 0 if quiet[b] >= QUIET_POLLS else calm[b] + 1
+                if quiet[b] >= QUIET_POLLS:         # stalled: the catch-up is measured from its end
+                    calm[b] = 0
+                    behind[b] = True
+                    self._bus_lag[b] = cycles - self._bus_tag[b]
+                    self._bus_lag_polls[b] = 0
+                else:
+                    calm[b] += 1
+            if behind[b] and n:
+                lag = cycles - self._bus_tag[b]
+                if lag <= d + 1:
+                    behind[b] = False
+                else:
+                    self._bus_lag_polls[b] += 1
+                    if self._bus_lag_polls[b] >= CATCHUP_POLLS:
+                        if lag >= self._bus_lag[b] - 1:      # no longer shrinking: lost frames
+                            behind[b] = False
+                        self._bus_lag[b] = lag
+                        self._bus_lag_polls[b] = 0
         if not self._fresh_mask:
             return
         for i in range(self.n):
             if not self._fresh_mask >> i & 1:
                 continue
             b = self._fb_bus[i]
-            if calm[b] >= CALM_POLLS and self.pos_sync[i] < lb:
+            if calm[b] >= CALM_POLLS and self.pos_sync[i] < lb and not behind[b]:
                 k = lb + (self._fb_phase[i] - lb) % d
                 self.pos_sync[i] = k
                 if k > self._bus_tag[b]:

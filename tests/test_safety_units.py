@@ -204,6 +204,55 @@ def test_tags_after_lost_frames_catch_up_once_the_bus_keeps_pace():
     assert all(io.pos_sync[i] <= io.pos_inc[i] + d for i in range(6))
 
 
+def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5):
+    """One SYNC sent per poll; the drives answer promptly for 50 polls, are silent for ``stall`` polls,
+    then drain their backlog at ``rate`` x the SYNC rate (a fraction ``lost`` of the answers lost).
+    Each sample carries the SYNC it answers as its position. Returns, per poll after the stall,
+    the worst (tag - SYNC answered) over the drives and whether the backlog was drained."""
+    import random
+    rnd = random.Random(seed)
+    cfg, io, buses, plan = _codec()
+    d = plan.feedback_divider
+    answered, credit, out = 0, 0.0, []
+    for poll in range(polls):
+        io.send([0] * 6)
+        target = io.cycles
+        if 50 <= poll < 50 + stall:
+            target = answered
+        elif poll >= 50 + stall:
+            credit += rate
+            target = min(io.cycles, answered + int(credit))
+            credit -= int(credit)
+        while answered < target:
+            answered += 1
+            for nd in plan.nodes:
+                if (answered - nd.tpdo1_sync_start) % d == 0 and rnd.random() >= lost:
+                    buses[nd.bus].feed(nd.tpdo1_cob_id, struct.pack("<i", answered))
+        io.poll()
+        if poll >= 50 + stall:
+            worst = max(io.pos_sync[i] - io.pos_inc[i] for i in range(6))
+            out.append((worst, answered == io.cycles))
+    return out, d
+
+
+@pytest.mark.parametrize("rate", [2.0, 1.25, 1.1, 1.05])
+def test_a_slow_catch_up_after_a_stall_keeps_each_sample_on_the_sync_it_answers(rate):
+    """A drive's backlog drained barely faster than the SYNCs come (runs of one sample a poll, as a
+    bus that keeps pace): every late sample is still compared with the command of its own SYNC."""
+    out, d = _stall_and_catch_up(rate)
+    assert max(w for w, _ in out) == 0
+
+
+def test_lost_frames_in_a_catch_up_are_re_anchored_once_the_backlog_is_drained():
+    from drivers.cyclic import CALM_POLLS, CATCHUP_POLLS
+    out, d = _stall_and_catch_up(2.0, lost=0.3)
+    assert max(w for w, _ in out) <= 0                        # never tagged newer than answered
+    drained = next(k for k, (_, done) in enumerate(out) if done)
+    settled = drained + 2 * CATCHUP_POLLS + CALM_POLLS
+    assert settled < len(out) - 100
+    assert min(w for w, _ in out[settled:]) >= -d             # then no older than one divider period
+
+
 # -- process ends, locks ----------------------------------------------------------------------
 def test_exit_classification():
     h = [0] * S.N_HEADER
