@@ -152,9 +152,11 @@ def _validate_child(conn, cfg, name, start_tip, start_rad, max_mb, max_s, state=
             conn.send(("checked", line, nb))
             _arm(max_s)
         _arm(0)
-        prog = stream.program
+        prog = stream.wait_program()        # set by the interpreter thread, maybe after the last block
+        if prog is None:
+            raise HexacncError(f"{name}: the interpreter did not reach the program's end")
         extra = {"motion_blocks": counted.motion, "io_blocks": counted.io,
-                 "messages": list(prog.messages[:MAX_MESSAGES]) if prog is not None else []}
+                 "messages": list(prog.messages[:MAX_MESSAGES])}
         if state is not None:
             from ..state import state_after_stream
             extra["state"] = state_after_stream(stream)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import os
 import queue
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -203,6 +204,16 @@ class BlockStream:
             except _Stopped:
                 return
 
+    def wait_program(self, timeout_s: float = 10.0) -> Program | None:
+        """The :class:`Program` summary (messages, final state), waiting for the interpreter thread to
+        set it: it does so just before its end marker, so a consumer that stopped at the program's end
+        (M2) without taking the marker can ask before it is there. None if the thread ended without it
+        (an error) or ``timeout_s`` passed."""
+        t_end = time.monotonic() + timeout_s
+        while self.program is None and self._thread.is_alive() and time.monotonic() < t_end:
+            time.sleep(0.001)
+        return self.program
+
     @property
     def interpreter(self) -> Interpreter:
         """The interpreter (its modal state after the end, once the iterator is exhausted)."""
@@ -273,6 +284,9 @@ class _ListStream:
 
     def __next__(self):
         return next(self._it)
+
+    def wait_program(self, timeout_s: float = 10.0) -> Program:
+        return self.program
 
     def close(self) -> None:
         pass
