@@ -117,8 +117,11 @@ class RingTap:
             self.drain()
 
     def drain(self) -> None:
+        """Decode what the rings got since the last call. Frames of one call get the time of the call
+        plus 1 ns per frame, so each ring's order survives (a SYNC before a controlword stays before it)."""
         with self.lock:
             now = time.monotonic()
+            k = 0
             for b, seg in enumerate(self.segs):
                 for side in (0, 1):
                     w = self._w(b, side)
@@ -134,9 +137,10 @@ class RingTap:
                         arb, flags, length = _HDR.unpack_from(buf, p)
                         data = bytes(buf[p + _HDR.size:p + _HDR.size + length])
                         if side == 0:
-                            self._master(now, b, arb, data)
+                            self._master(now + k * 1e-9, b, arb, data)
                         else:
-                            self._drive(now, arb, data)
+                            self._drive(now + k * 1e-9, arb, data)
+                        k += 1
                         r += 1
                     self.pos[b][side] = w
 
