@@ -38,6 +38,7 @@ import can
 from . import cia402, framerec, torquepdo
 from .cyclictx import BusTx
 from .layout import plan_layout
+from .synctags import SyncTags
 
 from .cyclicdefs import (EV_BAD_FRAME, EV_BOOTUP, EV_BUS_ERROR, EV_EMCY, EV_FEEDBACK, EV_HEARTBEAT,  # noqa: F401
                          EV_NMT, EV_OVERFLOW, EV_STATUS, EVENT_NAMES, NMT_OPERATIONAL, SEND_BUS_ERROR, SEND_LIMIT,
@@ -51,14 +52,6 @@ _EMCY = struct.Struct("<HB5s")
 
 _K_POS, _K_STATUS, _K_HEARTBEAT, _K_EMCY, _K_SDO, _K_TORQUE = 0, 1, 2, 3, 4, 5
 _I16 = struct.Struct("<h")
-#: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
-#: re-anchored to the SYNCs just sent (see CyclicIO._init_sync_tags)
-CALM_POLLS = 8
-#: polls in a row without a position frame on a bus that count as a stall of its drives
-QUIET_POLLS = 16
-#: after a stall, a bus's tags are re-anchored only once its backlog no longer shrinks over this many
-#: polls (a catch-up at 1.1x the SYNC rate has runs of CALM_POLLS single samples: it looked caught up)
-CATCHUP_POLLS = 64
 INT32_MIN, INT32_MAX = -(1 << 31), (1 << 31) - 1
 
 
@@ -153,7 +146,9 @@ class CyclicIO:
         # struts whose controlword travels inside RPDO1 (single layout): no event frame
         with_event = {nd.index for nd in plan.nodes if nd.rpdo2_cob_id is not None}
         self._cw_inline = [i for i in range(n) if i not in with_event]
-        self._init_sync_tags()
+        #: which SYNC each drive's last sample answers (pos_sync), see drivers.synctags
+        self.tags = SyncTags(plan)
+        self.pos_sync: list[int] = self.tags.pos_sync
 
     # -- transmit -----------------------------------------------------------------------------
     def set_controlword(self, strut: int, controlword: int) -> None:
@@ -297,6 +292,7 @@ class CyclicIO:
         now = time.monotonic()
         rx = self._rx
         count = 0
+        tag = self.tags.tag
         for bus in self.buses:
             recv = bus.recv
             for _ in range(max_frames):
@@ -320,13 +316,13 @@ class CyclicIO:
                     self.pos_inc[i] = _I32.unpack_from(data)[0]
                     self.pos_time_s[i] = now
                     self.pos_count[i] += 1
-                    self._tag_sample(i)
+                    tag(i, self.cycles)
                     ev |= EV_FEEDBACK
                 else:
                     ev |= self._decode_event(kind, i, data, 0, len(data), now)
             else:
                 ev |= EV_OVERFLOW
-        self._settle_tags()
+        self.tags.settle(self.cycles)
         self.frames_received += count
         return ev
 
@@ -382,6 +378,8 @@ class CyclicIO:
         pos_inc = self.pos_inc
         pos_time = self.pos_time_s
         pos_count = self.pos_count
+        tag = self.tags.tag
+        cycles = self.cycles
         for bus in self.buses:
             left = max_frames
             while True:
@@ -408,7 +406,7 @@ class CyclicIO:
                         pos_inc[i] = unpack_i32(buf, d)[0]
                         pos_time[i] = now
                         pos_count[i] += 1
-                        self._tag_sample(i)
+                        tag(i, cycles)
                         ev |= EV_FEEDBACK
                     else:
                         ev |= self._decode_event(kind, i, buf, d, length, now)
@@ -418,112 +416,9 @@ class CyclicIO:
                 if end < len(buf):      # the read did not fill the buffer: the socket is empty
                     break
             count += max_frames - left
-        self._settle_tags()
+        self.tags.settle(self.cycles)
         self.frames_received += count
         return ev
-
-    # -- SYNC tag of each position sample ------------------------------------------------------
-    def _init_sync_tags(self) -> None:
-        """``pos_sync[i]``: the SYNC (ordinal: 1 = the first :meth:`send`) that drive ``i``'s last
-        TPDO1 answers, for a following-error check against the command of that very SYNC.
-
-        Drive ``i`` answers every ``feedback_divider``-th SYNC from its SYNC start value, so the
-        SYNCs it answers are ``k = phase_i (mod divider)``; each drive's samples come in SYNC order,
-        and the drives of one bus answer in SYNC order too (one receive queue), so a sample answers
-        the first such SYNC after its drive's previous sample and not before the bus's last tag.
-        A stall of the drives therefore shifts nothing; TPDO1s lost on the wire are bridged by the
-        other drives of the bus. A run of lost frames as long as the divider on one bus would leave
-        the tags behind by whole divider periods for good, so when a bus keeps pace (``CALM_POLLS``
-        polls in a row with at most one cycle's worth of position frames each - no backlog being
-        drained - and no stall of ``QUIET_POLLS`` polls without any before them) its samples are
-        tagged no older than ``divider + 1`` SYNCs. SYNCs lost before a drive shift its phase (not handled). A tag never names a
-        SYNC not yet sent."""
-        plan = self.plan
-        d = max(1, int(plan.feedback_divider))
-        self._fb_div = d
-        self._fb_phase = [(nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0 for nd in plan.nodes]
-        self._fb_bus = [nd.bus for nd in plan.nodes]
-        self._bus_tag = [0] * plan.buses
-        self._bus_rx = [0] * plan.buses              #: position frames per bus in this poll
-        self._bus_pace = [plan.tpdo_per_cycle(b) for b in range(plan.buses)]
-        self._fresh_mask = 0
-        self._bus_calm = [0] * plan.buses
-        self._bus_quiet = [0] * plan.buses
-        self._bus_behind = [False] * plan.buses      #: stalled, catching up: no re-anchoring
-        self._bus_lag = [0] * plan.buses             #: SYNCs the bus's last tag trailed at the last check
-        self._bus_lag_polls = [0] * plan.buses       #: polls since that check
-        self.pos_sync: list[int] = [0] * self.n
-
-    def _tag_sample(self, i: int) -> None:
-        b = self._fb_bus[i]
-        d = self._fb_div
-        lo = self._bus_tag[b]
-        k = self.pos_sync[i] + 1
-        if lo > k:
-            k = lo
-        k += (self._fb_phase[i] - k) % d
-        if k > self.cycles:
-            k = self.cycles - (self.cycles - self._fb_phase[i]) % d
-        self.pos_sync[i] = k
-        self._bus_tag[b] = k
-        self._bus_rx[b] += 1
-        self._fresh_mask |= 1 << i
-
-    def _settle_tags(self) -> None:
-        """End of a poll: on buses that keep pace, no tag older than ``divider + 1`` SYNCs.
-
-        After a stall (``QUIET_POLLS``) a bus is *behind* until its tags trail the SYNCs sent by no
-        more than ``divider + 1`` or that lag stops shrinking over ``CATCHUP_POLLS`` polls (what is
-        left then is lost frames): a slow catch-up is never taken for a bus that keeps pace."""
-        d = self._fb_div
-        cycles = self.cycles
-        lb = cycles - d - 1
-        rx = self._bus_rx
-        calm = self._bus_calm
-        pace = self._bus_pace
-        quiet = self._bus_quiet
-        behind = self._bus_behind
-        for b in range(len(rx)):
-            n = rx[b]
-            if n > pace[b]:             # a backlog being drained
-                calm[b] = 0
-            elif n:
-                quiet[b] = 0
-                calm[b] += 1
-            else:
-                quiet[b] += 1
-                if quiet[b] >= QUIET_POLLS:         # stalled: the catch-up is measured from its end
-                    calm[b] = 0
-                    behind[b] = True
-                    self._bus_lag[b] = cycles - self._bus_tag[b]
-                    self._bus_lag_polls[b] = 0
-                else:
-                    calm[b] += 1
-            if behind[b] and n:
-                lag = cycles - self._bus_tag[b]
-                if lag <= d + 1:
-                    behind[b] = False
-                else:
-                    self._bus_lag_polls[b] += 1
-                    if self._bus_lag_polls[b] >= CATCHUP_POLLS:
-                        if lag >= self._bus_lag[b] - 1:      # no longer shrinking: lost frames
-                            behind[b] = False
-                        self._bus_lag[b] = lag
-                        self._bus_lag_polls[b] = 0
-        if not self._fresh_mask:
-            return
-        for i in range(self.n):
-            if not self._fresh_mask >> i & 1:
-                continue
-            b = self._fb_bus[i]
-            if calm[b] >= CALM_POLLS and self.pos_sync[i] < lb and not behind[b]:
-                k = lb + (self._fb_phase[i] - lb) % d
-                self.pos_sync[i] = k
-                if k > self._bus_tag[b]:
-                    self._bus_tag[b] = k
-        for b in range(len(rx)):
-            rx[b] = 0
-        self._fresh_mask = 0
 
     # -- supervision helpers (cheap, for the cycle) --------------------------------------------
     def heartbeat_lost(self, now: float | None = None) -> int:

@@ -244,7 +244,7 @@ def test_a_slow_catch_up_after_a_stall_keeps_each_sample_on_the_sync_it_answers(
 
 
 def test_lost_frames_in_a_catch_up_are_re_anchored_once_the_backlog_is_drained():
-    from drivers.cyclic import CALM_POLLS, CATCHUP_POLLS
+    from drivers.synctags import CALM_POLLS, CATCHUP_POLLS
     out, d = _stall_and_catch_up(2.0, lost=0.3)
     assert max(w for w, _ in out) <= 0                        # never tagged newer than answered
     drained = next(k for k, (_, done) in enumerate(out) if done)
