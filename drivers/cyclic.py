@@ -146,8 +146,10 @@ class CyclicIO:
         # struts whose controlword travels inside RPDO1 (single layout): no event frame
         with_event = {nd.index for nd in plan.nodes if nd.rpdo2_cob_id is not None}
         self._cw_inline = [i for i in range(n) if i not in with_event]
-        #: which SYNC each drive's last sample answers (pos_sync), see drivers.synctags
-        self.tags = SyncTags(plan)
+        #: which SYNC each drive's last sample answers (pos_sync), see drivers.synctags; the drives'
+        #: backlog where the transport tells it (records of two bus cycles still count as keeping pace)
+        self.tags = SyncTags(plan, [getattr(b, "unread_by_peer", None) for b in self.buses],
+                             [2 * (bt.hb_end - bt.frames_at) // REC + 2 * len(bt.cw_nodes) for bt in self._btx])
         self.pos_sync: list[int] = self.tags.pos_sync
 
     # -- transmit -----------------------------------------------------------------------------

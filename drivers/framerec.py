@@ -17,6 +17,10 @@ A bus object that carries such records may offer the batch interface that
   hand over the whole records ``buf[start:end]`` (consumed by this call; valid until the next
   receive call on the bus); raises ``can.CanOperationError`` if the transport failed.
 
+Optional: ``unread_by_peer() -> int``, the records sent that the peer has not consumed yet (a
+simulated peer process that stalled and catches up has a backlog; real drives on a wire have none).
+:class:`drivers.synctags.SyncTags` uses it to tell frames lost from frames still to come.
+
 SocketCAN and udp_multicast buses do not have it: the kernel takes one frame per ``write``.
 """
 from __future__ import annotations

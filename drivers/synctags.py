@@ -16,10 +16,16 @@ periods for good, so when a bus keeps pace (``CALM_POLLS`` polls in a row with a
 worth of position frames each) its samples are tagged no older than ``divider + 1`` SYNCs. After a
 stall (``QUIET_POLLS`` polls without a position frame) the bus is *behind*: no re-anchoring until
 its tags trail by at most ``divider + 1`` or the lag stops shrinking over ``CATCHUP_POLLS`` polls
-(what is left then is lost frames). SYNCs lost before a drive shift its phase (not handled). A tag
-never names a SYNC not yet sent.
+(what is left then is lost frames). Where the transport tells how many of its frames the peer has
+not consumed yet (``unread_by_peer`` of :mod:`drivers.framerec`: the simulated drives' rings), that
+replaces the guess: the tags of a bus are re-anchored only while its drives have taken every SYNC
+but the last two cycles' worth, so a backlog still to come is never taken for lost frames, however
+slowly or unevenly it drains. SYNCs lost before a drive shift its phase (not handled). A tag never
+names a SYNC not yet sent.
 """
 from __future__ import annotations
+
+from typing import Callable, Sequence
 
 #: polls in a row with one cycle's worth of position frames on a bus before its SYNC tags may be
 #: re-anchored to the SYNCs just sent
@@ -32,9 +38,14 @@ CATCHUP_POLLS = 64
 
 
 class SyncTags:
-    """SYNC tags of the position samples of a bus layout (:func:`drivers.layout.plan_layout`)."""
+    """SYNC tags of the position samples of a bus layout (:func:`drivers.layout.plan_layout`).
 
-    def __init__(self, plan):
+    ``peer_unread``: per bus, ``None`` or a callable giving the records sent on it that the drives
+    have not consumed yet; ``max_unread``: per bus, the most of those that still counts as keeping
+    pace (records of two bus cycles)."""
+
+    def __init__(self, plan, peer_unread: Sequence[Callable[[], int] | None] | None = None,
+                 max_unread: Sequence[int] | None = None):
         d = max(1, int(plan.feedback_divider))
         nb = plan.buses
         self.div = d
@@ -51,6 +62,8 @@ class SyncTags:
         self.behind = [False] * nb                    #: stalled, catching up: no re-anchoring
         self.lag = [0] * nb                           #: SYNCs the bus's last tag trailed at the last check
         self.lag_polls = [0] * nb                     #: polls with frames since that check
+        self.peer_unread = list(peer_unread) if peer_unread is not None else [None] * nb
+        self.max_unread = list(max_unread) if max_unread is not None else [0] * nb
 
     def tag(self, i: int, cycles: int) -> None:
         """A TPDO1 of drive ``i`` arrived; ``cycles``: SYNCs sent so far."""
@@ -108,14 +121,26 @@ class SyncTags:
                     self.lag[b] = lag
                     self.lag_polls[b] = 0
 
+    def _keeps_pace(self, b: int) -> bool:
+        """Bus ``b``'s trailing tags are lost frames, not a backlog still to come."""
+        if self.calm[b] < CALM_POLLS:
+            return False
+        unread = self.peer_unread[b]
+        if unread is None:
+            return not self.behind[b]
+        return unread() <= self.max_unread[b]
+
     def _re_anchor(self, cycles: int) -> None:
         d = self.div
         lb = cycles - d - 1
+        pace = 0                        # bit b: bus b asked and keeps pace; bit b + 16: asked
         for i in range(self.n):
-            if not self.fresh_mask >> i & 1:
+            if not self.fresh_mask >> i & 1 or self.pos_sync[i] >= lb:
                 continue
             b = self.bus_of[i]
-            if self.calm[b] >= CALM_POLLS and self.pos_sync[i] < lb and not self.behind[b]:
+            if not pace >> (b + 16) & 1:
+                pace |= (1 << (b + 16)) | (self._keeps_pace(b) << b)
+            if pace >> b & 1:
                 k = lb + (self.phase[i] - lb) % d
                 self.pos_sync[i] = k
                 if k > self.bus_tag[b]:

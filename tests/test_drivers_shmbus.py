@@ -143,6 +143,14 @@ def test_shm_ring_never_blocks_drops_whole_records_and_counts_them():
                 assert struct.unpack_from("<i", buf, q + framerec.DATA_OFFSET)[0] == arb - 0x181
                 n += 1
         assert n == 10 and p.peer[0].pending_records() == 0
+        assert p.mine[0].unread_by_peer() == 0
+        # the sender sees the peer's backlog; records the peer holds from a drain count until it drains again
+        assert p.mine[0].send_records(memoryview(batch)) == 0
+        assert p.mine[0].unread_by_peer() == 5
+        p.peer[0].drain_records(2)
+        assert p.mine[0].unread_by_peer() == 5
+        p.peer[0].drain_records(2)
+        assert p.mine[0].unread_by_peer() == 3 and p.peer[0].unread_by_peer() == 0
         with pytest.raises(can.CanInitializationError):
             _attach_garbage()
     finally:

@@ -204,14 +204,24 @@ def test_tags_after_lost_frames_catch_up_once_the_bus_keeps_pace():
     assert all(io.pos_sync[i] <= io.pos_inc[i] + d for i in range(6))
 
 
-def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5):
+def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5, peer=False):
     """One SYNC sent per poll; the drives answer promptly for 50 polls, are silent for ``stall`` polls,
-    then drain their backlog at ``rate`` x the SYNC rate (a fraction ``lost`` of the answers lost).
-    Each sample carries the SYNC it answers as its position. Returns, per poll after the stall,
-    the worst (tag - SYNC answered) over the drives and whether the backlog was drained."""
+    then drain their backlog at ``rate`` x the SYNC rate (a fraction ``lost`` of the answers lost);
+    ``rate`` may be a function of the poll number after the stall (0: a short stall of the drives).
+    Each sample carries the SYNC it answers as its position. ``peer``: the buses tell the drives'
+    backlog (``unread_by_peer``: the SYNCs not yet answered, three records each). Returns, per poll
+    after the stall, the worst (tag - SYNC answered) over the drives and whether the backlog was
+    drained."""
     import random
     rnd = random.Random(seed)
-    cfg, io, buses, plan = _codec()
+    cfg = load_config(None)
+    buses = [RecBus(), RecBus()]
+    state = {"answered": 0, "cycles": 0}
+    if peer:
+        for b in buses:
+            b.unread_by_peer = lambda: 3 * (state["cycles"] - state["answered"])
+    io = cyclic.CyclicIO(buses, cfg.bus, batch=True)
+    plan = plan_layout(cfg.bus)
     d = plan.feedback_divider
     answered, credit, out = 0, 0.0, []
     for poll in range(polls):
@@ -220,7 +230,7 @@ def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5):
         if 50 <= poll < 50 + stall:
             target = answered
         elif poll >= 50 + stall:
-            credit += rate
+            credit += rate(poll - 50 - stall) if callable(rate) else rate
             target = min(io.cycles, answered + int(credit))
             credit -= int(credit)
         while answered < target:
@@ -228,11 +238,20 @@ def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5):
             for nd in plan.nodes:
                 if (answered - nd.tpdo1_sync_start) % d == 0 and rnd.random() >= lost:
                     buses[nd.bus].feed(nd.tpdo1_cob_id, struct.pack("<i", answered))
+        state["answered"], state["cycles"] = answered, io.cycles
         io.poll()
         if poll >= 50 + stall:
             worst = max(io.pos_sync[i] - io.pos_inc[i] for i in range(6))
             out.append((worst, answered == io.cycles))
     return out, d
+
+
+def _uneven(q: int) -> float:
+    """A catch-up that stalls for 10 polls in every 30 (below the 16-poll stall mark) for its first
+    1500 polls, no faster than the SYNCs on average then; 2x after that."""
+    if q < 1500:
+        return 0.0 if q % 30 < 10 else 1.5
+    return 2.0
 
 
 @pytest.mark.parametrize("rate", [2.0, 1.25, 1.1, 1.05])
@@ -245,12 +264,32 @@ def test_a_slow_catch_up_after_a_stall_keeps_each_sample_on_the_sync_it_answers(
 
 def test_lost_frames_in_a_catch_up_are_re_anchored_once_the_backlog_is_drained():
     from drivers.synctags import CALM_POLLS, CATCHUP_POLLS
-    out, d = _stall_and_catch_up(2.0, lost=0.3)
-    assert max(w for w, _ in out) <= 0                        # never tagged newer than answered
+    for peer in (False, True):
+        out, d = _stall_and_catch_up(2.0, lost=0.3, peer=peer)
+        assert max(w for w, _ in out) <= 0                        # never tagged newer than answered
+        drained = next(k for k, (_, done) in enumerate(out) if done)
+        settled = drained + 2 * CATCHUP_POLLS + CALM_POLLS
+        assert settled < len(out) - 100
+        assert min(w for w, _ in out[settled:]) >= -d             # then no older than one divider period
+
+
+def test_a_catch_up_no_faster_than_the_syncs_for_a_while_is_not_taken_for_lost_frames():
+    """Where the transport tells the drives' backlog, an uneven catch-up (short stalls of the drives
+    inside it, so that the backlog does not shrink for hundreds of polls) keeps every sample on its
+    own SYNC; the lag-shrink guess alone (no backlog known) takes the standing backlog for lost frames."""
+    out, d = _stall_and_catch_up(_uneven, peer=True, polls=3000)
+    assert max(w for w, _ in out) == 0
+    assert out[-1][1]                                         # drained by the end
+    guessed, _ = _stall_and_catch_up(_uneven, peer=False, polls=3000)
+    assert max(w for w, _ in guessed) > 100
+
+
+def test_lost_frames_with_the_backlog_known_are_re_anchored_as_soon_as_it_is_drained():
+    from drivers.synctags import CALM_POLLS
+    out, d = _stall_and_catch_up(_uneven, lost=0.3, peer=True, polls=3000)
+    assert max(w for w, _ in out) <= 0
     drained = next(k for k, (_, done) in enumerate(out) if done)
-    settled = drained + 2 * CATCHUP_POLLS + CALM_POLLS
-    assert settled < len(out) - 100
-    assert min(w for w, _ in out[settled:]) >= -d             # then no older than one divider period
+    assert min(w for w, _ in out[drained + 2 * CALM_POLLS:]) >= -d
 
 
 # -- process ends, locks ----------------------------------------------------------------------

@@ -236,6 +236,12 @@ class ShmBus(can.BusABC):
             return self._recv_internal(timeout)[0]
         return super().recv(timeout)
 
+    def unread_by_peer(self) -> int:
+        """Records this side sent that the peer has not consumed yet (its backlog; see
+        :mod:`drivers.framerec`): records it holds from its last ``drain_records`` count as unread."""
+        h = self._h
+        return h[self._iw_tx] - h[self._ir_tx]
+
     def pending_records(self) -> int:
         """Records waiting to be read on this side (tests, diagnostics)."""
         return self._h[self._iw_rx] - self._h[self._ir_rx] - self._pending
