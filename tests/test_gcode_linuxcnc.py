@@ -175,6 +175,80 @@ def test_peck_cycles():
                             ("R", [0, 0, -2]), ("L", [0, 0, -5]), ("R", [0, 0, 10])]
 
 
+def _z_path(p, unit_mm=1.0):
+    """(kind, z in program units) of the moves after the first (the approach to the start level)."""
+    return [(k, round(e[2] / unit_mm, 9)) for k, e in moves(p)[1:]]
+
+
+G83_INCH = "G20 G17 G90\nG0 X0 Y0 Z0.25\n{g} R0.050 Z-0.6 Q.15 X-1.938 Y-8.9 F10{d}\nM2\n"
+
+
+def test_peck_clearance_default_on_an_inch_machine():
+    # LinuxCNC: clearance 0.050 program units on an inch machine; pecks at R - k*Q = -0.10, -0.25, -0.40,
+    # -0.55, then the bottom -0.6; G83 rapids out to R 0.05 and back to peck + 0.05; G98: back to Z0.25
+    p = parse_program(G83_INCH.format(g="G83", d=""), machine_units="inch")
+    assert moves(p)[1][1] == pytest.approx([-1.938 * 25.4, -8.9 * 25.4, 0.25 * 25.4])   # hole at Z0.25
+    assert _z_path(p, 25.4)[1:] == [
+        ("R", 0.05), ("L", -0.1), ("R", 0.05), ("R", -0.05), ("L", -0.25), ("R", 0.05), ("R", -0.2),
+        ("L", -0.4), ("R", 0.05), ("R", -0.35), ("L", -0.55), ("R", 0.05), ("R", -0.5), ("L", -0.6),
+        ("R", 0.25)]
+    # G73 breaks the chip without leaving the hole: up by the clearance after each peck
+    p = parse_program(G83_INCH.format(g="G73", d=""), machine_units="inch")
+    assert _z_path(p, 25.4)[1:] == [
+        ("R", 0.05), ("L", -0.1), ("R", -0.05), ("L", -0.25), ("R", -0.2), ("L", -0.4), ("R", -0.35),
+        ("L", -0.55), ("R", -0.5), ("L", -0.6), ("R", 0.25)]
+
+
+def test_peck_clearance_d_word_on_an_inch_machine():
+    # D0.02: peck + 0.02 instead of the default
+    p = parse_program(G83_INCH.format(g="G83", d=" D0.02"), machine_units="inch")
+    assert [z for k, z in _z_path(p, 25.4)[1:] if k == "R" and z not in (0.05, 0.25)] == [-0.08, -0.23, -0.38,
+                                                                                          -0.53]
+    p = parse_program(G83_INCH.format(g="G73", d=" D0.02"), machine_units="inch")
+    assert [z for k, z in _z_path(p, 25.4)[1:] if k == "R"] == [0.05, -0.08, -0.23, -0.38, -0.53, 0.25]
+
+
+def test_peck_clearance_d_word_on_a_mm_machine():
+    # the verification's program: R1, Q2, bottom -5; pecks at -1 and -3, then -5; D0.5: back to -0.5, -2.5
+    text = "G21\nG0 Z10\n{g} Z-5 R1 Q2 D0.5 F60\nM2\n"
+    p = parse_program(text.format(g="G83"))
+    assert _z_path(p) == [("R", 1), ("L", -1), ("R", 1), ("R", -0.5), ("L", -3), ("R", 1), ("R", -2.5),
+                          ("L", -5), ("R", 10)]
+    p = parse_program(text.format(g="G73").replace("D0.5", "D0.25"))
+    assert _z_path(p) == [("R", 1), ("L", -1), ("R", -0.75), ("L", -3), ("R", -2.75), ("L", -5), ("R", 10)]
+
+
+def test_peck_clearance_is_in_program_units_unconverted():
+    # LinuxCNC sets the default once from the machine unit and adds it to program coordinates:
+    # a mm machine running G20 backs off 1 inch (above R here), an inch machine running G21 0.050 mm
+    p = parse_program("G20\nG0 Z1\nG73 Z-0.5 R0.1 Q0.2 F10\nM2\n", machine_units="mm")
+    assert _z_path(p, 25.4) == [("R", 0.1), ("L", -0.1), ("R", 0.9), ("L", -0.3), ("R", 0.7), ("L", -0.5),
+                                ("R", 1)]
+    p = parse_program("G21\nG0 Z10\nG83 Z-5 R1 Q2 F60\nM2\n", machine_units="inch")
+    assert _z_path(p) == [("R", 1), ("L", -1), ("R", 1), ("R", -0.95), ("L", -3), ("R", 1), ("R", -2.95),
+                          ("L", -5), ("R", 10)]
+
+
+def test_peck_d_word_holds_for_the_line_only():
+    # G91 L2: R = 10 - 8 = 2, bottom 2 - 4 = -2, pecks at -1 then the bottom; D for both holes of the line
+    p = parse_program("G0 Z10\nG91 G83 X10 Z-4 R-8 Q3 D0.5 L2 F60\n")
+    hole = [("R", 10), ("R", 2), ("L", -1), ("R", 2), ("R", -0.5), ("L", -2), ("R", 10)]
+    assert [(k, e[0], e[2]) for k, e in moves(p)[1:]] == [(k, x, z) for x in (10, 20) for k, z in hole]
+    # the next hole (modal G83, axis words, no D) is back to the 1 mm default; D with axis words is accepted
+    p = parse_program("G0 Z10\nG83 X0 Z-5 R1 Q2 D0.5 F60\nX5\nX7 D0.25\n")
+    ups = [e[2] for k, e in moves(p) if k == "R" and e[2] < 1]
+    assert ups == [-0.5, -2.5, 0, -2, -0.75, -2.75]
+
+
+def test_d_word_refusals_follow_linuxcnc():
+    e = err("G0 Z10\nG83 X0 Z-5 R1 Q2 F60\nD0.5\n")          # no axis words: no cycle on this line
+    assert (e.code, e.line, e.column) == ("word", 3, 1) and "D word" in str(e)
+    e = err("G0 Z10\nG81 X0 Z-5 R1 D0.5 F60\n")                 # G81 does not peck
+    assert (e.code, e.line, e.column) == ("word", 2, 15)
+    e = err("G1 X1 D0.5 F60\n")
+    assert (e.code, e.column) == ("word", 7)
+
+
 def test_dwell_spindle_cycles_and_refusals():
     p = parse_program("S500 M3\nG0 Z5\nG82 X1 Z-1 R1 P0.5 F60\nG86 X2 Z-1 R1 P0.25\nG84 X3 Z-1 R1\n")
     kinds = [b.kind for b in p.blocks]

@@ -15,6 +15,15 @@ R, the depth and P/Q are sticky while the same cycle repeats.  G91: X/Y are
 increments repeated L times, R is relative to the start level and the depth
 relative to R.  G76 (lathe threading), G87 (needs spindle orientation) and G88
 (manual retract) are refused as ``unsupported``.
+
+G73/G83 peck clearance (LinuxCNC ``convert_cycle_g73``/``g83``): after each peck
+G73 rapids up to the peck's depth + clearance, G83 rapids out to R and back down
+to the peck's depth + clearance.  The clearance is the line's D word if it has
+one (any sign, in program units, for every hole of the line; not modal), else
+LinuxCNC's default for the machine unit: 0.050 on an inch machine, 1 on a mm
+machine, taken as that many *program* units (LinuxCNC sets it once from the
+machine unit and adds it to program coordinates unconverted: 1 inch under G20
+on a mm machine, 0.050 mm under G21 on an inch machine).
 """
 from __future__ import annotations
 
@@ -24,8 +33,9 @@ from .lexer import Line
 
 #: (hole axis a, hole axis b, drilling axis) per plane
 _PLANE_AXES = {170: (0, 1, 2), 180: (2, 0, 1), 190: (1, 2, 0)}
-#: G73/G83 retract above the previous peck (LinuxCNC's 1 machine unit; mm here)
-PECK_CLEARANCE_MM = 1.0
+#: G73/G83 clearance above the previous peck without a D word, in program units, by machine unit
+#: (LinuxCNC rs274ngc_pre.cc: G73_PECK_CLEARANCE / G83_PECK_CLEARANCE defaults)
+PECK_CLEARANCE_PROGRAM_UNITS = {"inch": 0.050, "mm": 1.0}
 
 
 class CycleMixin:
@@ -54,6 +64,7 @@ class CycleMixin:
         q = self._cycle_word(ln, vals, "q", motion, prev, (730, 830), None)
         if motion in (730, 830) and q <= 0.0:
             raise ln.error(f"{gname} Q{q / self.u:g}: the peck depth must be positive", "q", "cycle")
+        peck_up = self._peck_clearance_mm(vals) if motion in (730, 830) else 0.0
         if motion == 840 and self.plane != 170:
             # LinuxCNC's G84 in G18/G19 swaps the cycle's arguments and taps along the wrong axis
             # (interp_cycles.cc convert_cycle_g74_g84, XZ/YZ cases): neither reproduced nor guessed
@@ -101,7 +112,7 @@ class CycleMixin:
                 self._cyc(ln, False, axes, aa, bb, clear)
                 if clear > r:
                     self._cyc(ln, False, axes, aa, bb, r)
-            self._cycle_body(ln, motion, axes, aa, bb, r, clear, cc, p, q)
+            self._cycle_body(ln, motion, axes, aa, bb, r, clear, cc, p, q, peck_up)
         cyc["r"], cyc["cc"] = r_raw, z_raw
 
     def _cycle_word(self, ln: Line, vals: dict, letter: str, motion: int, prev: int, users, default):
@@ -120,7 +131,16 @@ class CycleMixin:
         v = self.cycle[key]
         return v * self.u if letter == "q" else v
 
-    def _cycle_body(self, ln, motion, axes, aa, bb, r, clear, cc, p, q) -> None:
+    def _peck_clearance_mm(self, vals: dict) -> float:
+        """G73/G83 retract above each peck: the line's D word, else the machine unit's default, both in
+        program units (see the module docstring)."""
+        d = vals.get("d")
+        if d is None:
+            d = PECK_CLEARANCE_PROGRAM_UNITS["inch" if self.mu == 25.4 else "mm"]
+        return d * self.u
+
+    def _cycle_body(self, ln, motion, axes, aa, bb, r, clear, cc, p, q, peck_up) -> None:
+        """The moves of one hole from R (``p`` dwell s, ``q`` peck depth mm, ``peck_up`` peck clearance mm)."""
         feed, trav = (lambda z: self._cyc(ln, True, axes, aa, bb, z)), (lambda z: self._cyc(ln, False, axes, aa, bb, z))
         if motion in (730, 830):
             d = r - q
@@ -128,7 +148,7 @@ class CycleMixin:
                 feed(d)
                 if motion == 830:
                     trav(r)
-                trav(d + PECK_CLEARANCE_MM)
+                trav(d + peck_up)
                 d -= q
             feed(cc)
             trav(clear)

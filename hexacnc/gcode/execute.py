@@ -86,6 +86,8 @@ class ExecuteMixin:
         arcw = motion in (20, 30) and axis_user is None and (bool(ln.axes) or motion_g in (20, 30))
         cyc = motion in CYCLES and axis_user is None
         spl = motion in (50, 51) and axis_user is None
+        # LinuxCNC's motion_to_be: the line's motion code, else the modal one when the line has axis words
+        to_be = motion_g if motion_g is not None else (self.motion if ln.axes and axis_user is None else None)
         io = 5 in mgroups
         m66 = mgroups.get(5) == 66
         g10 = g0 == 100
@@ -96,7 +98,7 @@ class ExecuteMixin:
                                or 61 in mgroups.values() or g10 and vals.get("l") in (1.0, 10.0, 11.0)),
                               ("h", 430 in gset), ("l", g0 == 100 or cyc or m66),
                               ("e", io and mgroups.get(5) in (66, 67, 68)),
-                              ("d", bool(gset & {410, 411, 420, 421}))):
+                              ("d", bool(gset & {410, 411, 420, 421}) or to_be in (730, 830))):
             if letter in vals and not users:
                 raise ln.error(f"{letter.upper()} word with no G or M code that uses it", letter, "word")
         return g0, motion_g, motion, axis_user
