@@ -149,7 +149,8 @@ class CyclicIO:
         #: which SYNC each drive's last sample answers (pos_sync), see drivers.synctags; the drives'
         #: backlog where the transport tells it (records of two bus cycles still count as keeping pace)
         self.tags = SyncTags(plan, [getattr(b, "unread_by_peer", None) for b in self.buses],
-                             [2 * (bt.hb_end - bt.frames_at) // REC + 2 * len(bt.cw_nodes) for bt in self._btx])
+                             [2 * (bt.hb_end - bt.frames_at) // REC + 2 * len(bt.cw_nodes) for bt in self._btx],
+                             self.sync_every)
         self.pos_sync: list[int] = self.tags.pos_sync
 
     # -- transmit -----------------------------------------------------------------------------

@@ -40,16 +40,21 @@ CATCHUP_POLLS = 64
 class SyncTags:
     """SYNC tags of the position samples of a bus layout (:func:`drivers.layout.plan_layout`).
 
-    ``peer_unread``: per bus, ``None`` or a callable giving the records sent on it that the drives
-    have not consumed yet; ``max_unread``: per bus, the most of those that still counts as keeping
-    pace (records of two bus cycles)."""
+    Tags count loop cycles (:attr:`drivers.cyclic.CyclicIO.cycles`); with ``sync_every`` n the bus
+    sends SYNC number j with the loop cycle j·n, so a drive answering every d-th SYNC answers every
+    d·n-th loop cycle. ``peer_unread``: per bus, ``None`` or a callable giving the records sent on it
+    that the drives have not consumed yet; ``max_unread``: per bus, the most of those that still
+    counts as keeping pace (records of two bus cycles)."""
 
     def __init__(self, plan, peer_unread: Sequence[Callable[[], int] | None] | None = None,
-                 max_unread: Sequence[int] | None = None):
+                 max_unread: Sequence[int] | None = None, sync_every: int = 1):
         d = max(1, int(plan.feedback_divider))
+        s = max(1, int(sync_every))
         nb = plan.buses
-        self.div = d
-        self.phase = [(nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0 for nd in plan.nodes]
+        self.div = d * s                              #: loop cycles between a drive's samples
+        self.slack = (d + 1) * s                      #: a bus keeping pace trails by no more (loop cycles)
+        self.step = s
+        self.phase = [((nd.tpdo1_sync_start % d) if plan.sync_counter_overflow else 0) * s for nd in plan.nodes]
         self.bus_of = [nd.bus for nd in plan.nodes]
         self.n = len(plan.nodes)
         self.pos_sync: list[int] = [0] * self.n       #: SYNC answered by each drive's last sample
@@ -111,12 +116,12 @@ class SyncTags:
                 calm[b] += 1
         if self.behind[b] and n:
             lag = cycles - self.bus_tag[b]
-            if lag <= self.div + 1:
+            if lag <= self.slack:
                 self.behind[b] = False
             else:
                 self.lag_polls[b] += 1
                 if self.lag_polls[b] >= CATCHUP_POLLS:
-                    if lag >= self.lag[b] - 1:      # no longer shrinking: lost frames
+                    if lag >= self.lag[b] - self.step:      # no longer shrinking: lost frames
                         self.behind[b] = False
                     self.lag[b] = lag
                     self.lag_polls[b] = 0
@@ -132,7 +137,7 @@ class SyncTags:
 
     def _re_anchor(self, cycles: int) -> None:
         d = self.div
-        lb = cycles - d - 1
+        lb = cycles - self.slack
         pace = 0                        # bit b: bus b asked and keeps pace; bit b + 16: asked
         for i in range(self.n):
             if not self.fresh_mask >> i & 1 or self.pos_sync[i] >= lb:

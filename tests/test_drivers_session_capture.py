@@ -115,9 +115,7 @@ def run_session(tmp_path, profile, cap):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("profile", ["permissive", pytest.param("strict", marks=pytest.mark.xfail(
-    strict=False, reason="known failure on a slow VM: following error ~1.1 mm on the strict profile's 1 ms bus "
-    "during the program (issue 14, open)"))])
+@pytest.mark.parametrize("profile", ["permissive", "strict"])
 def test_session_against_profile_captured_and_decoded(tmp_path, profile):
     cap = str(tmp_path / "session.pcap")
     log = run_session(tmp_path, profile, cap)

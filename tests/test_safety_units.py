@@ -82,6 +82,25 @@ def test_per_strut_limit_and_one_cycle_of_slack():
     assert sup.check(now, [0.8] * 6, 11) == F_FOLLOWING and sup.strut == 3   # 0.3 mm: strut 3's 0.2
 
 
+def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
+    """sync_every 2 (a drive taking whole ms): the drive got the commands of loop cycles 10 and 12
+    only; a sample of SYNC 12 between them is no error, one beyond them is."""
+    io = FakeIO()
+    io.sync_every = 2
+    sup = DriveSupervisor(io, 0.0005, [0.2] * 6, 0.35, 0.35, 0.4)
+    sup.fill([0.0] * 6)
+    now = 10 * MS
+    io.hb_ns = [now] * 6
+    sup.arm(now)
+    for k, v in ((10, 0.0), (11, 0.45), (12, 0.9)):
+        sup.record(k, [v] * 6)
+    io.pos_count = [1] * 6
+    io.pos_sync[:] = [12] * 6
+    assert sup.check(now, [0.1] * 6, 12) == F_NONE
+    io.pos_count = [2] * 6
+    assert sup.check(now, [1.2] * 6, 12) == F_FOLLOWING and 299 <= sup.arg <= 301
+
+
 @pytest.mark.parametrize("setup,code", [
     (lambda io: io.statusword.__setitem__(1, 0x0240 | 0x1000), F_DRIVE),
     (lambda io: io.statusword.__setitem__(1, 0x1037), F_REMOTE),
@@ -183,6 +202,47 @@ def test_samples_are_tagged_with_the_sync_they_answer_through_a_stall():
             for i in range(6):
                 last = max(kk for ii, kk in answered if ii == i)
                 assert io.pos_sync[i] == last == io.pos_inc[i]
+
+
+class SyncCountingBus(RecBus):
+    """A record bus stub that counts the SYNC frames (COB-ID 0x80) sent on it."""
+
+    def __init__(self):
+        super().__init__()
+        self.syncs = 0
+
+    def send_records(self, view):
+        for p in range(0, len(view), framerec.RECORD):
+            if framerec.HEADER.unpack_from(view, p)[0] == 0x80:
+                self.syncs += 1
+        return 0
+
+
+@pytest.mark.parametrize("sync_every", [1, 2, 4])
+def test_tags_count_loop_cycles_when_the_bus_runs_every_nth_cycle(sync_every):
+    """A drive answers every d-th SYNC it receives (from its SYNC start value); the bus sends a SYNC
+    on every ``sync_every``-th loop cycle only. Each sample carries the loop cycle of the SYNC it
+    answers: its tag must be that cycle."""
+    cfg = load_config(None)
+    buses = [SyncCountingBus(), SyncCountingBus()]
+    io = cyclic.CyclicIO(buses, cfg.bus, batch=True, sync_every=sync_every)
+    plan = plan_layout(cfg.bus)
+    d = plan.feedback_divider
+    seen = 0
+    for _ in range(2000):
+        before = [b.syncs for b in buses]
+        io.send([0] * 6)
+        for nd in plan.nodes:
+            j = buses[nd.bus].syncs
+            start = nd.tpdo1_sync_start if plan.sync_counter_overflow else d
+            if j != before[nd.bus] and j >= start and (j - start) % d == 0:
+                buses[nd.bus].feed(nd.tpdo1_cob_id, struct.pack("<i", io.cycles))
+        io.poll()
+        for i in range(6):
+            if io.pos_count[i]:
+                assert io.pos_sync[i] == io.pos_inc[i]
+                seen += 1
+    assert seen > 6 * 1500
 
 
 def test_tags_after_lost_frames_catch_up_once_the_bus_keeps_pace():

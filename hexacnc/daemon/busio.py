@@ -252,6 +252,7 @@ class CyclicAdapter:
         self.statusword = cio.status
         self.pos_count = cio.pos_count        # counted by the codec as it decodes
         self.pos_sync = cio.pos_sync          # the SYNC each drive's last sample answers
+        self.sync_every = cio.sync_every      # loop cycles per bus cycle (pos_sync counts loop cycles)
         self.nmt_state = cio.nmt_state        # from the drives' heartbeats (0: boot-up)
         self.hb_ns = [0] * 6
         self.emcy_count = [0] * 6

@@ -21,7 +21,9 @@ The sample answering SYNC k reports the position after the drive applied the tar
 with SYNC k; a drive that reports the position latched at the SYNC (before its interpolation step)
 answers with the target of SYNC k - 1.  The error is therefore the distance from the sample to
 the interval between the commands of SYNC k - 1 and k (zero at standstill, one cycle of travel
-of slack in motion, never a window that grows with lost frames or stalls).
+of slack in motion, never a window that grows with lost frames or stalls). SYNC ordinals count
+loop cycles: on a bus that runs every n-th loop cycle (``io.sync_every``, a drive taking whole
+milliseconds only) the SYNC before k is k - n, the loop cycles between them never reached a drive.
 """
 from __future__ import annotations
 
@@ -79,6 +81,8 @@ class DriveSupervisor:
         self.arg = 0            #: detail of the last finding (see hexacnc.daemon.faults)
         self._nmt = getattr(io, "nmt_state", None) or [NMT_UNKNOWN] * 6
         self._sync = getattr(io, "pos_sync", None) or [0] * 6
+        #: loop cycles per bus cycle: a sample lies between the commands of its SYNC and the one before
+        self._step = int(getattr(io, "sync_every", 1))
 
     def fill(self, lengths) -> None:
         """Every slot of the command history = ``lengths`` (standstill, after seeding)."""
@@ -139,7 +143,7 @@ class DriveSupervisor:
                 if 0 < k <= sends and sends - k < self.n_hist - 1:
                     h = self.hist[i]
                     c1 = h[k & self.mask]
-                    c0 = h[(k - 1) & self.mask]
+                    c0 = h[(k - self._step) & self.mask]
                     a = act[i]
                     lo, hi = (c0, c1) if c0 < c1 else (c1, c0)
                     e = lo - a if a < lo else (a - hi if a > hi else 0.0)
