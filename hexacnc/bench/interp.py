@@ -9,9 +9,15 @@ Prints one JSON object:
 * ``derived``: ``impeller-7bl-xyzac.ngc`` with its two user M-code lines
   (M428/M429, which are refused) removed: the G93 five-axis body's throughput;
 * ``target``: 150,000 lines/s on ``3D_Chips.ngc`` and whether it is met;
-* ``stream`` (``--stream-lines N``): an N-line generated CAM file streamed with
-  ``iter_blocks`` in a child process: seconds, lines/s, peak RSS (and the same
-  for ``parse_program`` when N <= 200,000);
+* ``stream`` (``--stream-lines N``): an N-line generated CAM file interpreted
+  in a fresh child process per run (``--stream-runs``, default 3) by each mode:
+  ``stream`` (``iter_blocks`` on the file), ``stream_text`` (``iter_text_blocks``
+  on the text in memory, as the daemon streams a program) and, when
+  N <= 200,000, ``parse_program`` (reading the file excluded); per mode the best
+  and median lines/s of process CPU time (both threads of a stream; the fairer
+  figure on a shared machine) and of wall time, and the largest peak RSS (the
+  child's own high-water mark, VmHWM); ``stream_vs_parse_cpu`` is the ratio of
+  the median CPU rates;
 * ``--linuxcnc DIR`` prints instead the comparison with LinuxCNC's canonical
   output (:mod:`hexacnc.bench.interp_linuxcnc`).
 
@@ -53,7 +59,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="a LinuxCNC source tree: compare with the canonical output of its tests/interp "
                              "programs instead (counts same / unsupported / refused / differ)")
     parser.add_argument("--stream-lines", type=int, default=0, metavar="N",
-                        help="also stream a generated N-line CAM file through iter_blocks and report peak RSS")
+                        help="also stream a generated N-line CAM file (iter_blocks, iter_text_blocks) and report "
+                             "CPU lines/s and peak RSS")
+    parser.add_argument("--stream-runs", type=int, default=3, metavar="K",
+                        help="child processes per streaming mode (best and median reported)")
 
 
 def _measure(text: str, name: str, runs: int) -> dict:
@@ -92,21 +101,41 @@ def _measure(text: str, name: str, runs: int) -> dict:
 
 
 _STREAM_CHILD = """
-import resource, sys, time
+import json, resource, sys, time
 from hexacnc.gcode import iter_blocks, parse_program
+from hexacnc.gcode.textstream import iter_text_blocks
+
+def peak_kb():
+    # this process's own high-water mark (ru_maxrss keeps the parent's size at the fork across exec)
+    try:
+        with open("/proc/self/status") as f:
+            for ln in f:
+                if ln.startswith("VmHWM:"):
+                    return int(ln.split()[1])
+    except OSError:
+        pass
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+
 path, mode = sys.argv[1], sys.argv[2]
-base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-t0 = time.perf_counter()
-if mode == "stream":
-    s = iter_blocks(path)
+text = open(path).read() if mode != "stream" else None
+base = peak_kb()
+c0, t0 = time.process_time(), time.perf_counter()
+if mode == "parse_program":
+    p = parse_program(text, path)
+    n, reason = len(p.blocks), p.end_reason
+else:
+    s = iter_blocks(path) if mode == "stream" else iter_text_blocks(text, path)
     n = sum(1 for _ in s)
     reason = s.program.end_reason
-else:
-    p = parse_program(open(path).read(), path)
-    n, reason = len(p.blocks), p.end_reason
-dt = time.perf_counter() - t0
-print(n, reason, dt, base, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+print(json.dumps({"blocks": n, "end_reason": reason, "cpu_s": time.process_time() - c0,
+                  "wall_s": time.perf_counter() - t0, "base_kb": base,
+                  "peak_kb": peak_kb()}))
 """
+
+#: the modes of :func:`stream_rss`: streaming a file, streaming text in memory, the whole-program parse
+STREAM_MODES = ("stream", "stream_text", "parse_program")
+#: largest file also interpreted as a whole (its blocks are all held)
+PARSE_PROGRAM_MAX_LINES = 200_000
 
 
 def _cam_file(path: str, n: int) -> None:
@@ -119,25 +148,49 @@ def _cam_file(path: str, n: int) -> None:
         f.write("G0 Z5\nM2\n")
 
 
-def stream_rss(n: int) -> dict:
-    """Peak RSS of streaming an ``n``-line CAM file with iter_blocks (and, for n <= 2e5, of parse_program)."""
+def _child_run(path: str, mode: str) -> dict:
+    """One interpretation of ``path`` in a fresh process (cold caches, as a daemon's planning child)."""
     import subprocess
+    r = subprocess.run([sys.executable, "-c", _STREAM_CHILD, path, mode], capture_output=True, text=True,
+                       timeout=3600)
+    if r.returncode:
+        return {"error": r.stderr.strip()[-500:]}
+    return json.loads(r.stdout)
+
+
+def _rates(n: int, runs: list[dict]) -> dict:
+    """Best and median lines/s (CPU and wall) and the largest peak RSS of a mode's runs."""
+    cpu = sorted(n / max(1e-9, r["cpu_s"]) for r in runs)
+    wall = sorted(n / max(1e-9, r["wall_s"]) for r in runs)
+    return {"blocks": runs[0]["blocks"], "end_reason": runs[0]["end_reason"], "runs": len(runs),
+            "cpu_lines_per_s": round(cpu[-1]), "median_cpu_lines_per_s": round(cpu[len(cpu) // 2]),
+            "lines_per_s": round(wall[-1]), "median_lines_per_s": round(wall[len(wall) // 2]),
+            "seconds": round(min(r["wall_s"] for r in runs), 2),
+            "rss_at_start_mb": round(max(r["base_kb"] for r in runs) / 1024, 1),
+            "peak_rss_mb": round(max(r["peak_kb"] for r in runs) / 1024, 1)}
+
+
+def stream_rss(n: int, runs: int = 3) -> dict:
+    """Speed and peak RSS of an ``n``-line CAM file streamed (file and text) and, for
+    n <= PARSE_PROGRAM_MAX_LINES, interpreted as a whole; ``runs`` child processes per mode, interleaved."""
     import tempfile
     out: dict = {"lines": n}
+    modes = [m for m in STREAM_MODES if m != "parse_program" or n <= PARSE_PROGRAM_MAX_LINES]
     with tempfile.TemporaryDirectory(prefix="hxstream") as d:
         path = os.path.join(d, "cam.ngc")
         _cam_file(path, n)
-        modes = ["stream"] + (["parse_program"] if n <= 200_000 else [])
+        got: dict[str, list] = {m: [] for m in modes}
+        for _ in range(max(1, runs)):
+            for mode in modes:
+                got[mode].append(_child_run(path, mode))
         for mode in modes:
-            r = subprocess.run([sys.executable, "-c", _STREAM_CHILD, path, mode], capture_output=True, text=True,
-                               timeout=3600)
-            if r.returncode:
-                out[mode] = {"error": r.stderr.strip()[-500:]}
-                continue
-            blocks, reason, dt, base, peak = r.stdout.split()
-            out[mode] = {"blocks": int(blocks), "end_reason": reason, "seconds": round(float(dt), 2),
-                         "lines_per_s": round(n / float(dt)), "rss_at_start_mb": round(int(base) / 1024, 1),
-                         "peak_rss_mb": round(int(peak) / 1024, 1)}
+            bad = [r["error"] for r in got[mode] if "error" in r]
+            out[mode] = {"error": bad[0]} if bad else _rates(n, got[mode])
+    parse = out.get("parse_program", {})
+    for mode in ("stream", "stream_text"):
+        if "median_cpu_lines_per_s" in out[mode] and "median_cpu_lines_per_s" in parse:
+            out[mode]["stream_vs_parse_cpu"] = round(out[mode]["median_cpu_lines_per_s"]
+                                                     / parse["median_cpu_lines_per_s"], 3)
     return out
 
 
@@ -161,7 +214,7 @@ def main(args: argparse.Namespace) -> int:
         body = re.sub(r"(?im)^\s*M42[89]\b.*$", "", imp.read_text())
         out["derived"]["impeller-7bl-xyzac.ngc without M428/M429 lines"] = _measure(body, "impeller", args.runs)
     if args.stream_lines:
-        out["stream"] = stream_rss(int(args.stream_lines))
+        out["stream"] = stream_rss(int(args.stream_lines), int(args.stream_runs))
     tf = out["files"].get(TARGET_FILE, {})
     got = tf.get("lines_per_s")
     out["target"] = {"file": TARGET_FILE, "lines_per_s": TARGET_LINES_PER_S, "measured": got,

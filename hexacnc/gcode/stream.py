@@ -14,7 +14,12 @@ After the iterator is exhausted, ``stream.program`` is the
 :class:`~hexacnc.gcode.interp.Program` with everything but the blocks
 (``blocks`` is empty; ``messages``, ``end_reason``, ``final_pose``,
 ``final_state`` ...).  An interpretation error is raised from ``next()`` at the
-point it happens (the blocks before it have been delivered).
+point it happens: after the blocks of the batches handed over before it (the
+blocks of the batch in progress, at most 4096, are not delivered).
+
+Parsed lines are kept only where a line can run again (from the first O-word
+line on; see :class:`_Parsed`): the lines of a plain CAM file are freed as soon
+as they have run.
 """
 from __future__ import annotations
 
@@ -34,6 +39,10 @@ from .lexer import Presplit, parse_line
 _DONE = object()
 
 
+#: bytes read at a time by the first pass over a file
+SCAN_CHUNK_BYTES = 1 << 20
+
+
 class _FileLines:
     """Random access to the lines of a file through a window of ``window`` lines."""
 
@@ -44,10 +53,12 @@ class _FileLines:
         self.owords: dict[int, str] = {}  # O-word lines (structure), kept
         self.extra: list[str] = []        # lines of subroutine files appended behind the program
         self.n = 0
+        self.size = 0                     # bytes of the program
         self.first_nonblank: tuple[int, str] | None = None
         self.percent: list[int] = []
         self._lo = 0
         self._cur: list[str] = []
+        self._text = ""
         self._pre = None
         self._scan()
 
@@ -55,23 +66,61 @@ class _FileLines:
         """The program's bytes as a binary file (a subclass may serve them from memory)."""
         return open(self.path, "rb")
 
-    def _scan(self) -> None:
-        pos = 0
+    def _read(self, lo: int, hi: int) -> bytes:
+        """Bytes ``lo``..``hi`` of the program."""
         with self._open() as f:
-            for raw in f:
-                if self.n % self.window == 0:
-                    self.offsets.append(pos)
-                pos += len(raw)
-                line = raw.decode("utf-8", errors="replace").rstrip("\n")
-                t = line.strip()
+            f.seek(lo)
+            return f.read(hi - lo)
+
+    def _scan(self) -> None:
+        """First pass: the file read ``SCAN_CHUNK_BYTES`` at a time, its whole lines noted by :meth:`_note`
+        (a line cut by a chunk's end waits for the next chunk)."""
+        rest: list[bytes] = []
+        with self._open() as f:
+            while True:
+                data = f.read(SCAN_CHUNK_BYTES)
+                if not data:
+                    break
+                cut = data.rfind(b"\n") + 1
+                if not cut:
+                    rest.append(data)
+                    continue
+                self._note(b"".join(rest + [data[:cut]]) if rest else data[:cut] if cut < len(data) else data)
+                rest = [data[cut:]] if cut < len(data) else []
+        if rest:                          # a last line without a newline
+            self._note(b"".join(rest) + b"\n")
+            self.size -= 1
+
+    def _note(self, buf: bytes) -> None:
+        """Note the lines of ``buf`` (whole lines, each ending with a newline), which follow the lines
+        noted so far: window offsets, ``%`` lines, O-word lines (kept), the first non-blank line.  Array
+        operations find the candidates; only lines with a ``%``, an ``o`` or an ``O`` are decoded."""
+        arr = np.frombuffer(buf, dtype=np.uint8)
+        nl = np.flatnonzero(arr == 10)
+        starts = np.empty(nl.size, dtype=np.int64)
+        starts[:1] = 0
+        starts[1:] = nl[:-1] + 1
+        first = (-self.n) % self.window
+        self.offsets.extend((starts[first::self.window] + self.size).tolist())
+
+        def line(k: int) -> str:
+            return buf[int(starts[k]):int(nl[k])].decode("utf-8", errors="replace")
+
+        for k in np.unique(np.searchsorted(nl, np.flatnonzero(arr == 37))).tolist():     # '%'
+            if line(k).strip() == "%":
+                self.percent.append(self.n + k)
+        for k in np.unique(np.searchsorted(nl, np.flatnonzero((arr == 111) | (arr == 79)))).tolist():  # o O
+            text = line(k)
+            if _O_LINE_ONE.match(text):
+                self.owords[self.n + k] = text
+        if self.first_nonblank is None:
+            for k in range(nl.size):
+                t = line(k).strip()
                 if t:
-                    if self.first_nonblank is None:
-                        self.first_nonblank = (self.n, t)
-                    if t == "%":
-                        self.percent.append(self.n)
-                    if ("o" in line or "O" in line) and _O_LINE_ONE.match(line):
-                        self.owords[self.n] = line
-                self.n += 1
+                    self.first_nonblank = (self.n + k, t)
+                    break
+        self.n += int(nl.size)
+        self.size += len(buf)
 
     def __len__(self) -> int:
         return self.n + len(self.extra)
@@ -88,54 +137,74 @@ class _FileLines:
         o = self.owords.get(idx)
         if o is not None:
             return o
-        chunk = idx // self.window
-        with self._open() as f:
-            f.seek(self.offsets[chunk])
-            cur = []
-            for _ in range(self.window):
-                raw = f.readline()
-                if not raw:
-                    break
-                cur.append(raw.decode("utf-8", errors="replace").rstrip("\n"))
-        self._lo, self._cur, self._pre = chunk * self.window, cur, None
+        self._load(idx // self.window)
         return self._cur[idx - self._lo]
+
+    def _load(self, chunk: int) -> None:
+        """Make window ``chunk`` the current one: its bytes read at once and decoded as a whole."""
+        lo = self.offsets[chunk]
+        hi = self.offsets[chunk + 1] if chunk + 1 < len(self.offsets) else self.size
+        text = self._read(lo, hi).decode("utf-8", errors="replace")
+        if text.endswith("\n"):
+            text = text[:-1]
+        self._lo, self._cur, self._text, self._pre = chunk * self.window, text.split("\n"), text, None
 
     def parsed_line(self, idx: int):
         """Parsed line ``idx`` of the program (shapes split per window, as the whole-text path does)."""
         if idx >= self.n:
             return parse_line(self.extra[idx - self.n], idx + 1)
         k = idx - self._lo
-        if not 0 <= k < len(self._cur):
-            self[idx]
+        if not 0 <= k < len(self._cur):     # (not through __getitem__: an O-word line comes from self.owords)
+            self._load(idx // self.window)
             k = idx - self._lo
         if self._pre is None:
-            self._pre = Presplit("\n".join(self._cur), self._cur, self._lo)
+            self._pre = Presplit(self._text, self._cur, self._lo)
         return self._pre.line(k)
 
 
-class _Parsed:
-    """Bounded cache of parsed lines (a dict cleared when full)."""
+class _Parsed(dict):
+    """Parsed lines of a streamed program for the run loop: a dict, so that its lookup stays in C, which
+    parses a missing line itself (:meth:`__missing__`).  Only lines that can run again are kept (those
+    from the first O-word line on, subroutine files included: loops and calls jump back to O-word lines
+    only), up to ``limit`` lines, then it is cleared; a program without O-words keeps none, so its
+    lines are freed as soon as they have run."""
 
-    def __init__(self, limit: int):
-        self.d: dict[int, object] = {}
+    def __init__(self, lines: _FileLines, limit: int, parse_other):
+        super().__init__()
+        self.lines = lines
         self.limit = limit
+        self.main_n = lines.n
+        self.parse_other = parse_other          #: parsed line of a subroutine file (index >= main_n)
+        self.keep_from = min(lines.owords) if lines.owords else lines.n
 
-    def __getitem__(self, idx):
-        return self.d.get(idx)
+    def __missing__(self, idx: int):
+        fl = self.lines
+        k = idx - fl._lo
+        pre = fl._pre
+        if pre is not None and 0 <= k < len(fl._cur):
+            ln = pre.line(k)
+        elif idx < self.main_n:
+            ln = fl.parsed_line(idx)
+        else:
+            ln = self.parse_other(idx)
+        if idx >= self.keep_from:
+            self[idx] = ln
+        return ln
 
-    def get(self, idx):
-        return self.d.get(idx)
-
-    def __setitem__(self, idx, ln) -> None:
-        if len(self.d) >= self.limit:
-            self.d.clear()
-        self.d[idx] = ln
+    def __setitem__(self, idx: int, ln) -> None:
+        if len(self) >= self.limit:
+            self.clear()
+        dict.__setitem__(self, idx, ln)
 
     def extend(self, _items) -> None:
-        pass
+        """(The whole-program interpreter's list grows with a subroutine file; nothing to do here.)"""
 
 
 class _StreamInterpreter(Interpreter):
+    def _parse_other(self, idx: int):
+        """Parsed line ``idx`` of a subroutine file (numbered in its own file)."""
+        return parse_line(self.lines[idx], self._num(idx))
+
     def _find_end(self):
         fl = self.lines
         self.percent_start = None
@@ -157,14 +226,13 @@ class BlockStream:
         ``prepare``: called with the interpreter before it starts (e.g. to set a modal state)."""
         lines = lines if lines is not None else _FileLines(path, window_lines)
         self._it = _StreamInterpreter(None, name, lines=lines, **kw)
-        self._it.parsed = _Parsed(2 * window_lines)
+        self._it.parsed = _Parsed(lines, 2 * window_lines, self._it._parse_other)
         if prepare is not None:
             prepare(self._it)
         self._q: queue.Queue = queue.Queue(maxsize=queue_batches)
         self._stop = False
         self.program: Program | None = None
-        self._batch: list = []
-        self._i = 0
+        self._blocks = self._delivered()
         self._thread = threading.Thread(target=self._run, name=f"gcode-stream {name}", daemon=True)
         self._thread.start()
 
@@ -219,22 +287,25 @@ class BlockStream:
         """The interpreter (its modal state after the end, once the iterator is exhausted)."""
         return self._it
 
-    def __iter__(self):
-        return self
-
-    def __next__(self):
-        while self._i >= len(self._batch):
-            item = self._q.get()
+    def _delivered(self):
+        """The blocks of the batches the interpreter thread hands over (a generator: a block costs
+        one resumption, the batch is walked in C)."""
+        q = self._q
+        while True:
+            item = q.get()
             if item is _DONE:
                 self._thread.join()
-                raise StopIteration
+                return
             if isinstance(item, GcodeError):
                 self._thread.join()
                 raise item
-            self._batch, self._i = item, 0
-        b = self._batch[self._i]
-        self._i += 1
-        return b
+            yield from item
+
+    def __iter__(self):
+        return self._blocks
+
+    def __next__(self):
+        return next(self._blocks)
 
     def close(self) -> None:
         """Stop the interpreter thread (when not iterating to the end)."""

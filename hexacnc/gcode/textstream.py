@@ -6,14 +6,14 @@ from __future__ import annotations
 import io
 from pathlib import Path
 
-import numpy as np
-
 from ..errors import GcodeError
-from .flow import _O_LINE_ONE
 from .stream import BlockStream, _FileLines
 
 
 class _TextLines(_FileLines):
+    """:class:`~hexacnc.gcode.stream._FileLines` over bytes in memory (the first pass reads them in
+    chunks too, so that its temporary arrays stay small whatever the program's length)."""
+
     def __init__(self, data: bytes, window: int):
         self.data = data
         super().__init__(Path("<text>"), window)
@@ -21,33 +21,8 @@ class _TextLines(_FileLines):
     def _open(self):
         return io.BytesIO(self.data)
 
-    def _scan(self) -> None:
-        """The same notes as :meth:`_FileLines._scan` (window offsets, O-word lines, ``%`` lines, the first
-        non-blank line), found with array operations instead of a pass over every line (1e6 lines: ~0.1 s
-        instead of ~0.8 s before the first block)."""
-        data = self.data
-        buf = np.frombuffer(data, dtype=np.uint8)
-        nl = np.flatnonzero(buf == 10)
-        self.n = int(nl.size)
-        starts = np.concatenate([[0], nl[:-1] + 1]) if self.n else np.zeros(0, dtype=np.int64)
-        self.offsets = [int(v) for v in starts[::self.window]]
-        pc = np.flatnonzero(buf == ord("%"))
-        for k in np.unique(np.searchsorted(nl, pc)).tolist():
-            if self._line(starts, nl, k).strip() == "%":
-                self.percent.append(k)
-        lo = np.flatnonzero((buf == ord("o")) | (buf == ord("O")))
-        for k in np.unique(np.searchsorted(nl, lo)).tolist():
-            line = self._line(starts, nl, k)
-            if _O_LINE_ONE.match(line):
-                self.owords[k] = line
-        for k in range(self.n):
-            t = self._line(starts, nl, k).strip()
-            if t:
-                self.first_nonblank = (k, t)
-                break
-
-    def _line(self, starts, nl, k: int) -> str:
-        return self.data[int(starts[k]):int(nl[k])].decode("utf-8", errors="replace")
+    def _read(self, lo: int, hi: int) -> bytes:
+        return self.data[lo:hi]
 
 
 def iter_text_blocks(text: str, name: str, *, window_lines: int = 4096, queue_batches: int = 4,
