@@ -226,6 +226,10 @@ def test_hot_loop_lost_is_reported_and_exit_nonzero(tmp_path, how):
     # the master fell silent: no frame reached the drives after the supervisor noticed
     t, L = run.tap.lengths_mm(t0 + 1.0)
     assert len(L) == 0
+    # the drives stopped on their own (communication-loss reaction: quick stop, then Switch on disabled
+    # per 0x605A) and said so before the simulated drives' process ended
+    sw = run.tap.last_statuswords()
+    assert all(x is not None and x & 0x4F == 0x40 for x in sw), [hex(x or 0) for x in sw]
 
 
 def test_second_daemon_on_the_same_socket_fails_naming_the_first(tmp_path):

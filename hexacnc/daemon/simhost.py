@@ -10,7 +10,10 @@ The drives stand for hardware: signals meant for the daemon (Ctrl-C to the proce
 SIGTERM/SIGHUP to the unit) are ignored, so the drives are still there while the hot loop stops
 the motion and disables them.  The rest of stdin is a line protocol from the supervisor:
 
-* ``STOP`` - end now (the supervisor has stopped the hot loop);
+* ``STOP`` - end (the supervisor has stopped the hot loop): at once when every drive is disabled or
+  stands still; a drive still enabled (the hot loop died before it disabled them) is left to its
+  own communication-loss reaction first, as hardware would be (at most ``[bus] comm_loss_timeout_s``
+  + ``REACTION_S``);
 * end of file without ``STOP`` - the supervisor died: run on while the master (the hot loop, which
   stops the motion and disables the drives on its own) still sends SYNCs, end
   ``MASTER_SILENT_S`` after the last one;
@@ -28,10 +31,14 @@ import sys
 import threading
 import time
 
+from drivers import cia402
+
 #: the simulated drives look for frames this often (s); 0.4 of the default 0.5 ms cycle
 POLL_INTERVAL_S = 0.0002
 #: after the supervisor died: end this long after the master's last SYNC
 MASTER_SILENT_S = 1.0
+#: after STOP: how long (beyond [bus] comm_loss_timeout_s) drives still enabled may take to stop on their own
+REACTION_S = 1.5
 
 log = logging.getLogger("hexacnc.simhost")
 
@@ -124,6 +131,28 @@ def _write_iolog(sim, path: str) -> None:
         os.replace(path + ".tmp", path)
     except OSError as exc:
         log.error("iolog %s: %s", path, exc)
+
+
+def _at_rest(d) -> bool:
+    """The drive holds no enabled strut: disabled (or in Fault), or stopped by its own reaction."""
+    if d.react.ramp is not None:
+        return False
+    return d.state != cia402.OPERATION_ENABLED and abs(d.model.velocity_mm_s) < 1e-3
+
+
+def _let_drives_react(sim, bound_s: float) -> bool:
+    """After STOP: wait (at most ``bound_s``) until every drive is at rest; True if they all are.
+    With the hot loop's own stop they already are; after it died they stop on their own."""
+    t_end = time.monotonic() + bound_s
+    while True:
+        with sim.lock:
+            moving = [d.node_id for d in sim.drives if not _at_rest(d)]
+        if not moving:
+            return True
+        if time.monotonic() > t_end:
+            log.warning("nodes %s still enabled %.1f s after STOP: ended", moving, bound_s)
+            return False
+        time.sleep(0.01)
 
 
 def _serve_stdin(sim) -> bool:
@@ -221,7 +250,9 @@ def main() -> int:
             done.set()
         threading.Thread(target=serve, name="simhost-stdin", daemon=True).start()
         done.wait()
-        if not ordered[0]:
+        if ordered[0]:
+            _let_drives_react(sim, float(cfg.bus.comm_loss_timeout_s) + REACTION_S)
+        else:
             t_eof = time.monotonic()
             log.warning("supervisor gone: the drives run on until the master is silent")
             while True:
