@@ -68,6 +68,11 @@ RX_BATCH = 16
 # --------------------------------------------------------------------------------------------
 # the six drives
 # --------------------------------------------------------------------------------------------
+def _NONE() -> int:
+    """``pending_records`` of a bus that cannot tell (python-can's own buses)."""
+    return 0
+
+
 class SimDrives:
     """Six simulated drives on ``buses`` (one bus object per ``[bus] buses``, strut split per layout).
 
@@ -237,11 +242,18 @@ class SimDrives:
                 time.sleep(poll_s)
 
     def _housekeeping(self) -> None:
+        """Every ``TICK_S``: each drive's timers and supervision. Where a bus tells how many received
+        frames wait unread (``pending_records``: the daemon's frame rings), its drives' communication
+        deadlines count from now while any do (:meth:`drivers.simreact.Reactions.frames_waiting`)."""
+        buses = self.buses
         while not self._stop.wait(TICK_S):
             now = time.monotonic()
             with self.lock:
+                behind = [getattr(b, "pending_records", _NONE)() > 0 for b in buses]
                 for d in self.drives:
                     try:
+                        if behind[d.bus_index]:
+                            d.react.frames_waiting(now)
                         d.housekeeping(now)
                     except Exception:     # keep the simulator alive; log the bug
                         log.exception("node %d housekeeping", d.node_id)

@@ -134,6 +134,18 @@ class Reactions:
             return master_hb_s + (now - last)
         return master_hb_s
 
+    def frames_waiting(self, now: float) -> None:
+        """Frames for this drive wait unread in its receive queue: the simulator is behind, the master is
+        not silent. The RPDO, SYNC-loss and master-heartbeat deadlines start again from ``now`` (a
+        descheduled reader thread beside a punctual housekeeping thread is no stall of the process, so
+        :meth:`supervise` would not excuse it)."""
+        if self.last_rpdo_s is not None:
+            self.last_rpdo_s = now
+        if self._sync_ref_s is not None:
+            self._sync_ref_s = now
+        if self.d.master_hb_s is not None:
+            self.d.master_hb_s = now
+
     # -- configuration (NMT start) -------------------------------------------------------------
     def configure(self) -> None:
         d = self.d

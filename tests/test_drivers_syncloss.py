@@ -82,3 +82,25 @@ def _sync_loss_run(rig, rec) -> bool:
         assert any("no SYNC for 100 ms" in e and "0x6007 = 3" in e for e in ev), ev
         assert abs(v_mm_s[nd.index]) > 5 and any("1000 mm/s^2" in e for e in ev), ev
     return True
+
+
+def test_frames_waiting_unread_are_no_silent_master():
+    """A simulated drive whose reader thread is behind (frames wait unread in its receive queue, told by
+    the bus's ``pending_records``) while its housekeeping runs on time is not cut off from its master:
+    no SYNC-loss, RPDO or heartbeat reaction while frames wait; once none wait, the silence counts."""
+    with SimRig(comm_loss_timeout_s=0.1) as rig:
+        m = rig.master
+        m.bring_up()
+        io = rig.cyclic()
+        move(io, m.positions_inc() if m.attached else io.pos_inc, 0, 50)
+        waiting = [5]
+        for b in rig.sim_buses:
+            b.pending_records = lambda: waiting[0]
+        time.sleep(0.4)                          # silent master, but frames said to wait unread
+        assert rig.sim.states() == [cia402.OPERATION_ENABLED] * 6
+        assert all(d.error_code == 0 for d in rig.sim.drives), [hex(d.error_code) for d in rig.sim.drives]
+        waiting[0] = 0
+        time.sleep(0.4)                          # none wait now: the drives react to the silence
+        assert all(d.error_code in (cia402.EMCY_SYNC_LOSS, cia402.EMCY_RPDO_TIMEOUT) for d in rig.sim.drives), \
+            [hex(d.error_code) for d in rig.sim.drives]
+        assert cia402.OPERATION_ENABLED not in rig.sim.states()
