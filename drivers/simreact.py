@@ -158,11 +158,11 @@ class Reactions:
         self.brake.release_s = d.raw_or(0x2110, 1, 0) * 1e-3
         self.brake.engage_s = d.raw_or(0x2110, 2, 0) * 1e-3
 
-    def note(self, now: float, text: str) -> None:
+    def note(self, now: float, text: str, level: int = logging.INFO) -> None:
         self.events.append((now, text))
         if len(self.events) > 256:
             del self.events[:128]
-        log.info("node %d: %s", self.d.node_id, text)
+        log.log(level, "node %d: %s", self.d.node_id, text)
 
     # -- ramps --------------------------------------------------------------------------------
     def decel_mm_s2(self, quick: bool) -> float:
@@ -294,7 +294,7 @@ class Reactions:
         d.node.emcy.send(code, 0x11)
         d.error_code = code
         self.note(now, f"communication error 0x{code:04X}: {why}; 0x6007 = {self.abort_option}, "
-                       f"0x1029:1 = {self.comm_error}")
+                       f"0x1029:1 = {self.comm_error}", logging.WARNING)     # in the daemon's log too
         if d.state in _POWERED:
             opt = self.abort_option
             if opt == cia402.ABORT_FAULT:
