@@ -68,7 +68,7 @@ RX_BATCH = 16
 # --------------------------------------------------------------------------------------------
 # the six drives
 # --------------------------------------------------------------------------------------------
-def _NONE() -> int:
+def _nothing_pending() -> int:
     """``pending_records`` of a bus that cannot tell (python-can's own buses)."""
     return 0
 
@@ -249,7 +249,7 @@ class SimDrives:
         while not self._stop.wait(TICK_S):
             now = time.monotonic()
             with self.lock:
-                behind = [getattr(b, "pending_records", _NONE)() > 0 for b in buses]
+                behind = [getattr(b, "pending_records", _nothing_pending)() > 0 for b in buses]
                 for d in self.drives:
                     try:
                         if behind[d.bus_index]:

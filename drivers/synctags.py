@@ -138,14 +138,16 @@ class SyncTags:
     def _re_anchor(self, cycles: int) -> None:
         d = self.div
         lb = cycles - self.slack
-        pace = 0                        # bit b: bus b asked and keeps pace; bit b + 16: asked
+        asked = keeps = 0               # bit b: bus b's pace looked at (once a poll); it keeps pace
         for i in range(self.n):
             if not self.fresh_mask >> i & 1 or self.pos_sync[i] >= lb:
                 continue
             b = self.bus_of[i]
-            if not pace >> (b + 16) & 1:
-                pace |= (1 << (b + 16)) | (self._keeps_pace(b) << b)
-            if pace >> b & 1:
+            if not asked >> b & 1:
+                asked |= 1 << b
+                if self._keeps_pace(b):
+                    keeps |= 1 << b
+            if keeps >> b & 1:
                 k = lb + (self.phase[i] - lb) % d
                 self.pos_sync[i] = k
                 if k > self.bus_tag[b]:

@@ -179,10 +179,15 @@ class RecBus:
         self.rx += rec
 
 
-def _codec():
+def _codec(bus=None, unread_by_peer=None, sync_every: int = 1):
+    """The default layout's codec on two record-bus stubs (``bus``: their class, default RecBus);
+    ``unread_by_peer``: given to each stub before the codec is built (the drives' backlog)."""
     cfg = load_config(None)
-    buses = [RecBus(), RecBus()]
-    io = cyclic.CyclicIO(buses, cfg.bus, batch=True)
+    buses = [(bus or RecBus)(), (bus or RecBus)()]
+    if unread_by_peer is not None:
+        for b in buses:
+            b.unread_by_peer = unread_by_peer
+    io = cyclic.CyclicIO(buses, cfg.bus, batch=True, sync_every=sync_every)
     return cfg, io, buses, plan_layout(cfg.bus)
 
 
@@ -223,10 +228,7 @@ def test_tags_count_loop_cycles_when_the_bus_runs_every_nth_cycle(sync_every):
     """A drive answers every d-th SYNC it receives (from its SYNC start value); the bus sends a SYNC
     on every ``sync_every``-th loop cycle only. Each sample carries the loop cycle of the SYNC it
     answers: its tag must be that cycle."""
-    cfg = load_config(None)
-    buses = [SyncCountingBus(), SyncCountingBus()]
-    io = cyclic.CyclicIO(buses, cfg.bus, batch=True, sync_every=sync_every)
-    plan = plan_layout(cfg.bus)
+    cfg, io, buses, plan = _codec(SyncCountingBus, sync_every=sync_every)
     d = plan.feedback_divider
     seen = 0
     for _ in range(2000):
@@ -274,14 +276,8 @@ def _stall_and_catch_up(rate, lost=0.0, stall=600, polls=3000, seed=5, peer=Fals
     drained."""
     import random
     rnd = random.Random(seed)
-    cfg = load_config(None)
-    buses = [RecBus(), RecBus()]
     state = {"answered": 0, "cycles": 0}
-    if peer:
-        for b in buses:
-            b.unread_by_peer = lambda: 3 * (state["cycles"] - state["answered"])
-    io = cyclic.CyclicIO(buses, cfg.bus, batch=True)
-    plan = plan_layout(cfg.bus)
+    cfg, io, buses, plan = _codec(unread_by_peer=(lambda: 3 * (state["cycles"] - state["answered"])) if peer else None)
     d = plan.feedback_divider
     answered, credit, out = 0, 0.0, []
     for poll in range(polls):

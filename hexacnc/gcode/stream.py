@@ -85,7 +85,8 @@ class _FileLines:
                 if not cut:
                     rest.append(data)
                     continue
-                self._note(b"".join(rest + [data[:cut]]) if rest else data[:cut] if cut < len(data) else data)
+                head = data[:cut] if cut < len(data) else data
+                self._note(b"".join(rest + [head]) if rest else head)
                 rest = [data[cut:]] if cut < len(data) else []
         if rest:                          # a last line without a newline
             self._note(b"".join(rest) + b"\n")
