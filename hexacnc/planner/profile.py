@@ -19,7 +19,8 @@ CAP_BISECT = 14
 CAP_HALVINGS = 60
 
 
-def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, speed2=None) -> np.ndarray:
+def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, speed2=None,
+               max_reach: float = math.inf) -> np.ndarray:
     """Spread every speed limit over the distance travelled at that speed in the filter window.
 
     The moving average of width T gives, at position s_j, the mean raw speed of the
@@ -27,11 +28,12 @@ def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, sp
     positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
     that mean is at most sqrt(x_j):
     so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.  ``speed2`` (N,):
-    spread another quantity x (an acceleration cap) over the reach of these speeds^2 instead.
+    spread another quantity x (an acceleration cap) over the reach of these speeds^2 instead.  No reach
+    exceeds ``max_reach`` (mm).
     """
     N = x.shape[0]
     fin = np.isfinite(x)
-    r = np.where(fin, np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, 0.0)
+    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, max_reach), 0.0)
     lo = np.searchsorted(sg, sg - r, side="left")
     hi = np.searchsorted(sg, sg + r, side="right") - 1
     cnt = np.minimum(hi - lo + 1, max_span)
@@ -122,18 +124,31 @@ SPREAD_CAP = True
 SPREAD_CAP_MM = 0.2
 
 
-def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float) -> np.ndarray:
+def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float, keep=None) -> np.ndarray:
     """The acceleration cap (N,) lowered to its minimum over the filter's reach: the moving average carries
     an acceleration to every sample whose window holds it (a ramp at a line's cap beside a corner blend gave
     the blend's samples more jerk than the blend's cap allows).  Every point's cap is spread ``T`` seconds
     either side at the speed^2 ``x`` there (at most SPREAD_CAP_MM), then each point takes the smaller of
     its own and the next point's, twice (the TOPP pass bounds an interval at its first point; past a
     duplicated junction point too), so that a ramp anywhere inside an interval keeps the caps of both
-    its ends."""
-    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2))
+    its ends.  ``keep`` (N-1,) bool: the links between neighbours a point may take the next one's cap
+    across (False at a stop, whose hold keeps the two sides' filter windows apart; ``sg`` then runs
+    with a gap there: :func:`separated`)."""
+    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2), max_reach=SPREAD_CAP_MM)
     for _ in range(2):
-        np.minimum(out[:-1], out[1:], out=out[:-1])
+        nxt = out[1:] if keep is None else np.where(keep, out[1:], np.inf)
+        np.minimum(out[:-1], nxt, out=out[:-1])
     return out
+
+
+def separated(sg: np.ndarray, cut: np.ndarray, gap: float) -> tuple:
+    """Path positions (N,) with ``gap`` added after every grid point in ``cut`` (indices), so that a
+    spreading whose reach is less than ``gap`` never crosses one, and the mask (N-1,) of the links not
+    cut."""
+    keep = np.ones(max(sg.shape[0] - 1, 0), dtype=bool)
+    cut = cut[cut < sg.shape[0] - 1]
+    keep[cut] = False
+    return sg + gap * np.concatenate([[0.0], np.cumsum(~keep)]), keep
 
 
 class RampBounds:

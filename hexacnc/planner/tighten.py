@@ -16,7 +16,7 @@ from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_MARGIN_SLOPE, MAX_
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
-                      _runs, _sample_profile, _spread_cap, _with_accel_cap)
+                      _runs, _sample_profile, _spread_cap, _with_accel_cap, separated)
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
@@ -50,6 +50,13 @@ class Tightener:
         self.vmax, self.amax, self.jmax = lims
         self.dt, self.nf, self.w_plateau = dt, nf, w_plateau
         Ng = g.n
+        # no spreading crosses a stop: its hold (at least the filter's width) keeps the filter windows of
+        # the motion before it and after it apart (a tiny move's next move lowered its last intervals'
+        # acceleration cap, over fewer of them as it grew: a longer move planned shorter)
+        self.reach_mm = float(g.sg[-1] - g.sg[0]) + 1.0
+        cut = rs.stop_idx[(rs.stop_idx < Ng - 1)]
+        cut = cut[g.h[np.minimum(cut, Ng - 2)] == 0] if Ng > 1 else cut
+        self.sg_sep, self.keep = separated(g.sg, cut, 2.0 * self.reach_mm)
         xlim = xlim.copy()
         xlim[rs.stop_all] = 0.0
         self.xlim = self._spread(xlim)
@@ -58,7 +65,7 @@ class Tightener:
         x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
         self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
         if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
-            self.ecap = _spread_cap(g.sg, self.ecap, x0, SPREAD_REACH * nf * dt)
+            self.ecap = _spread_cap(self.sg_sep, self.ecap, x0, SPREAD_REACH * nf * dt, self.keep)
         del x0
         c, self.e, self.dd, xcap = _with_accel_cap(c, e, dd, self.ecap)
         lower = np.nonzero(xcap < self.xlim)[0]
@@ -79,7 +86,7 @@ class Tightener:
         centre); stops spread nothing and stay at rest."""
         sa = self.rs.stop_all
         xw[sa] = np.inf
-        out = _dilate_min(self.g.sg, xw, SPREAD_REACH * self.nf * self.dt)
+        out = _dilate_min(self.sg_sep, xw, SPREAD_REACH * self.nf * self.dt, max_reach=self.reach_mm)
         out[sa] = 0.0
         return out
 
