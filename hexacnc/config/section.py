@@ -44,6 +44,7 @@ class Section:
         return default
 
     def _check_range(self, key: str, v: float, minval, maxval, above, below) -> None:
+        v = float(v)                 # a plain float in the messages (not numpy's np.float64(...) repr)
         if not math.isfinite(v):
             raise self.error(key, f"value {v!r} is not finite")
         if minval is not None and v < minval:
