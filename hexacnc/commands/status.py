@@ -10,13 +10,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import textwrap
 import sys
 from typing import Any, TextIO
 
 from ..errors import HexacncError
 from .send import (EXIT_CONNECTION, EXIT_FAULT, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration,
                    progress_of)
-from .statusview import format_compact
+from .statusview import WIDTH, format_compact
 
 HELP = "show the running daemon's state, poses, struts and cycle statistics"
 
@@ -53,25 +54,52 @@ def _vec(v: Any, digits: int = 3) -> str:
     parts = []
     for x in v:
         if isinstance(x, (int, float)) and not isinstance(x, bool):
-            parts.append(f"{x:.{digits}f}" if math.isfinite(x) else "nan")
+            parts.append(f"{(x if round(x, digits) != 0 else 0.0):.{digits}f}" if math.isfinite(x) else "nan")
         else:
             parts.append(str(x))
     return "[" + ", ".join(parts) + "]"
 
 
-def _cycle_text(cy: Any) -> list[str]:
-    if not isinstance(cy, dict):
-        return [f"  {cy}"] if cy is not None else []
-    lines = []
-    for k, v in cy.items():
-        if isinstance(v, dict):
-            inner = ", ".join(f"{ik} {iv:.4g}" if isinstance(iv, float) else f"{ik} {iv}" for ik, iv in v.items())
-            lines.append(f"  {k}: {inner}")
-        elif isinstance(v, float):
-            lines.append(f"  {k}: {v:.6g}")
-        else:
-            lines.append(f"  {k}: {v}")
-    return lines
+def _scalar(v: Any) -> str:
+    """One value of the details: numbers to 6 significant digits, None and non-finite as '-'."""
+    if v is None:
+        return "-"
+    if isinstance(v, bool):
+        return "yes" if v else "no"
+    if isinstance(v, float):
+        return f"{v:.6g}" if math.isfinite(v) else "-"
+    return str(v)
+
+
+def _wrapped(head: str, text: str, indent: int) -> list[str]:
+    """``head`` + ``text`` on lines of at most WIDTH characters, broken at spaces (after a list's commas
+    first), continuations indented by ``indent``."""
+    return textwrap.wrap(head + text, width=WIDTH, subsequent_indent=" " * indent, break_on_hyphens=False,
+                         drop_whitespace=True) or [head.rstrip()]
+
+
+def _detail_lines(key: str, v: Any, indent: int = 0) -> list[str]:
+    """A status field as text lines of at most WIDTH characters: nested maps indented under their key, lists of
+    scalars on one (wrapped) line, lists of maps item by item (no Python reprs)."""
+    pad = " " * indent
+    if isinstance(v, dict):
+        if not v:
+            return [f"{pad}{key}: -"]
+        out = [f"{pad}{key}:"]
+        for k, x in v.items():
+            out.extend(_detail_lines(str(k), x, indent + 2))
+        return out
+    if isinstance(v, (list, tuple)):
+        if not v:
+            return [f"{pad}{key}: -"]
+        if all(not isinstance(x, (dict, list, tuple)) for x in v):
+            head = f"{pad}{key}: "
+            return _wrapped(head, ", ".join(_scalar(x) for x in v), len(head))
+        out = [f"{pad}{key}:"]
+        for i, x in enumerate(v):
+            out.extend(_detail_lines(f"[{i}]", x, indent + 2))
+        return out
+    return _wrapped(f"{pad}{key}: ", _scalar(v), indent + 2)
 
 
 #: operator fields shown by the compact view (not repeated in the details)
@@ -90,7 +118,7 @@ def format_status(st: dict) -> str:
                    f"left {fmt_duration(pr.get('time_left_s'))}")
     else:
         out.append(f"line       {st.get('line')}")
-    out.append(f"pose_cmd   {_vec(st.get('pose_cmd'))}   (x y z mm, a b c deg)")
+    out.append(f"pose_cmd   {_vec(st.get('pose_cmd'))}  (mm, deg)")
     out.append(f"pose_act   {_vec(st.get('pose_act'))}")
     out.append(f"struts_cmd {_vec(st.get('struts_cmd_mm'))} mm")
     out.append(f"struts_act {_vec(st.get('struts_act_mm'))} mm")
@@ -102,13 +130,12 @@ def format_status(st: dict) -> str:
         out.append(f"fault      {f}")
     cy = st.get("cycle", st.get("cycle_stats"))
     if cy is not None:
-        out.append("cycle")
-        out.extend(_cycle_text(cy))
+        out.extend(_detail_lines("cycle", cy))
     shown = {"state", "progress", "program", "line", "pose_cmd", "pose_act", "struts_cmd_mm", "struts_act_mm", "fault",
              "cycle", "cycle_stats", *_FRAMING, *_OPERATOR}
     for k, v in st.items():
         if k not in shown:
-            out.append(f"{k:<10} {v}")
+            out.extend(_detail_lines(k, v))
     return "\n".join(out)
 
 

@@ -11,14 +11,18 @@ WIDTH, HEIGHT = 80, 24
 
 
 def _n(v: Any, w: int = 9, d: int = 3) -> str:
-    return f"{v:{w}.{d}f}" if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) \
-        else f"{'-':>{w}}"
+    """v in w characters with d decimals ('-' if not a finite number; never '-0.000')."""
+    if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
+        return f"{'-':>{w}}"
+    return f"{(v if round(v, d) != 0 else 0.0):{w}.{d}f}"
 
 
 def _row(label: str, v: Any) -> str:
+    """A pose row under the x y z, a b c header (10 and 9 wide): every number after a space, however wide
+    (a machine z of -1150.004 ran into the y before it)."""
     if not isinstance(v, (list, tuple)) or len(v) < 6:
         return f"{label:<8} -"
-    return f"{label:<8}" + "".join(_n(x, 9, 3) for x in v[:3]) + "".join(_n(x, 8, 3) for x in v[3:6])
+    return f"{label:<8}" + "".join(" " + _n(x, 9, 3) for x in v[:3]) + "".join(" " + _n(x, 8, 3) for x in v[3:6])
 
 
 def format_compact(st: dict) -> str:
@@ -35,7 +39,7 @@ def format_compact(st: dict) -> str:
     why = st.get("why_idle")
     if why:
         out.append(f"why      {why}")
-    out.append(f"{'':8}{'x':>9}{'y':>9}{'z':>9}{'a':>8}{'b':>8}{'c':>8}")
+    out.append(f"{'':8}{'x':>10}{'y':>10}{'z':>10}{'a':>9}{'b':>9}{'c':>9}")
     out.append(_row("machine", tip.get("machine") or st.get("pose_cmd")))
     out.append(_row(f"work{wo.get('name', '')[1:]:>4}", tip.get("work")))
     out.append(_row("platform", st.get("pose_cmd")))
