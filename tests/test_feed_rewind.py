@@ -112,3 +112,25 @@ def test_feed_ahead_is_a_range_checked_daemon_key_and_jogs_keep_a_short_queue(tm
         assert f._job_ahead_rows(jog, f._ahead_rows) == int(0.1 / DT)
     finally:
         sh.close()
+
+
+def test_time_left_is_at_the_set_override_and_zero_once_stopping(plan):
+    """The status' time left: the nominal time at the feed override the operator set, not at the rate of the
+    moment (a stop ramps that to 0: 'left 3:26:11' while stopping); 0 once stopping."""
+    src = ProgramSource(plan, DT, "t")
+    src.next_rows(400)
+    _line, _pct, left = src.progress()
+    nominal = src.sampler.progress[1]
+    assert left == pytest.approx(nominal) and 0 < left < plan.duration_s
+    src.set_feed_override(0.5)
+    src.next_rows(2)                                   # the rate has barely begun to ramp down
+    assert src.progress()[2] == pytest.approx(2 * src.sampler.progress[1])
+    src.pause()
+    src.next_rows(200)
+    assert src.paused and src.progress()[2] == pytest.approx(2 * src.sampler.progress[1])
+    src.resume()
+    src.next_rows(50)
+    src.stop()
+    for _ in range(3):
+        src.next_rows(2)
+        assert src.progress()[2] == 0.0

@@ -57,8 +57,9 @@ def run_op(args: argparse.Namespace, name: str, body: Callable[[Any], int]) -> i
                     print(f"hexacnc {name}: took control from {r['previous']}", file=sys.stderr)
             return body(client)
         except P.DaemonError as exc:
-            line = f" (line {exc.line})" if exc.line else ""
-            print(f"hexacnc {name}: {exc.error.get('message', exc)}{line} [{exc.code}]", file=sys.stderr)
+            msg = str(exc.error.get("message", exc))
+            line = f" (line {exc.line})" if exc.line and not msg.startswith(f"line {exc.line}:") else ""
+            print(f"hexacnc {name}: {msg}{line} [{exc.code}]", file=sys.stderr)
             return exit_code_of(exc.code)
         except P.ConnectionLost as exc:
             print(f"hexacnc {name}: {exc}", file=sys.stderr)

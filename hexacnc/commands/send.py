@@ -250,7 +250,10 @@ def _run(client, args, path: str, name: str, text: str, out: TextIO, err: TextIO
             col = e.get("column")
             where += f":{col}" if col is not None and exc.line is not None else ""
             extra = f" ({e['limit']})" if e.get("limit") else ""
-            print(f"{where}: program refused: {e.get('message', '')}{extra} [{exc.code}]", file=err)
+            msg = str(e.get("message", ""))
+            if exc.line is not None and msg.startswith(f"line {exc.line}: "):
+                msg = msg[len(f"line {exc.line}: "):]          # the file:line prefix says it
+            print(f"{where}: program refused: {msg}{extra} [{exc.code}]", file=err)
             return EXIT_REFUSED
         print(f"hexacnc send: {name} refused: {e.get('message', '')} [{exc.code}]", file=err)
         return EXIT_FAULT if exc.code == P.FAULT else EXIT_OTHER

@@ -556,4 +556,4 @@ def _check_tip_limits(cfg, prog) -> None:
         for p in pts:
             why = tip_violation(cfg, p, box)
             if why:
-                raise PlanError(f"line {b.line}: {why}", line=b.line, limit="workspace")
+                raise PlanError(why, line=b.line, limit="workspace")

@@ -65,9 +65,15 @@ class ProgramSource:
         return self.sampler.state in ("pausing", "paused", "program_paused")
 
     def progress(self) -> tuple[int, float, float]:
+        """(line, percent, time left s): the nominal time left at the feed override the operator set (not the
+        rate of the moment, which a stop or a pause brings to 0: 'left 3:26:11' while stopping); 0 once
+        stopping (the rest will not run); the nominal time while the override is 0."""
         pct, left = self.sampler.progress
-        f = max(1e-3, self.sampler.override) if not self.paused else 1.0
-        return int(self.sampler.line), float(pct), float(left) / f
+        line = int(self.sampler.line)
+        if self.stopping or self.sampler.state in ("stopping", "done"):
+            return line, float(pct), 0.0
+        f = float(self.sampler.user)
+        return line, float(pct), float(left) / (f if f >= 0.01 else 1.0)
 
     @property
     def error(self):
