@@ -271,6 +271,9 @@ def test_offsets_and_tools_survive_programs_and_a_restart(opcfg, sock, capsys):
             assert r["active"] == "G55"
             rc, out, err = run(capsys, "tools", "--json", "--socket", srv.socket_path)
             assert any(t["tool"] == 7 and t["z_mm"] == 33.5 for t in json.loads(out)["tools"])
+            rc, out, err = run(capsys, "tools", "7", "--delete", "--json", "--socket", srv.socket_path)
+            assert rc == 0, err
+            assert not any(t["tool"] == 7 for t in json.loads(out)["tools"])
         finally:
             srv.close()
     finally:

@@ -206,3 +206,45 @@ def test_homing_gate_and_cia402_not_implemented(cfg, tmp_path):
     op2 = Operator(SimpleNamespace(cfg=c2, sh=fake.sh, alive=True))
     assert op2.referenced is True
     op2._motion_checks("program 'p'")
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["tools", "3", "z=abc"], ["hexacnc tools", "z_mm", "'abc'", "not a number"]),
+    (["tools", "3", "p=1.5"], ["pocket", "'1.5'", "not an integer"]),
+    (["tools", "--delete"], ["name the tool"]),
+    (["offsets", "G55", "x=1O"], ["hexacnc offsets", "x = '1O'", "not a number"]),
+    (["offsets", "x=1"], ["offsets", "name the system"]),
+])
+def test_tools_and_offsets_refuse_bad_values_on_stderr_before_connecting(capsys, argv, words):
+    """A bad value is named with its key, on stderr, exit 2, and nothing reaches a daemon (none runs here)."""
+    from hexacnc.cli import main
+    rc = main(argv + ["--socket", "/nonexistent/hexacnc.sock"])
+    out, err = capsys.readouterr()
+    assert rc == 2 and out == "", (rc, out, err)
+    assert len(err.strip().splitlines()) == 1
+    for w in words:
+        assert w in err, err
+
+
+def test_a_rapid_override_ends_at_the_rapids_stop_within_the_limits(cfg):
+    """After a rapid at 25 % and an exact stop, the feed move starts at its own rate: the rate changes at rest,
+    where it changes no strut speed or acceleration (it ramped up through the feed move's first 0.3 s). The rows
+    stay within the strut limits, measured by exact inverse kinematics and finite differences."""
+    from test_planner_motion import utilisation
+    text = ("G21 G90 G61\nG0 X0 Y0 Z60\nG0 X60\nG1 X0 F600\nG0 Y40 Z50\nG1 Y0 Z60 A5 F900\n"
+            "G64 P0.01\nG0 X30\nG1 X0 F1200\nM2\n")
+    plan = _plan(cfg, text)
+    p = cfg.cycle.period_s
+    full = _play(plan, p)
+    slow = _play(plan, p, rapid=0.25)
+    line = lambda rows, ln: int(np.sum(rows[:, 6] == ln))   # noqa: E731
+    for ln in (4, 6):                                        # feed moves after a rapid's exact stop
+        assert abs(line(slow, ln) - line(full, ln)) <= 2, (ln, line(slow, ln), line(full, ln))
+    assert line(slow, 8) > 2.0 * line(full, 8)                # the G64 rapid, slowed
+    assert line(slow, 9) >= line(full, 9)                    # its blend into the feed move: a ramp, no jump
+    u = utilisation(cfg, slow, p)
+    assert u[0] <= 1.0 and u[1] <= 0.95 and u[2] <= 0.95, u
+    for ln in (4, 6):            # the feed moves from the stop on: as at full rapid rate, no step from the change
+        a, b = (np.nonzero(rows[:, 6] == ln)[0][[0, -1]] for rows in (slow, full))
+        us, uf = utilisation(cfg, slow[a[0] - 3:a[1]], p), utilisation(cfg, full[b[0] - 3:b[1]], p)
+        assert all(x <= y + 0.01 for x, y in zip(us, uf)), (ln, us, uf)

@@ -42,12 +42,21 @@ def test_validate_accepts_ints_for_floats_and_caps_wait():
     assert r.fields == {}
 
 
+def test_a_bool_field_takes_a_bool():
+    """'delete' was refused as 'must be bool, got bool': every bool was kept out of every field (so that
+    True is never an int), the bool fields too (hexacnc tools 3 --delete could not delete)."""
+    r = P.validate_request({"id": 1, "op": "tools", "tool": 3, "delete": True})
+    assert r.fields == {"tool": 3, "delete": True}
+
+
 @pytest.mark.parametrize("msg,code", [
     ({"id": 1, "op": "program", "text": "G0\x00", "name": "n"}, "bad_value"),
     ({"id": 1, "op": "wait", "timeout_s": float("inf")}, "bad_value"),
     ({"id": 1, "op": "wait", "timeout_s": True}, "bad_type"),
     ({"id": 1, "op": "unsubscribe", "sub": "1"}, "bad_type"),
     ({"id": 1, "op": "hello", "token": 5}, "bad_type"),
+    ({"id": 1, "op": "tools", "tool": True}, "bad_type"),
+    ({"id": 1, "op": "tools", "tool": 3, "delete": 1}, "bad_type"),
 ])
 def test_validate_rejects(msg, code):
     with pytest.raises(P.RequestError) as ei:

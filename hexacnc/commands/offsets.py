@@ -13,6 +13,7 @@ programs and daemon restarts.
 from __future__ import annotations
 
 import argparse
+import sys
 from dataclasses import dataclass
 
 from .machine import EXIT_LOCAL, EXIT_OK, add_common, print_reply, run_op
@@ -28,6 +29,20 @@ def _pairs(items: list[str], allowed: dict[str, str], what: str) -> dict:
         if not sep or k not in allowed:
             raise ValueError(f"{what}: {it!r} is not KEY=VALUE with KEY one of {', '.join(allowed)}")
         out[allowed[k]] = v
+    return out
+
+
+def _numbers(raw: dict, what: str, ints=(), texts=()) -> dict:
+    """The values of KEY=VALUE pairs as numbers (``ints`` as integers, ``texts`` kept), naming a bad one."""
+    out = {}
+    for k, v in raw.items():
+        if k in texts:
+            out[k] = v
+            continue
+        try:
+            out[k] = int(v) if k in ints else float(v)
+        except ValueError:
+            raise ValueError(f"{what}: {k} = {v!r} is not {'an integer' if k in ints else 'a number'}") from None
     return out
 
 
@@ -55,12 +70,12 @@ class OffsetsCmd:
 
     def main(self, args: argparse.Namespace) -> int:
         try:
-            vals = {k: float(v) for k, v in _pairs(args.values, {a: a for a in _AXES}, "offsets").items()}
+            vals = _numbers(_pairs(args.values, {a: a for a in _AXES}, "offsets"), "offsets")
         except ValueError as exc:
-            print(f"hexacnc offsets: {exc}")
+            print(f"hexacnc offsets: {exc}", file=sys.stderr)
             return EXIT_LOCAL
-        if vals and not args.system:
-            print("hexacnc offsets: name the system to edit (e.g. G55 x=10)")
+        if (vals and not args.system) or (args.system and "=" in args.system):
+            print("hexacnc offsets: name the system to edit (e.g. G55 x=10)", file=sys.stderr)
             return EXIT_LOCAL
         fields = {}
         if args.system:
@@ -88,10 +103,12 @@ class ToolsCmd:
     def main(self, args: argparse.Namespace) -> int:
         keys = {"z": "z_mm", "d": "diameter_mm", "p": "pocket", "comment": "comment"}
         try:
-            raw = _pairs(args.values, keys, "tools")
-            fields = {k: (int(v) if k == "pocket" else v if k == "comment" else float(v)) for k, v in raw.items()}
+            fields = _numbers(_pairs(args.values, keys, "tools"), "tools", ints=("pocket",), texts=("comment",))
         except ValueError as exc:
-            print(f"hexacnc tools: {exc}")
+            print(f"hexacnc tools: {exc}", file=sys.stderr)
+            return EXIT_LOCAL
+        if args.tool is None and (fields or args.delete):
+            print("hexacnc tools: name the tool to edit or delete (e.g. hexacnc tools 3 z=95.5)", file=sys.stderr)
             return EXIT_LOCAL
         if args.tool is not None:
             fields["tool"] = args.tool

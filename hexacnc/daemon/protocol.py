@@ -148,10 +148,13 @@ def _type_name(v: Any) -> str:
 
 
 def _is_type(v: Any, types: tuple[type, ...]) -> bool:
-    return isinstance(v, types) and not isinstance(v, bool)
+    """v is one of the types; a bool only where bool is asked for (never as an int)."""
+    if isinstance(v, bool):
+        return bool in types
+    return isinstance(v, types)
 
 
-_TYPE_WORDS = {str: "str", int: "int", float: "float"}
+_TYPE_WORDS = {str: "str", int: "int", float: "float", bool: "bool"}
 
 
 def validate_request(msg: Any) -> Request:

@@ -76,6 +76,23 @@ def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
     return out
 
 
+def _rest_and_rapid_rows(s_tab: np.ndarray, flags: np.ndarray) -> tuple:
+    """Per table row: at rest (rows i and i + 1 equal: a stop's rows, where the path's speed and acceleration
+    vanish, so that a change of the rate there changes neither), rapid (a rest counts as the motion after it),
+    and the last row of its run of equal rapid-ness."""
+    n = s_tab.shape[0]
+    flat = np.zeros(n, dtype=bool)
+    if n >= 2:
+        flat[:-1] = s_tab[1:] == s_tab[:-1]
+    idx = np.where(flat, n - 1, np.arange(n))
+    nxt = np.minimum.accumulate(idx[::-1])[::-1]          # the first row at or after i that moves
+    rapid = (flags[nxt] & FLAG_RAPID) != 0 if n else np.zeros(0, dtype=bool)
+    change = np.nonzero(rapid[1:] != rapid[:-1])[0]      # run ends
+    ends = np.concatenate([change, [n - 1]]) if n else np.zeros(0, dtype=np.int64)
+    run_end = ends[np.searchsorted(ends, np.arange(n))] if n else ends
+    return flat.tolist(), rapid.tolist(), run_end.tolist()
+
+
 class PlanSampler:
     """Setpoint rows from a plan, with feed override, pause/resume and stop.
 
@@ -98,10 +115,7 @@ class PlanSampler:
         self.fd = 0.0
         self.user = 1.0
         self.rapid = 1.0                             # rapid override: rate factor on governor blocks of rapids
-        ft = np.asarray(plan.flag_tab)
-        pad = (-len(ft)) % GOV_BLOCK
-        self._rapid_blk = (np.concatenate([ft, np.zeros(pad, ft.dtype)]).reshape(-1, GOV_BLOCK)
-                           & FLAG_RAPID).any(axis=1).tolist() if len(ft) else []
+        self._flat, self._rapid_row, self._rapid_end = _rest_and_rapid_rows(plan.s_tab, np.asarray(plan.flag_tab))
         self.state = RUN
         self.done = self.n == 0
         g = plan.gov
@@ -243,10 +257,11 @@ class PlanSampler:
             return 10.0
         return float(self._traj.duration) if res in (Result.Working, Result.Finished) else 10.0
 
-    def _target(self, b: int) -> float:
+    def _target(self, b: int, i: int) -> float:
+        """The rate aimed at in governor block b at table row i."""
         if self.state in (PAUSING, STOPPING, PAUSED, PROGRAM_PAUSED, DONE):
             return 0.0
-        if self.rapid != 1.0 and b < len(self._rapid_blk) and self._rapid_blk[b]:
+        if self.rapid != 1.0 and self._rapid_row[i]:
             return min(self.user * self.rapid, self._cap[b])
         return min(self.user, self._cap[b])
 
@@ -260,8 +275,14 @@ class PlanSampler:
         last = self.n - 1
         inp, otg, o = self._inp, self._otg, self._out
         while cnt < nmax:
-            b = min(len(self._cap) - 1, int(self.k) // GOV_BLOCK)
-            tgt = self._target(b)
+            i = min(last, int(self.k))
+            b = min(len(self._cap) - 1, i // GOV_BLOCK)
+            tgt = self._target(b, i)
+            if self.state == RUN and self.f != tgt and self._flat[i]:
+                # at rest (the table stands still around here) the rate changes at once: a rapid override
+                # ends with the rapid's stop, not a transition into the feed move after it
+                self.f, self.fd, self._lim = tgt, 0.0, None
+                continue
             if self.f == tgt and self.fd == 0.0 and self.state == RUN:
                 # steady: vectorised advance up to the next pause, the end or a cap change
                 nxt = self._pauses[self._next_pause][0] if self._next_pause < len(self._pauses) else last
@@ -269,6 +290,9 @@ class PlanSampler:
                 if self.f > 0:
                     room = min(room, max(1, int((nxt - self.k) / (self.f * self.step))))
                 room = min(room, max(1, int(((b + 1) * GOV_BLOCK - self.k) / max(self.f * self.step, 1e-9)) + 1))
+                if self.rapid != 1.0:        # up to the next change between rapid and feed rows
+                    room = min(room, max(1, int((self._rapid_end[i] + 1 - self.k) / max(self.f * self.step, 1e-9))
+                                         + 1))
                 kk = self.k + self.f * self.step * np.arange(1, room + 1)
                 if kk[-1] >= nxt:
                     room = int(np.searchsorted(kk, nxt, side="left")) + 1
