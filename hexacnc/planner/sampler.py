@@ -265,6 +265,18 @@ class PlanSampler:
             return min(self.user * self.rapid, self._cap[b])
         return min(self.user, self._cap[b])
 
+    def _steady_rows(self, room: int, nxt: int, b: int, i: int) -> int:
+        """Rows at the steady rate from here (at most ``room``): to the table row ``nxt`` (a pause or the end),
+        the end of governor block b, and with a rapid override to the next change between rapid and feed rows
+        (row i is the current one)."""
+        adv = max(self.f * self.step, 1e-9)
+        if self.f > 0:
+            room = min(room, max(1, int((nxt - self.k) / (self.f * self.step))))
+        room = min(room, max(1, int(((b + 1) * GOV_BLOCK - self.k) / adv) + 1))
+        if self.rapid != 1.0:
+            room = min(room, max(1, int((self._rapid_end[i] + 1 - self.k) / adv) + 1))
+        return room
+
     def next_rows(self, out: np.ndarray) -> int:
         if self.done:
             return 0
@@ -286,13 +298,7 @@ class PlanSampler:
             if self.f == tgt and self.fd == 0.0 and self.state == RUN:
                 # steady: vectorised advance up to the next pause, the end or a cap change
                 nxt = self._pauses[self._next_pause][0] if self._next_pause < len(self._pauses) else last
-                room = nmax - cnt
-                if self.f > 0:
-                    room = min(room, max(1, int((nxt - self.k) / (self.f * self.step))))
-                room = min(room, max(1, int(((b + 1) * GOV_BLOCK - self.k) / max(self.f * self.step, 1e-9)) + 1))
-                if self.rapid != 1.0:        # up to the next change between rapid and feed rows
-                    room = min(room, max(1, int((self._rapid_end[i] + 1 - self.k) / max(self.f * self.step, 1e-9))
-                                         + 1))
+                room = self._steady_rows(nmax - cnt, nxt, b, i)
                 kk = self.k + self.f * self.step * np.arange(1, room + 1)
                 if kk[-1] >= nxt:
                     room = int(np.searchsorted(kk, nxt, side="left")) + 1
