@@ -11,8 +11,8 @@ import numpy as np
 
 from ..errors import PlanError
 from . import path as P
-from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_MARGIN_SLOPE, MAX_ITERATIONS, MODEL_SCREEN, SCREEN,
-                     SPREAD_REACH)
+from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_AIM, LOWER_MARGIN_SLOPE, MAX_ITERATIONS, MODEL_SCREEN,
+                     SCREEN, SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
@@ -165,9 +165,10 @@ class Tightener:
         bad = viol_v | viol_a | viol_j
         fac = np.ones(s_f.shape[0])
         with np.errstate(divide="ignore"):
-            rv = ETA_V * 0.9995 / np.maximum(uv, 1e-12)
-            ra = ETA / np.maximum(ua, 1e-12)
-            rj = ETA / np.maximum(uj, 1e-12)
+            aim = 1.0 - LOWER_AIM
+            rv = ETA_V * 0.9995 * aim / np.maximum(uv, 1e-12)
+            ra = ETA * aim / np.maximum(ua, 1e-12)
+            rj = ETA * aim / np.maximum(uj, 1e-12)
             fac = np.where(viol_v, np.minimum(fac, rv * rv * _margin(rv, 0.98)), fac)
             fac = np.where(viol_a, np.minimum(fac, ra * _margin(ra, 0.97)), fac)
             fac = np.where(viol_j, np.minimum(fac, rj * _margin(rj, 0.9)), fac)
