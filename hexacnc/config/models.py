@@ -180,7 +180,8 @@ def _parse_calibration(cs: Section) -> CalibrationConfig:
         for i in range(6):
             for k in range(d):
                 if abs(coef[i, k]) > 1000.0:
-                    raise cs.error("strut_nonlinearity_mm", f"row {i + 1}, P{k + 1} coefficient {float(coef[i, k])!r} mm "
+                    coef_ik = float(coef[i, k])
+                    raise cs.error("strut_nonlinearity_mm", f"row {i + 1}, P{k + 1} coefficient {coef_ik!r} mm "
                                                             f"is beyond +-1000 mm")
         for key in ("strut_nonlinearity_center_mm", "strut_nonlinearity_half_range_mm"):
             if not cs.has(key):
