@@ -101,6 +101,26 @@ def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
     assert sup.check(now, [1.2] * 6, 12) == F_FOLLOWING and 299 <= sup.arg <= 301
 
 
+def test_on_a_bus_every_second_cycle_a_sample_older_than_the_history_is_not_checked():
+    """sync_every 2: a sample whose SYNC is still in the history but whose SYNC before (k - 2) is not was
+    compared with the command that overwrote that slot (k - 2 + the ring's size)."""
+    io = FakeIO()
+    io.sync_every = 2
+    sup = DriveSupervisor(io, 0.0005, [0.2] * 6, 0.35, 0.35, 0.4)
+    sup.fill([0.0] * 6)
+    now = 10 * MS
+    io.hb_ns = [now] * 6
+    sup.arm(now)
+    n = sup.n_hist
+    sends = 3 * n
+    for k in range(1, sends + 1):
+        sup.record(k, [0.0 if k <= sends - n + 1 else (100.0 if k == sends else 50.0)] * 6)
+    io.pos_count = [1] * 6
+    io.pos_sync[:] = [sends - n + 2] * 6           # held (50); its SYNC before, sends - n (0), no longer is:
+    # its slot holds the command of SYNC sends (100), so [50, 100] would call 25 mm a 25 mm error
+    assert sup.check(now, [25.0] * 6, sends) == F_NONE and max(sup.follow_now) == 0.0
+
+
 @pytest.mark.parametrize("setup,code", [
     (lambda io: io.statusword.__setitem__(1, 0x0240 | 0x1000), F_DRIVE),
     (lambda io: io.statusword.__setitem__(1, 0x1037), F_REMOTE),

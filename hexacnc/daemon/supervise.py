@@ -140,7 +140,7 @@ class DriveSupervisor:
                 self.pos_seen[i] = pos_count[i]
                 self.fresh_ns[i] = now_ns
                 k = sync[i]
-                if 0 < k <= sends and sends - k < self.n_hist - 1:
+                if 0 < k <= sends and sends - k < self.n_hist - self._step:   # both commands still held
                     h = self.hist[i]
                     c1 = h[k & self.mask]
                     c0 = h[(k - self._step) & self.mask]
