@@ -17,7 +17,7 @@ from typing import Any, TextIO
 from ..errors import HexacncError
 from .send import (EXIT_CONNECTION, EXIT_FAULT, EXIT_LOCAL, EXIT_OK, add_connection_args, connect, fmt_duration,
                    progress_of)
-from .statusview import WIDTH, format_compact
+from .statusview import WIDTH, fixed, format_compact
 
 HELP = "show the running daemon's state, poses, struts and cycle statistics"
 
@@ -54,7 +54,7 @@ def _vec(v: Any, digits: int = 3) -> str:
     parts = []
     for x in v:
         if isinstance(x, (int, float)) and not isinstance(x, bool):
-            parts.append(f"{(x if round(x, digits) != 0 else 0.0):.{digits}f}" if math.isfinite(x) else "nan")
+            parts.append(fixed(x, digits) if math.isfinite(x) else "nan")
         else:
             parts.append(str(x))
     return "[" + ", ".join(parts) + "]"

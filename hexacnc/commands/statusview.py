@@ -10,11 +10,17 @@ from .send import fmt_duration, progress_of
 WIDTH, HEIGHT = 80, 24
 
 
+def fixed(v: float, d: int = 3, w: int = 0) -> str:
+    """A finite number with d decimals in at least w characters, never '-0.000' (a rounding of a tiny
+    negative value)."""
+    return f"{(v if round(v, d) != 0 else 0.0):{w}.{d}f}"
+
+
 def _n(v: Any, w: int = 9, d: int = 3) -> str:
-    """v in w characters with d decimals ('-' if not a finite number; never '-0.000')."""
+    """v in w characters with d decimals ('-' if not a finite number)."""
     if not (isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)):
         return f"{'-':>{w}}"
-    return f"{(v if round(v, d) != 0 else 0.0):{w}.{d}f}"
+    return fixed(v, d, w)
 
 
 def _row(label: str, v: Any) -> str:

@@ -134,7 +134,7 @@ def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float, keep=
     its ends.  ``keep`` (N-1,) bool: the links between neighbours a point may take the next one's cap
     across (False at a stop, whose hold keeps the two sides' filter windows apart; ``sg`` then runs
     with a gap there: :func:`separated`)."""
-    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2), max_reach=SPREAD_CAP_MM)
+    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2))
     for _ in range(2):
         nxt = out[1:] if keep is None else np.where(keep, out[1:], np.inf)
         np.minimum(out[:-1], nxt, out=out[:-1])

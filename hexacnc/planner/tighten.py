@@ -54,8 +54,8 @@ class Tightener:
         # the motion before it and after it apart (a tiny move's next move lowered its last intervals'
         # acceleration cap, over fewer of them as it grew: a longer move planned shorter)
         self.reach_mm = float(g.sg[-1] - g.sg[0]) + 1.0
-        cut = rs.stop_idx[(rs.stop_idx < Ng - 1)]
-        cut = cut[g.h[np.minimum(cut, Ng - 2)] == 0] if Ng > 1 else cut
+        cut = rs.stop_idx[rs.stop_idx < Ng - 1]
+        cut = cut[g.h[cut] == 0]                    # stops at a duplicated junction point
         self.sg_sep, self.keep = separated(g.sg, cut, 2.0 * self.reach_mm)
         xlim = xlim.copy()
         xlim[rs.stop_all] = 0.0
