@@ -24,10 +24,12 @@ import math
 import numpy as np
 
 from ..planner import path as P
-from ..planner.consts import ETA_V, FILTER_JERK_SHARE
+from ..planner.consts import ETA_V, FILTER_JERK_SHARE, SPREAD_REACH
 from ..planner.grid import build_grid, check_grid, derivatives
 from ..planner.holds import rests
+from ..planner.plan import REACH_POINTS
 from ..planner.profile import ETA
+from ..planner.reachgrid import with_reach_points
 from ..planner.retime import row_utilisation
 from ..planner.speeds import speed_limits
 from ..planner.tighten import Tightener, tighten
@@ -62,6 +64,9 @@ def time_loss(blocks, cfg) -> dict:
     check_grid(path, hx, cfg, g, dv.Xg, dv.tip_g)
     xlim, c, e, dd = speed_limits(path, cfg, g, dv, dt, *lims)
     rs = rests(path, events, g, nf * dt + 2 * dt, dt)
+    if REACH_POINTS:
+        g, dv, rs, (xlim, c, e, dd) = with_reach_points(path, hx, cfg, events, g, dv, rs, (xlim, c, e, dd), lims,
+                                                        dt, SPREAD_REACH * nf * dt, nf * dt + 2 * dt)
     tt = Tightener(path, hx, g, dv, rs, xlim, c, e, dd, lims, dt, nf, nf * dt + 2 * dt)
     x0 = xlim.copy()
     x0[rs.stop_all] = 0.0

@@ -18,9 +18,11 @@ FILTER_JERK_SHARE = 0.9
 #: a jerk-only violation lowers the acceleration cap by the verification's factor f and the speed limit
 #: by f ** CAP_JERK_SPEED (the filter's |L'| du / w hardly changes with speed)
 CAP_JERK_SPEED = 0.75
-#: reach of the spreading, in filter widths (w/2 plus 10 %: at the reach's end the filter's transition
-#: still adds jerk where the curvature term is near its share)
-SPREAD_REACH = 0.55
+#: reach of the spreading, in filter widths: the window's w/2.  It was 0.55 while the ramp out of a slow spot
+#: could start at the last grid point inside the reach; with a grid point at every reach end (reachgrid.py) the
+#: ramp starts there, and 0.5 plans the bench paths as fast as 0.55 did before or faster (tort 25-45 3.5735 ->
+#: 3.5075 s; 0.55 with the points: 3.5995 s; 0.45: smooth 1.9125 -> 1.947 s, more verification passes)
+SPREAD_REACH = 0.5
 #: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
 CAP_ROUNDS = 2
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass

@@ -48,6 +48,7 @@ from .grid import build_grid, check_grid, derivatives
 from .holds import Hold, rests  # noqa: F401 (Hold re-exported)
 from .limits import _check_limits
 from .profile import ETA  # noqa: F401 (re-exported)
+from .reachgrid import with_reach_points
 from .retime import hold_times, retime
 from .softlimits import check_box
 from .speeds import speed_limits
@@ -58,6 +59,8 @@ from .verify import _measure_fast
 #: run the verified table faster where its rows leave room below the shares (retime.py, measured from the rows);
 #: off: 3D_Chips.ngc 93.05 -> 87.83 s but planning 1.0 -> 3.3 s CPU (below the 100x real-time target)
 RETIME = False
+#: a grid point at every binding end of the speed limits' spreading (:mod:`.reachgrid`)
+REACH_POINTS = True
 
 
 class Plan:
@@ -164,6 +167,9 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     dv.tip_g = None
     xlim, c, e, dd = speed_limits(path, cfg, g, dv, dt, *lims)
     rs = rests(path, events, g, hold_min, dt)
+    if REACH_POINTS:
+        g, dv, rs, (xlim, c, e, dd) = with_reach_points(path, hx, cfg, events, g, dv, rs, (xlim, c, e, dd), lims,
+                                                        dt, SPREAD_REACH * nf * dt, hold_min)
     tt = Tightener(path, hx, g, dv, rs, xlim, c, e, dd, lims, dt, nf, w_plateau)
     prof = tighten(tt)
     del c, e, dd, xlim

@@ -69,6 +69,68 @@ def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, sp
 
 _dilate_min = dilate_min   #: the planner modules' own name for it
 
+
+def reach_ends(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.inf) -> tuple:
+    """Where the reaches of :func:`dilate_min` (same arguments) end inside a grid interval of positive
+    length: per end the interval ``k`` (its points k, k+1), the end's position in it ``t`` (0 at k, 1 at
+    k+1), the spread limit and the grid point just beyond the reach."""
+    N = x.shape[0]
+    fin = np.isfinite(x)
+    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x, 0.0)) * T, max_reach), 0.0)
+    j = np.nonzero(fin & (r > 0.0))[0]
+    ks, ts, xs, bs = [], [], [], []
+    if j.size and N >= 2:
+        sj, rj = sg[j], r[j]
+        for side in (1.0, -1.0):
+            end = sj + side * rj
+            k = np.searchsorted(sg, end, side="right" if side > 0 else "left") - 1
+            ok = (k >= 0) & (k < N - 1)
+            k, jj, end = k[ok], j[ok], end[ok]
+            hk = sg[k + 1] - sg[k]
+            pos = hk > 0.0
+            k, jj, end, hk = k[pos], jj[pos], end[pos], hk[pos]
+            ks.append(k)
+            ts.append(np.clip((end - sg[k]) / hk, 0.0, 1.0))
+            xs.append(x[jj])
+            bs.append(k + 1 if side > 0 else k)
+    if not ks:
+        z = np.zeros(0, dtype=np.int64)
+        return z, np.zeros(0), np.zeros(0), z
+    return np.concatenate(ks), np.concatenate(ts), np.concatenate(xs), np.concatenate(bs)
+
+
+def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
+                     max_reach: float = math.inf) -> np.ndarray:
+    """Speed limits (N,) for the grid points just beyond the end of a spreading's reach (inf elsewhere).
+
+    ``x`` the limits :func:`dilate_min` spreads (same ``sg``, ``T``, ``max_reach``); ``upper`` (N,) the
+    limits of the points without this spreading.  A reach ends inside a grid interval; the point beyond
+    keeps its own limit only while the reach is short of it and takes the spread one as soon as the reach
+    passes it: a step in the limits as a path grows (a slow spot's reach grows more slowly than a path
+    scaled up around it, so its end crosses grid points).  The point beyond gets the spread limit
+    interpolated towards ``upper`` by the share of the interval that lies beyond the reach, so the limits
+    change continuously with the reach; every copy of a duplicated junction point alike (the smallest of all
+    reach ends at a point).  The planner puts a grid point at each end it knows beforehand
+    (:mod:`~hexacnc.planner.reachgrid`); this covers the others."""
+    N = x.shape[0]
+    lim = np.full(N, np.inf)
+    k, t, xs, b = reach_ends(sg, x, T, max_reach)
+    if k.size == 0:
+        return lim
+    f = np.where(b > k, 1.0 - t, t)                              # share of the interval beyond the reach
+    first = np.searchsorted(sg, sg, side="left")                 # copies of a point: first index, count
+    b0, nb = first[b], np.searchsorted(sg, sg, side="right")[b] - first[b]
+    for o in range(int(nb.max())):
+        m = np.nonzero(o < nb)[0]
+        c, xm, fm = b0[m] + o, xs[m], f[m]
+        bind = upper[c] > xm
+        c, xm, fm = c[bind], xm[bind], fm[bind]
+        with np.errstate(invalid="ignore"):
+            val = np.where(fm > 0.0, xm + fm * (upper[c] - xm), xm)     # an infinite upper: no nan at f = 0
+        np.minimum.at(lim, c, val)
+    return lim
+
+
 def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
     """Path acceleration bound (N,) for the raw profile: a change of the raw path acceleration u by du
     reaches the struts through the moving average of width ``w`` as jerk ``|L'_i| du / w``, on top of

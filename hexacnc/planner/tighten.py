@@ -16,7 +16,8 @@ from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_AIM, LOWER_MARGIN_
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
-                      _runs, _sample_profile, _spread_cap, _with_accel_cap, separated)
+                      _runs, _sample_profile, _spread_cap, _with_accel_cap, reach_end_limits)
+from .reachgrid import spread_frame
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
@@ -53,13 +54,10 @@ class Tightener:
         # no spreading crosses a stop: its hold (at least the filter's width) keeps the filter windows of
         # the motion before it and after it apart (a tiny move's next move lowered its last intervals'
         # acceleration cap, over fewer of them as it grew: a longer move planned shorter)
-        self.reach_mm = float(g.sg[-1] - g.sg[0]) + 1.0
-        cut = rs.stop_idx[rs.stop_idx < Ng - 1]
-        cut = cut[g.h[cut] == 0]                    # stops at a duplicated junction point
-        self.sg_sep, self.keep = separated(g.sg, cut, 2.0 * self.reach_mm)
+        self.sg_sep, self.keep, self.reach_mm = spread_frame(g, rs)
         xlim = xlim.copy()
         xlim[rs.stop_all] = 0.0
-        self.xlim = self._spread(xlim)
+        self.xlim = self._spread(xlim, xlim.copy())
         # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
         # cap only grows as speeds drop, so it stays valid)
         x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
@@ -72,7 +70,7 @@ class Tightener:
         if lower.size:      # curvature alone needs more than the cap: a speed limit, spread like the others
             xw = np.full(Ng, np.inf)
             xw[lower] = xcap[lower]
-            self.xlim = np.minimum(self.xlim, self._spread(xw))
+            self.xlim = np.minimum(self.xlim, self._spread(xw, self.xlim))
         self.topp = WavefrontTopp(g.h, c, self.e, self.dd)   # same result as topp.forward_backward
         self.factor = np.ones(Ng)
         self.caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
@@ -81,12 +79,17 @@ class Tightener:
         self.bounds = _Bounds(dv.Lp, dv.Lpp, dv.Lppp, self.vmax, self.amax, self.jmax)
         self.xc = None
 
-    def _spread(self, xw):
+    def _spread(self, xw, upper):
         """Speed limits spread over the filter's reach (the window reaches w/2 either side of its
-        centre); stops spread nothing and stay at rest."""
+        centre); stops spread nothing and stay at rest.  ``upper``: the limits without these (finite), which
+        the points just beyond a reach's end are interpolated towards (:func:`reach_end_limits`)."""
         sa = self.rs.stop_all
         xw[sa] = np.inf
-        out = _dilate_min(self.sg_sep, xw, SPREAD_REACH * self.nf * self.dt, max_reach=self.reach_mm)
+        T = SPREAD_REACH * self.nf * self.dt
+        out = _dilate_min(self.sg_sep, xw, T, max_reach=self.reach_mm)
+        out[sa] = 0.0
+        # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated
+        np.minimum(out, reach_end_limits(self.sg_sep, xw, upper, T, self.reach_mm), out=out)
         out[sa] = 0.0
         return out
 

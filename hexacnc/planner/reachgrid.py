@@ -1,0 +1,95 @@
+"""Grid points where the spreading of a slow spot ends (step 4 of :mod:`hexacnc.planner.plan`).
+
+A speed limit ``x_j`` is spread over ``|s - s_j| <= r_j`` (:func:`~hexacnc.planner.profile.dilate_min`), and
+the reach's end ``s_j +- r_j`` falls inside a grid interval.  On the grid alone the point beyond keeps its
+own, higher, limit until the reach passes it and then drops to ``x_j`` at once: the limits, and the planned
+time, step as a path grows, because a slow spot's reach grows more slowly than a path scaled up around it
+(twelve G64 moves of 1.198 um planned 9 cycles longer than of 1.216 um).  A grid point at every reach end
+that binds (the point beyond has a higher limit) represents the spread limit exactly: the ramp out of the
+slow spot starts where the reach ends, and the plan changes continuously with the path.
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from . import path as P
+from .grid import Derivs, Grid, derivatives
+from .holds import Rests, rests
+from .profile import dilate_min, reach_ends, separated
+from .speeds import speed_limits
+
+#: a reach end closer than this share of its interval to a grid point gets no point of its own (the
+#: interval's interpolated limit, :func:`~hexacnc.planner.profile.reach_end_limits`, covers it)
+MIN_SHARE = 1e-6
+
+
+def spread_frame(g: Grid, rs: Rests) -> tuple:
+    """Positions the spreading runs on (a gap after every stop at a duplicated junction point, so that no
+    reach crosses a stop), the links kept, and the longest reach (mm)."""
+    reach_mm = float(g.sg[-1] - g.sg[0]) + 1.0
+    cut = rs.stop_idx[rs.stop_idx < g.n - 1]
+    cut = cut[g.h[cut] == 0]
+    sg_sep, keep = separated(g.sg, cut, 2.0 * reach_mm)
+    return sg_sep, keep, reach_mm
+
+
+def end_positions(g: Grid, rs: Rests, xlim: np.ndarray, T: float) -> tuple:
+    """The binding reach ends of the speed limits ``xlim`` (stops at rest) spread over ``T`` seconds:
+    (interval index (m,), path position (m,)), sorted, at most one per position."""
+    sg_sep, _keep, reach_mm = spread_frame(g, rs)
+    xw = xlim.copy()
+    xw[rs.stop_all] = np.inf
+    out = dilate_min(sg_sep, xw, T, max_reach=reach_mm)
+    out[rs.stop_all] = 0.0
+    kk, t, xs, b = reach_ends(sg_sep, xw, T, reach_mm)
+    bind = (out[b] > xs) & (t > MIN_SHARE) & (t < 1.0 - MIN_SHARE)   # the point beyond has a higher limit
+    kk, t = kk[bind], t[bind]
+    if kk.size == 0:
+        return kk, np.zeros(0)
+    s = g.sg[kk] + t * (g.sg[kk + 1] - g.sg[kk])
+    inside = (s > g.sg[kk]) & (s < g.sg[kk + 1])
+    kk, s = kk[inside], s[inside]
+    order = np.lexsort((s, kk))
+    kk, s = kk[order], s[order]
+    new = np.concatenate([[True], (kk[1:] != kk[:-1]) | (s[1:] != s[:-1])])
+    return kk[new], s[new]
+
+
+def insert_points(path: P.Path, hx, cfg, g: Grid, dv: Derivs, lims, dt: float, kk: np.ndarray, s: np.ndarray,
+                  arrays: tuple) -> tuple:
+    """The grid with points at ``s`` inside the intervals ``kk`` (sorted), their derivatives and speed
+    limits; ``arrays`` (xlim, c, e, dd) extended with the new points' rows.  Returns (grid, derivs, arrays)."""
+    pidx_new = g.pidx[kk]
+    mini = Grid(s, pidx_new, np.ones(s.shape[0]), np.zeros(0, dtype=np.int64), g.lmarg, g.amarg)
+    dn = derivatives(path, hx, mini)
+    xn, cn, en, ddn = speed_limits(path, cfg, mini, dn, dt, *lims)
+    at = kk + 1
+    sg = np.insert(g.sg, at, s)
+    pidx = np.insert(g.pidx, at, pidx_new)
+    shift = np.searchsorted(kk, np.arange(g.n), side="left")     # points inserted before each old point
+    h = np.diff(sg)
+    junction = np.nonzero(g.h == 0)[0]
+    h[junction + shift[junction]] = 0.0
+    h = np.maximum(h, 0.0)
+    last = g.last + shift[g.last]
+    g2 = replace(g, sg=sg, pidx=pidx, h=h, last=last)
+    dv2 = Derivs(np.insert(dv.Lp, at, dn.Lp, axis=0), np.insert(dv.Lpp, at, dn.Lpp, axis=0),
+                 np.insert(dv.Lppp, at, dn.Lppp, axis=0), np.insert(dv.Xg, at, dn.Xg, axis=0),
+                 np.insert(dv.dtip, at, dn.dtip, axis=0), None)
+    new_rows = (xn, cn, en, ddn)
+    out = tuple(np.insert(a, at, b, axis=0) for a, b in zip(arrays, new_rows))
+    return g2, dv2, out
+
+
+def with_reach_points(path: P.Path, hx, cfg, events, g: Grid, dv: Derivs, rs: Rests, limits: tuple, lims,
+                      dt: float, T: float, hold_min: float) -> tuple:
+    """The planning grid with a point at every binding end of the spreading of the speed limits over ``T``
+    seconds.  ``limits`` (xlim, c, e, dd) of :func:`~hexacnc.planner.speeds.speed_limits`.  Returns
+    (grid, derivs, rests, limits), unchanged where no reach ends inside an interval."""
+    kk, s = end_positions(g, rs, limits[0], T)
+    if kk.size == 0:
+        return g, dv, rs, limits
+    g, dv, limits = insert_points(path, hx, cfg, g, dv, lims, dt, kk, s, limits)
+    return g, dv, rests(path, events, g, hold_min, dt), limits

@@ -1,0 +1,128 @@
+"""Grid points at the ends of the speed limits' spreading (hexacnc.planner.reachgrid) and the interpolated
+limit just beyond an end (profile.reach_end_limits): the inserted points get exactly the derivatives and
+limits a grid built with them has, they lie on reach ends, and the limits change continuously as a reach
+grows across grid points."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.gcode.factory import program_from_config
+from hexacnc.kinematics import Hexapod
+from hexacnc.planner import path as P
+from hexacnc.planner.consts import FILTER_JERK_SHARE, SPREAD_REACH
+from hexacnc.planner.grid import Grid, build_grid, derivatives
+from hexacnc.planner.holds import rests
+from hexacnc.planner.profile import dilate_min, reach_end_limits, reach_ends
+from hexacnc.planner.reachgrid import end_positions, insert_points, spread_frame, with_reach_points
+from hexacnc.planner.speeds import speed_limits
+
+PROGRAM = """G21 G90 G64 P0.05
+G1 X10 Y0 Z-1150 F3000
+G1 X10.4 Y0.3 A0.5
+G1 X11 Y0.2 B-0.3
+G2 X13 Y0.2 I1 J0
+G1 X14 Y2 C0.4
+G61
+G1 X14 Y4
+G64 P0.02
+G1 X14.05 Y4.02
+G1 X14.1 Y4.0
+G1 X20 Y4
+M2
+"""
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = load_config(None)
+    hx = Hexapod(cfg)
+    path, events = P.build_path(program_from_config(PROGRAM, "t.ngc", cfg).blocks, cfg)
+    dt = float(cfg.cycle.period_s)
+    lims = tuple(np.asarray(v, dtype=float) for v in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+                                                      cfg.max_jerk_mm_s3))
+    nf = int(math.ceil(float(np.max(lims[1] / lims[2])) / FILTER_JERK_SHARE / dt))
+    g = build_grid(path, hx, cfg, events)
+    dv = derivatives(path, hx, g)
+    limits = speed_limits(path, cfg, g, dv, dt, *lims)
+    rs = rests(path, events, g, nf * dt + 2 * dt, dt)
+    return cfg, hx, path, events, dt, lims, nf, g, dv, limits, rs
+
+
+def test_inserted_points_have_the_derivatives_and_limits_of_a_grid_built_with_them(setup):
+    cfg, hx, path, _events, dt, lims, _nf, g, dv, limits, _rs = setup
+    rng = np.random.default_rng(5)
+    kk = np.sort(rng.choice(np.nonzero(g.h > 0)[0], 40, replace=False))
+    kk = np.concatenate([kk, kk[:5]])                        # two points in some intervals
+    t = rng.uniform(0.05, 0.95, kk.size)
+    order = np.lexsort((t, kk))
+    kk, t = kk[order], t[order]
+    s = g.sg[kk] + t * (g.sg[kk + 1] - g.sg[kk])
+    g2, dv2, lim2 = insert_points(path, hx, cfg, g, dv, lims, dt, kk, s, limits)
+    assert g2.n == g.n + kk.size
+    assert np.all(np.diff(g2.sg) >= 0)
+    # junctions stay duplicated points with zero spacing; every piece still ends on its last point
+    assert int(np.sum(g2.h == 0)) == int(np.sum(g.h == 0))
+    np.testing.assert_allclose(g2.sg[g2.last], path.s0 + path.slen, rtol=0, atol=1e-12)
+    assert np.all(g2.pidx[g2.last] == np.arange(path.n))
+    # the same as derivatives and speed limits evaluated on the refined grid from scratch
+    fresh = derivatives(path, hx, Grid(g2.sg, g2.pidx, g2.h, g2.last, g.lmarg, g.amarg))
+    for name in ("Lp", "Lpp", "Lppp", "Xg", "dtip"):
+        np.testing.assert_allclose(getattr(dv2, name), getattr(fresh, name), rtol=1e-12, atol=1e-12)
+    again = speed_limits(path, cfg, g2, fresh, dt, *lims)
+    for a, b in zip(lim2, again):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=0)
+
+
+def test_points_lie_on_the_ends_of_binding_reaches(setup):
+    cfg, hx, path, events, dt, lims, nf, g, dv, limits, rs = setup
+    T = SPREAD_REACH * nf * dt
+    kk, s = end_positions(g, rs, limits[0], T)
+    assert kk.size > 0
+    assert np.all((s > g.sg[kk]) & (s < g.sg[kk + 1]))
+    # every position is where some limit's reach ends (in the stop-separated frame)
+    sg_sep, _keep, reach_mm = spread_frame(g, rs)
+    xw = limits[0].copy()
+    xw[rs.stop_all] = np.inf
+    fin = np.isfinite(xw)
+    r = np.minimum(np.sqrt(np.maximum(np.where(fin, xw, 0.0), 0.0)) * T, reach_mm)
+    ends = np.concatenate([sg_sep[fin] + r[fin], sg_sep[fin] - r[fin]])
+    s_sep = sg_sep[kk] + (s - g.sg[kk])
+    gap = np.min(np.abs(s_sep[:, None] - ends[None, :]), axis=1)
+    assert gap.max() < 1e-9 * max(1.0, float(g.sg[-1]))
+    g2, _dv2, rs2, lim2 = with_reach_points(path, hx, cfg, events, g, dv, rs, limits, lims, dt, T,
+                                            nf * dt + 2 * dt)
+    assert g2.n == g.n + kk.size
+    assert len(rs2.stop_idx) == len(rs.stop_idx)
+    assert np.all(g2.sg[rs2.stop_idx] == g.sg[rs.stop_idx])
+
+
+def _spread_with_ends(sg, x, T):
+    out = dilate_min(sg, x, T)
+    return np.minimum(out, reach_end_limits(sg, x, x, T))
+
+
+def test_limits_change_continuously_as_a_reach_crosses_grid_points():
+    """One slow spot among fast points on an uneven grid, a duplicated point among them: as the reach grows,
+    without the interpolation the limit of each point it passes drops at once; with it, continuously."""
+    sg = np.array([0.0, 0.7, 1.3, 2.0, 2.0, 2.6, 3.5, 4.1, 5.0])
+    x = np.array([100.0, 90.0, 80.0, 95.0, 85.0, 1.0, 70.0, 60.0, 100.0])
+    Ts = np.linspace(0.01, 4.0, 4000)       # the slow spot's reach sqrt(1) T: 0.01 to 4 around s = 2.6
+    plain = np.array([dilate_min(sg, x, T) for T in Ts])
+    soft = np.array([_spread_with_ends(sg, x, T) for T in Ts])
+    # the interpolation's slope: (upper - x_j) / h per unit of reach, reach sqrt(x_j) per unit of T
+    h_min = np.min(np.diff(sg)[np.diff(sg) > 0])
+    slope = np.max((x.max() - x) * np.sqrt(x)) / h_min
+    assert np.abs(np.diff(plain, axis=0)).max() > 20.0                 # the plain spreading steps
+    assert np.abs(np.diff(soft, axis=0)).max() <= 1.01 * slope * (Ts[1] - Ts[0])
+    assert np.all(soft <= plain + 1e-12)
+    assert np.all(soft[:, 5] == 1.0)
+    # the two copies of the duplicated point at s = 2.0 start to fall at the same reach
+    assert np.argmax(soft[:, 3] < x[3]) == np.argmax(soft[:, 4] < x[4])
+    kk, t, xs, b = reach_ends(sg, x, 0.5)
+    slow = xs == 1.0                       # the slow spot's reach 0.5 ends in (2.0, 2.6) and (2.6, 3.5)
+    assert sorted(kk[slow].tolist()) == [4, 5]
+    np.testing.assert_allclose(np.sort(t[slow]), [0.1 / 0.6, 0.5 / 0.9])
