@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from hexacnc.planner import profile as PF
+from hexacnc.planner import spread as SP
 from hexacnc.planner import verify as VF
 from hexacnc.planner.topp import forward_backward, interval_times
 from hexacnc.planner.toppvec import WavefrontTopp
@@ -42,7 +43,7 @@ def test_spreading_equals_the_pointwise_scatter(seed):
     x[rng.uniform(size=N) < 0.03] = 0.0
     T = float(rng.choice([0.001, 0.014, 0.05]))
     span = int(rng.choice([3, 40, 4000]))
-    assert np.array_equal(PF._dilate_min(sg, x, T, max_span=span), _dilate_reference(sg, x, T, span))
+    assert np.array_equal(SP.dilate_min(sg, x, T, max_span=span), _dilate_reference(sg, x, T, span))
 
 
 def _plateaus(h, x, tol=1e-6):

@@ -514,7 +514,8 @@ def topp_decomposition(plan, cfg) -> dict:
     Only strut limits (the bench lifts feeds); the plan's stops are kept.  See the JSON note.
     """
     from ..planner.plan import ACC_SHARE, RHO_J, RHO_STEP
-    from ..planner.profile import ETA, dilate_min as _dilate_min
+    from ..planner.profile import ETA
+    from ..planner.spread import dilate_min as _dilate_min
     from ..planner.topp import accel_coefficients, forward_backward, interval_times
     h = np.asarray(plan.grid_h)
     Lp, Lpp, Lppp = (np.asarray(a) for a in (plan.grid_L1, plan.grid_L2, plan.grid_L3))

@@ -1,6 +1,6 @@
-"""Speed profile and jerk filter: the spreading of speed limits, the path-acceleration cap, the plateaus
-at speed peaks, the raw profile s(t) at the cycle period and its moving average (steps 3-4 of the method
-in :mod:`hexacnc.planner.plan`).
+"""Speed profile and jerk filter: the path-acceleration cap, the plateaus at speed peaks, the raw profile s(t)
+at the cycle period and its moving average (steps 3-4 of the method in :mod:`hexacnc.planner.plan`; the
+spreading of limits over the filter's reach is :mod:`hexacnc.planner.spread`).
 """
 from __future__ import annotations
 
@@ -17,118 +17,6 @@ RHO_CAP = 1.0
 CAP_BISECT = 14
 #: halvings of the peak level before the bisection on a hill between two stops (a level 2^-60 of the peak)
 CAP_HALVINGS = 60
-
-
-def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, speed2=None,
-               max_reach: float = math.inf) -> np.ndarray:
-    """Spread every speed limit over the distance travelled at that speed in the filter window.
-
-    The moving average of width T gives, at position s_j, the mean raw speed of the
-    positions passed within T.  If the raw speed is at most sqrt(x_j) for all
-    positions within ``r_j = sqrt(x_j) T/2`` of s_j (the window spans T/2 either side of its centre),
-    that mean is at most sqrt(x_j):
-    so ``x_k <= x_j`` wherever ``|s_k - s_j| <= r_j``.  Slow spots have short reach.  ``speed2`` (N,):
-    spread another quantity x (an acceleration cap) over the reach of these speeds^2 instead.  No reach
-    exceeds ``max_reach`` (mm).
-    """
-    N = x.shape[0]
-    fin = np.isfinite(x)
-    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, max_reach), 0.0)
-    lo = np.searchsorted(sg, sg - r, side="left")
-    hi = np.searchsorted(sg, sg + r, side="right") - 1
-    cnt = np.minimum(hi - lo + 1, max_span)
-    # only limits lower than some point in their reach matter
-    j = np.nonzero(fin & (cnt > 1))[0]
-    out = x.copy()
-    if j.size == 0:
-        return out
-    # every range [lo_j, lo_j + cnt_j) is the union of two power-of-two blocks; the minimum over
-    # the blocks starting at each point is pushed down level by level (the same minima as a
-    # scatter over every point of every range, in O(N log max_span))
-    a = lo[j]
-    cj = cnt[j]
-    xj = x[j]
-    lev = np.floor(np.log2(cj)).astype(np.int64)
-    top = int(lev.max())
-    tab = [None] * (top + 1)
-    for L in range(top, -1, -1):
-        cur = np.full(N, np.inf) if tab[L] is None else tab[L]
-        m = np.nonzero(lev == L)[0]
-        if m.size:
-            np.minimum.at(cur, a[m], xj[m])
-            np.minimum.at(cur, a[m] + cj[m] - (1 << L), xj[m])
-        if L == 0:
-            np.minimum(out, cur, out=out)
-            break
-        hh = 1 << (L - 1)
-        nxt = cur.copy()
-        np.minimum(nxt[hh:], cur[:-hh], out=nxt[hh:])
-        tab[L - 1] = nxt
-        tab[L] = None
-    return out
-
-_dilate_min = dilate_min   #: the planner modules' own name for it
-
-
-def reach_ends(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.inf) -> tuple:
-    """Where the reaches of :func:`dilate_min` (same arguments) end inside a grid interval of positive
-    length: per end the interval ``k`` (its points k, k+1), the end's position in it ``t`` (0 at k, 1 at
-    k+1), the spread limit and the grid point just beyond the reach."""
-    N = x.shape[0]
-    fin = np.isfinite(x)
-    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x, 0.0)) * T, max_reach), 0.0)
-    j = np.nonzero(fin & (r > 0.0))[0]
-    ks, ts, xs, bs = [], [], [], []
-    if j.size and N >= 2:
-        sj, rj = sg[j], r[j]
-        for side in (1.0, -1.0):
-            end = sj + side * rj
-            k = np.searchsorted(sg, end, side="right" if side > 0 else "left") - 1
-            ok = (k >= 0) & (k < N - 1)
-            k, jj, end = k[ok], j[ok], end[ok]
-            hk = sg[k + 1] - sg[k]
-            pos = hk > 0.0
-            k, jj, end, hk = k[pos], jj[pos], end[pos], hk[pos]
-            ks.append(k)
-            ts.append(np.clip((end - sg[k]) / hk, 0.0, 1.0))
-            xs.append(x[jj])
-            bs.append(k + 1 if side > 0 else k)
-    if not ks:
-        z = np.zeros(0, dtype=np.int64)
-        return z, np.zeros(0), np.zeros(0), z
-    return np.concatenate(ks), np.concatenate(ts), np.concatenate(xs), np.concatenate(bs)
-
-
-def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
-                     max_reach: float = math.inf) -> np.ndarray:
-    """Speed limits (N,) for the grid points just beyond the end of a spreading's reach (inf elsewhere).
-
-    ``x`` the limits :func:`dilate_min` spreads (same ``sg``, ``T``, ``max_reach``); ``upper`` (N,) the
-    limits of the points without this spreading.  A reach ends inside a grid interval; the point beyond
-    keeps its own limit only while the reach is short of it and takes the spread one as soon as the reach
-    passes it: a step in the limits as a path grows (a slow spot's reach grows more slowly than a path
-    scaled up around it, so its end crosses grid points).  The point beyond gets the spread limit
-    interpolated towards ``upper`` by the share of the interval that lies beyond the reach, so the limits
-    change continuously with the reach; every copy of a duplicated junction point alike (the smallest of all
-    reach ends at a point).  The planner puts a grid point at each end it knows beforehand
-    (:mod:`~hexacnc.planner.reachgrid`); this covers the others."""
-    N = x.shape[0]
-    lim = np.full(N, np.inf)
-    k, t, xs, b = reach_ends(sg, x, T, max_reach)
-    if k.size == 0:
-        return lim
-    f = np.where(b > k, 1.0 - t, t)                              # share of the interval beyond the reach
-    first = np.searchsorted(sg, sg, side="left")                 # copies of a point: first index, count
-    b0, nb = first[b], np.searchsorted(sg, sg, side="right")[b] - first[b]
-    for o in range(int(nb.max())):
-        m = np.nonzero(o < nb)[0]
-        c, xm, fm = b0[m] + o, xs[m], f[m]
-        bind = upper[c] > xm
-        c, xm, fm = c[bind], xm[bind], fm[bind]
-        with np.errstate(invalid="ignore"):
-            val = np.where(fm > 0.0, xm + fm * (upper[c] - xm), xm)     # an infinite upper: no nan at f = 0
-        np.minimum.at(lim, c, val)
-    return lim
 
 
 def _accel_cap(Lp, Lpp, Lppp, x, jmax, w) -> np.ndarray:
@@ -178,45 +66,10 @@ def _with_accel_cap(c, e, d, ecap):
     return c7, e7, d7, xcap
 
 
-#: the acceleration cap spread over the filter's reach before the TOPP pass (:func:`_spread_cap`)
-SPREAD_CAP = True
-#: farthest the acceleration cap is spread (mm): a corner's or a curve's low cap reaches the ramps beside it
-#: (at the speeds there the filter's reach is a few tenths of a mm); on long fast moves the reach at the
-#: uncapped speeds would lower the cap over whole moves (rest-to-rest moves 1.2 % longer, smoothed CAM 11 %)
-SPREAD_CAP_MM = 0.2
-
-
-def _spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float, keep=None) -> np.ndarray:
-    """The acceleration cap (N,) lowered to its minimum over the filter's reach: the moving average carries
-    an acceleration to every sample whose window holds it (a ramp at a line's cap beside a corner blend gave
-    the blend's samples more jerk than the blend's cap allows).  Every point's cap is spread ``T`` seconds
-    either side at the speed^2 ``x`` there (at most SPREAD_CAP_MM), then each point takes the smaller of
-    its own and the next point's, twice (the TOPP pass bounds an interval at its first point; past a
-    duplicated junction point too), so that a ramp anywhere inside an interval keeps the caps of both
-    its ends.  ``keep`` (N-1,) bool: the links between neighbours a point may take the next one's cap
-    across (False at a stop, whose hold keeps the two sides' filter windows apart; ``sg`` then runs
-    with a gap there: :func:`separated`)."""
-    out = dilate_min(sg, ecap, T, speed2=np.minimum(x, (SPREAD_CAP_MM / T) ** 2))
-    for _ in range(2):
-        nxt = out[1:] if keep is None else np.where(keep, out[1:], np.inf)
-        np.minimum(out[:-1], nxt, out=out[:-1])
-    return out
-
-
-def separated(sg: np.ndarray, cut: np.ndarray, gap: float) -> tuple:
-    """Path positions (N,) with ``gap`` added after every grid point in ``cut`` (indices), so that a
-    spreading whose reach is less than ``gap`` never crosses one, and the mask (N-1,) of the links not
-    cut."""
-    keep = np.ones(max(sg.shape[0] - 1, 0), dtype=bool)
-    cut = cut[cut < sg.shape[0] - 1]
-    keep[cut] = False
-    return sg + gap * np.concatenate([[0.0], np.cumsum(~keep)]), keep
-
-
 class RampBounds:
     """The path-acceleration bounds of the TOPP pass per grid interval, ``max_k(c_k + d_k x) <= u <=
     min_k(e_k + d_k x)`` at the interval's first point (where the forward and backward passes evaluate
-    them, the acceleration cap among them: :func:`_spread_cap`), read from a
+    them, the acceleration cap among them: :func:`spread_cap`), read from a
     :class:`~hexacnc.planner.toppvec.WavefrontTopp` on the intervals asked for only: the ramps into and
     out of a capped plateau, which end at the cap inside their interval."""
 

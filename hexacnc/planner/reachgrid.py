@@ -1,6 +1,6 @@
 """Grid points where the spreading of a slow spot ends (step 4 of :mod:`hexacnc.planner.plan`).
 
-A speed limit ``x_j`` is spread over ``|s - s_j| <= r_j`` (:func:`~hexacnc.planner.profile.dilate_min`), and
+A speed limit ``x_j`` is spread over ``|s - s_j| <= r_j`` (:func:`~hexacnc.planner.spread.dilate_min`), and
 the reach's end ``s_j +- r_j`` falls inside a grid interval.  On the grid alone the point beyond keeps its
 own, higher, limit until the reach passes it and then drops to ``x_j`` at once: the limits, and the planned
 time, step as a path grows, because a slow spot's reach grows more slowly than a path scaled up around it
@@ -17,11 +17,11 @@ import numpy as np
 from . import path as P
 from .grid import Derivs, Grid, derivatives
 from .holds import Rests, rests
-from .profile import dilate_min, reach_ends, separated
+from .spread import dilate_min, reach_ends, separated
 from .speeds import speed_limits
 
 #: a reach end closer than this share of its interval to a grid point gets no point of its own (the
-#: interval's interpolated limit, :func:`~hexacnc.planner.profile.reach_end_limits`, covers it)
+#: interval's interpolated limit, :func:`~hexacnc.planner.spread.reach_end_limits`, covers it)
 MIN_SHARE = 1e-6
 
 

@@ -15,8 +15,9 @@ from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_AIM, LOWER_MARGIN_
                      SCREEN, SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
-from .profile import (ETA, SPREAD_CAP, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _dilate_min,
-                      _runs, _sample_profile, _spread_cap, _with_accel_cap, reach_end_limits)
+from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
+                      _with_accel_cap)
+from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap
 from .reachgrid import spread_frame
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
@@ -63,7 +64,7 @@ class Tightener:
         x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
         self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
         if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
-            self.ecap = _spread_cap(self.sg_sep, self.ecap, x0, SPREAD_REACH * nf * dt, self.keep)
+            self.ecap = spread_cap(self.sg_sep, self.ecap, x0, SPREAD_REACH * nf * dt, self.keep)
         del x0
         c, self.e, self.dd, xcap = _with_accel_cap(c, e, dd, self.ecap)
         lower = np.nonzero(xcap < self.xlim)[0]
@@ -86,7 +87,7 @@ class Tightener:
         sa = self.rs.stop_all
         xw[sa] = np.inf
         T = SPREAD_REACH * self.nf * self.dt
-        out = _dilate_min(self.sg_sep, xw, T, max_reach=self.reach_mm)
+        out = dilate_min(self.sg_sep, xw, T, max_reach=self.reach_mm)
         out[sa] = 0.0
         # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated
         np.minimum(out, reach_end_limits(self.sg_sep, xw, upper, T, self.reach_mm), out=out)
