@@ -63,7 +63,6 @@ def range_min(N: int, a: np.ndarray, cnt: np.ndarray, vals: np.ndarray) -> np.nd
     return out
 
 
-
 def reach_ends(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.inf, speed2=None) -> tuple:
     """Where the reaches of :func:`dilate_min` (same arguments) end inside a grid interval of positive
     length: per end the interval ``k`` (its points k, k+1), the end's position in it ``t`` (0 at k, 1 at

@@ -17,8 +17,8 @@ from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
                       _with_accel_cap)
-from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap
 from .reachgrid import spread_frame
+from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
