@@ -82,9 +82,9 @@ def test_per_strut_limit_and_one_cycle_of_slack():
     assert sup.check(now, [0.8] * 6, 11) == F_FOLLOWING and sup.strut == 3   # 0.3 mm: strut 3's 0.2
 
 
-def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
-    """sync_every 2 (a drive taking whole ms): the drive got the commands of loop cycles 10 and 12
-    only; a sample of SYNC 12 between them is no error, one beyond them is."""
+def _every_second_cycle():
+    """A supervisor armed at 10 ms on a bus SYNCed every second loop cycle (a drive taking whole ms), 0.2 mm
+    following limits, commands 0: (io, supervisor, now_ns)."""
     io = FakeIO()
     io.sync_every = 2
     sup = DriveSupervisor(io, 0.0005, [0.2] * 6, 0.35, 0.35, 0.4)
@@ -92,6 +92,13 @@ def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
     now = 10 * MS
     io.hb_ns = [now] * 6
     sup.arm(now)
+    return io, sup, now
+
+
+def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
+    """sync_every 2 (a drive taking whole ms): the drive got the commands of loop cycles 10 and 12
+    only; a sample of SYNC 12 between them is no error, one beyond them is."""
+    io, sup, now = _every_second_cycle()
     for k, v in ((10, 0.0), (11, 0.45), (12, 0.9)):
         sup.record(k, [v] * 6)
     io.pos_count = [1] * 6
@@ -104,13 +111,7 @@ def test_on_a_bus_every_second_cycle_the_slack_is_one_bus_cycle():
 def test_on_a_bus_every_second_cycle_a_sample_older_than_the_history_is_not_checked():
     """sync_every 2: a sample whose SYNC is still in the history but whose SYNC before (k - 2) is not was
     compared with the command that overwrote that slot (k - 2 + the ring's size)."""
-    io = FakeIO()
-    io.sync_every = 2
-    sup = DriveSupervisor(io, 0.0005, [0.2] * 6, 0.35, 0.35, 0.4)
-    sup.fill([0.0] * 6)
-    now = 10 * MS
-    io.hb_ns = [now] * 6
-    sup.arm(now)
+    io, sup, now = _every_second_cycle()
     n = sup.n_hist
     sends = 3 * n
     for k in range(1, sends + 1):
