@@ -22,10 +22,7 @@ def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, sp
     exceeds ``max_reach`` (mm).
     """
     N = x.shape[0]
-    fin = np.isfinite(x)
-    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, max_reach), 0.0)
-    lo = np.searchsorted(sg, sg - r, side="left")
-    hi = np.searchsorted(sg, sg + r, side="right") - 1
+    fin, r, lo, hi = reaches(sg, x, T, max_reach, speed2)
     cnt = np.minimum(hi - lo + 1, max_span)
     # only limits lower than some point in their reach matter
     j = np.nonzero(fin & (cnt > 1))[0]
@@ -33,6 +30,16 @@ def dilate_min(sg: np.ndarray, x: np.ndarray, T: float, max_span: int = 4000, sp
     if j.size:
         np.minimum(out, range_min(N, lo[j], cnt[j], x[j]), out=out)
     return out
+
+
+def reaches(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.inf, speed2=None) -> tuple:
+    """The reaches of :func:`dilate_min` (same arguments): (finite (N,) bool, reach r (N,) mm, first and last
+    grid point within ``s_j -+ r_j`` (N,) each)."""
+    fin = np.isfinite(x)
+    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, max_reach), 0.0)
+    lo = np.searchsorted(sg, sg - r, side="left")
+    hi = np.searchsorted(sg, sg + r, side="right") - 1
+    return fin, r, lo, hi
 
 
 def range_min(N: int, a: np.ndarray, cnt: np.ndarray, vals: np.ndarray) -> np.ndarray:
@@ -68,15 +75,14 @@ def reach_ends(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.
     length: per end the interval ``k`` (its points k, k+1), the end's position in it ``t`` (0 at k, 1 at
     k+1), the spread limit and the grid point just beyond the reach.  ``speed2``: as in :func:`dilate_min`."""
     N = x.shape[0]
-    fin = np.isfinite(x)
-    r = np.where(fin, np.minimum(np.sqrt(np.maximum(x if speed2 is None else speed2, 0.0)) * T, max_reach), 0.0)
+    fin, r, lo, hi = reaches(sg, x, T, max_reach, speed2)
     j = np.nonzero(fin & (r > 0.0))[0]
     ks, ts, xs, bs = [], [], [], []
     if j.size and N >= 2:
         sj, rj = sg[j], r[j]
-        for side in (1.0, -1.0):
+        for side, last_in in ((1.0, hi[j]), (-1.0, lo[j] - 1)):  # the interval (k, k+1) the end lies in
             end = sj + side * rj
-            k = np.searchsorted(sg, end, side="right" if side > 0 else "left") - 1
+            k = last_in
             ok = (k >= 0) & (k < N - 1)
             k, jj, end = k[ok], j[ok], end[ok]
             hk = sg[k + 1] - sg[k]
@@ -152,10 +158,7 @@ def spread_cap(sg: np.ndarray, ecap: np.ndarray, x: np.ndarray, T: float, keep=N
     own = np.minimum(ecap[:-1], np.where(lnk, ecap[1:], np.inf))       # the caps of both ends
     iv = own.copy()
     # the caps whose reach holds the whole interval (both ends)
-    fin = np.isfinite(ecap)
-    r = np.where(fin, np.sqrt(np.maximum(v2, 0.0)) * T, 0.0)
-    lo = np.searchsorted(sg, sg - r, side="left")
-    hi = np.searchsorted(sg, sg + r, side="right") - 1
+    fin, _r, lo, hi = reaches(sg, ecap, T, speed2=v2)
     j = np.nonzero(fin & (hi > lo))[0]
     if j.size:
         np.minimum(iv, range_min(N - 1, lo[j], np.minimum(hi[j] - lo[j], 3999), ecap[j]), out=iv)
