@@ -23,6 +23,9 @@ CAP_JERK_SPEED = 0.75
 #: ramp starts there, and 0.5 plans the bench paths as fast as 0.55 did before or faster (tort 25-45 3.5735 ->
 #: 3.5075 s; 0.55 with the points: 3.5995 s; 0.45: smooth 1.9125 -> 1.947 s, more verification passes)
 SPREAD_REACH = 0.5
+#: the speed limits spread over the filter's reach in time at the speeds of a TOPP solution (tighten.py
+#: ``_spread_in_time``), not only over the distance ``T sqrt(x_j)`` travelled at each limit's own speed
+SPREAD_IN_TIME = True
 #: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
 CAP_ROUNDS = 2
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass

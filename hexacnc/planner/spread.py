@@ -99,7 +99,7 @@ def reach_ends(sg: np.ndarray, x: np.ndarray, T: float, max_reach: float = math.
 
 
 def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
-                     max_reach: float = math.inf) -> np.ndarray:
+                     max_reach: float = math.inf, speed2=None) -> np.ndarray:
     """Speed limits (N,) for the grid points just beyond the end of a spreading's reach (inf elsewhere).
 
     ``x`` the limits :func:`dilate_min` spreads (same ``sg``, ``T``, ``max_reach``); ``upper`` (N,) the
@@ -109,11 +109,11 @@ def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
     scaled up around it, so its end crosses grid points).  The point beyond gets the spread limit
     interpolated towards ``upper`` by the share of the interval that lies beyond the reach, so the limits
     change continuously with the reach; every copy of a duplicated junction point alike (the smallest of all
-    reach ends at a point).  The planner puts a grid point at each end it knows beforehand
+    reach ends at a point).  ``speed2``: as in :func:`dilate_min`.  The planner puts a grid point at each end it knows beforehand
     (:mod:`~hexacnc.planner.reachgrid`); this covers the others."""
     N = x.shape[0]
     lim = np.full(N, np.inf)
-    k, t, xs, b = reach_ends(sg, x, T, max_reach)
+    k, t, xs, b = reach_ends(sg, x, T, max_reach, speed2)
     if k.size == 0:
         return lim
     f = np.where(b > k, 1.0 - t, t)                              # share of the interval beyond the reach
@@ -128,6 +128,19 @@ def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
             val = np.where(fm > 0.0, xm + fm * (upper[c] - xm), xm)     # an infinite upper: no nan at f = 0
         np.minimum.at(lim, c, val)
     return lim
+
+
+def time_coordinate(sg: np.ndarray, x: np.ndarray, gap_s: float = 1e3) -> np.ndarray:
+    """Seconds (N,) from the first grid point to each at the speeds^2 ``x`` (N,), constant path acceleration
+    between neighbours (``2 h / (v_k + v_k+1)``).  An interval of positive length with both ends at rest (a
+    stop's gap in the spreading frame, :func:`separated`) counts ``gap_s``, far longer than any reach.
+    :func:`dilate_min` on these positions with ``speed2`` one spreads over T seconds of travel at the speeds x."""
+    v = np.sqrt(np.maximum(x, 0.0))
+    h = np.diff(sg)
+    vs = v[:-1] + v[1:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.where(vs > 0.0, 2.0 * h / vs, np.where(h > 0.0, gap_s, 0.0))
+    return np.concatenate([[0.0], np.cumsum(d)])
 
 
 #: the acceleration cap spread over the filter's reach before the TOPP pass (:func:`spread_cap`)

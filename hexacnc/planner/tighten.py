@@ -12,13 +12,13 @@ import numpy as np
 from ..errors import PlanError
 from . import path as P
 from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_AIM, LOWER_MARGIN_SLOPE, MAX_ITERATIONS, MODEL_SCREEN,
-                     SCREEN, SPREAD_REACH)
+                     SCREEN, SPREAD_IN_TIME, SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
                       _with_accel_cap)
 from .reachgrid import spread_frame
-from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap
+from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap, time_coordinate
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
@@ -61,7 +61,12 @@ class Tightener:
         self.xlim = self._spread(xlim, xlim.copy())
         # path acceleration cap from the speeds of the uncapped solution (capping only lowers them, and the
         # cap only grows as speeds drop, so it stays valid)
-        x0 = WavefrontTopp(g.h, c, e, dd).solve(self.xlim)
+        topp0 = WavefrontTopp(g.h, c, e, dd)
+        x0 = topp0.solve(self.xlim)
+        if SPREAD_IN_TIME:
+            # (the cap stays at the speeds x0 of the distance spreading: at the faster speeds of the spreading in
+            # time it would be lower on every curve, and the verification measures the jerk either way)
+            self.xlim = self._spread_in_time(xlim, x0, topp0)
         self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
         if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
             self.ecap = spread_cap(self.sg_sep, self.ecap, x0, SPREAD_REACH * nf * dt, self.keep)
@@ -91,6 +96,33 @@ class Tightener:
         out[sa] = 0.0
         # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated
         np.minimum(out, reach_end_limits(self.sg_sep, xw, upper, T, self.reach_mm), out=out)
+        out[sa] = 0.0
+        return out
+
+    def _spread_in_time(self, xlim, x0, topp):
+        """The limits ``xlim`` spread over the filter's reach measured in time: the window holds T seconds of raw
+        motion either side of its centre, and near a slow spot the raw profile runs slower than a neighbouring
+        limit's own speed, so that limit's window covers less path than the distance spreading's ``T sqrt(x_j)``.
+        Spread over T seconds at the speeds of a TOPP solution that runs at least as fast as the raw profile,
+        a limit holds exactly where a window can carry it.  ``x0``: the TOPP solution under the distance
+        spreading (``topp`` holds it); p1, spread in its time, lets the profile run faster there, and p2 =
+        min(p1, the limits spread in the time of TOPP(p1)) holds: the raw profile runs at most TOPP(p2) <=
+        TOPP(p1), so each of its windows lies within one p2 was spread over."""
+        p1 = self._spread_time(xlim, x0)
+        ranges = _runs(p1 != self.xlim)
+        x1 = topp.solve_ranges(p1, ranges) if ranges else x0
+        return np.minimum(p1, self._spread_time(xlim, x1))
+
+    def _spread_time(self, xlim, xs):
+        """``xlim`` spread over T seconds either side at the speeds^2 ``xs``; stops stay at rest."""
+        sa = self.rs.stop_all
+        xw = xlim.copy()
+        xw[sa] = np.inf
+        T = SPREAD_REACH * self.nf * self.dt
+        tau = time_coordinate(self.sg_sep, xs)
+        one = np.ones(xw.shape[0])
+        out = dilate_min(tau, xw, T, speed2=one)
+        np.minimum(out, reach_end_limits(tau, xw, xlim, T, speed2=one), out=out)
         out[sa] = 0.0
         return out
 

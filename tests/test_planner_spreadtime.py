@@ -1,0 +1,98 @@
+"""Speed limits spread over the filter's reach measured in time (tighten.Tightener._spread_in_time,
+spread.time_coordinate): every limit holds wherever a filter window of the raw profile can carry it, and the
+tighter spreading plans slow-cornered paths shorter, within the strut limits."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.gcode.factory import program_from_config
+from hexacnc.kinematics import Hexapod
+from hexacnc.planner import path as P
+from hexacnc.planner import plan_program
+from hexacnc.planner import tighten as TG
+from hexacnc.planner.consts import FILTER_JERK_SHARE, SPREAD_REACH
+from hexacnc.planner.grid import build_grid, derivatives
+from hexacnc.planner.holds import rests
+from hexacnc.planner.speeds import speed_limits
+from hexacnc.planner.spread import time_coordinate
+from hexacnc.planner.toppvec import WavefrontTopp
+from test_planner_motion import run, utilisation
+
+
+def _zigzag(seed: int, n: int = 24, tol: float = 0.01) -> str:
+    """Short lines (0.5-3 mm) turning 20-70 deg, small rotations on some, G64 P tol, a G61 stop halfway: CAM-like
+    slow blended corners."""
+    rng = np.random.default_rng(seed)
+    lines = ["G21 G90 G64 P%g" % tol, "G1 X0 Y0 Z0 F6000"]
+    p, ang = np.zeros(2), 0.0
+    for k in range(n):
+        ang += math.radians(rng.uniform(20, 70)) * rng.choice([-1, 1])
+        p = p + rng.uniform(0.5, 3.0) * np.array([math.cos(ang), math.sin(ang)])
+        a = " A%.3f" % rng.uniform(-0.3, 0.3) if k % 3 == 0 else ""
+        lines.append("G1 X%.4f Y%.4f%s" % (p[0], p[1], a))
+        if k == n // 2:
+            lines.append("G61")
+        elif k == n // 2 + 1:
+            lines.append("G64 P%g" % tol)
+    return "\n".join(lines) + "\nM2\n"
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def test_time_coordinate_is_travel_time_with_a_gap_at_rest():
+    sg = np.array([0.0, 1.0, 3.0, 3.0, 4.0, 1004.0, 1006.0])
+    x = np.array([4.0, 4.0, 16.0, 16.0, 0.0, 0.0, 1.0])          # speeds 2, 2, 4, 4, 0, 0, 1
+    tau = time_coordinate(sg, x, gap_s=50.0)
+    # constant acceleration between points: 2 h / (v_k + v_k+1)
+    np.testing.assert_allclose(np.diff(tau), [0.5, 2 * 2.0 / 6.0, 0.0, 2 * 1.0 / 4.0, 50.0, 2 * 2.0 / 1.0])
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_limits_spread_in_time_hold_in_every_window_of_the_raw_profile(cfg, seed):
+    """The defining property, checked by brute force: for every grid point j, every point whose position is
+    within T seconds of j's at the speeds of the TOPP solution under the spread limits (the fastest the raw
+    profile runs) has a spread limit no higher than j's own limit."""
+    hx = Hexapod(cfg)
+    path, events = P.build_path(program_from_config(_zigzag(seed), "t.ngc", cfg).blocks, cfg)
+    dt = float(cfg.cycle.period_s)
+    lims = tuple(np.asarray(v, dtype=float) for v in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
+                                                      cfg.max_jerk_mm_s3))
+    nf = int(math.ceil(float(np.max(lims[1] / lims[2])) / FILTER_JERK_SHARE / dt))
+    g = build_grid(path, hx, cfg, events)
+    dv = derivatives(path, hx, g)
+    xlim, c, e, dd = speed_limits(path, cfg, g, dv, dt, *lims)
+    rs = rests(path, events, g, nf * dt + 2 * dt, dt)
+    tt = TG.Tightener(path, hx, g, dv, rs, xlim, c, e, dd, lims, dt, nf, nf * dt + 2 * dt)
+    own = xlim.copy()
+    own[rs.stop_all] = np.inf
+    x = WavefrontTopp(g.h, c, e, dd).solve(tt.xlim)
+    tau = time_coordinate(tt.sg_sep, x)
+    T = SPREAD_REACH * nf * dt
+    moving = np.ones(g.n, dtype=bool)
+    moving[rs.stop_all] = False
+    worst = 0.0
+    for j in np.nonzero(np.isfinite(own))[0]:
+        win = (np.abs(tau - tau[j]) <= T) & moving
+        worst = max(worst, float(np.max(tt.xlim[win] / own[j])))
+    assert worst <= 1.0 + 1e-12
+    # and it is tighter than the distance spreading (T sqrt(x_j) either side) somewhere: the limits are higher
+    dist = tt._spread(xlim.copy(), xlim.copy())
+    assert np.sum(tt.xlim > dist * 1.01) > 0
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_spreading_in_time_plans_slow_corners_shorter_within_the_limits(cfg, seed, monkeypatch):
+    blocks = program_from_config(_zigzag(seed), "t.ngc", cfg).blocks
+    fast = plan_program(blocks, cfg)
+    monkeypatch.setattr(TG, "SPREAD_IN_TIME", False)
+    slow = plan_program(blocks, cfg)
+    assert fast.duration_s < 0.98 * slow.duration_s
+    u = utilisation(cfg, run(fast.sampler()), fast.dt)
+    assert max(u) <= 0.96
