@@ -157,6 +157,21 @@ def test_a_short_line_between_rotary_blends_is_not_slower_than_a_longer_one(cfg)
     assert t[1] / t[0] < 1.05, t
 
 
+def test_a_sub_micrometre_blends_derivatives_scale_with_it(cfg):
+    """Twelve G64 P0.01 moves with rotations (seed 115 of that draw): at 1-1.5 um the blends are the whole path
+    and the shortest, 0.16 d, is the slowest spot.  Its derivatives' step was at least 1e-4 mm, half the blend:
+    the stencil read its quintic a blend's length beyond its ends, and L''' came out 1.53x too large at its worst
+    point at 1.273 um, 1.37x at 1.526 um (factors of 0.3-18 at the others), so the limits of the four blends
+    under 0.8 um rose faster than their length and the moves planned 0.2555 s at 1.273 um but 0.2530 s at
+    1.526 um (seed 105: 0.168 -> 0.1675 s at 1.0-1.12 um).  A blend's step now goes down to FD_MIN_STEP_BLEND
+    (0.2270 / 0.2345 s)."""
+    for seed, lo_mm, hi_mm in ((115, 1.273e-3, 1.526e-3), (105, 1.0e-3, 1.119e-3)):
+        U = _random_directions(np.random.default_rng(seed), 12, True)
+        L = np.linspace(lo_mm, hi_mm, 5)
+        dur = [_plan(cfg, _moves(U, d, "G64 P0.01")).duration_s for d in L]
+        assert not _dips(L, dur), (seed, _dips(L, dur))
+
+
 @pytest.mark.slow
 def test_back_to_back_g64_moves_dense(cfg, seed):
     """:func:`back_to_back` (G64 P0.01) on a dense random grid of lengths: the peak plateaus used to end on

@@ -40,6 +40,16 @@ GRADE_MM = np.array([0.05, 0.1, 0.2, 0.35, 0.5, 0.75, 1.0, 1.5])
 #: at least FD_MIN_STEP (mm; the third difference's rounding, ~1e-16 L / step^3, stays below 1 mm^-2)
 FD_PIECE_STEPS = 8
 FD_MIN_STEP = 1e-4
+#: the shortest derivative step on a corner blend (mm).  A blend's L''' varies on the blend's own length
+#: (about its turn / length^2, ~1e10 mm^-2 on a 0.2 um blend), so its step must scale with it: at FD_MIN_STEP
+#: the stencil (+-2 steps) of a blend shorter than 0.8 um read its quintic up to a blend's length beyond its
+#: ends (a 0.2 um blend's L''' 1.53x too large at its worst point, 1.37x at 0.24 um), an error that shrank as
+#: the blend grew, so the limits of tiny blends rose faster than their length: twelve G64 P0.01 moves with
+#: rotations planned 0.2555 s at 1.27 um and 0.2530 s at 1.53 um (now 0.2270 / 0.2345 s).  The rounding at
+#: this step, ~1e-16 L / step^3 ~ 1e5 mm^-2, stays far below such a blend's L'''; lines, arcs and smoothed
+#: pieces keep FD_MIN_STEP (their L''' can be ~0: at length / 8 the rounding of a 0.07 um line's third
+#: difference is 80-330 mm^-2, a speed limit of 8-12 mm/s)
+FD_MIN_STEP_BLEND = 1e-6
 #: grid intervals at least on a piece that rests at both ends (short moves from rest to rest)
 REST_PIECE_INTERVALS = 32
 #: grid intervals at least on every other programmed piece (not on corner blends: on 1 um G64 moves, whose

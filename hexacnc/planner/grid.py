@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import path as P
-from .consts import FD_MIN_STEP, FD_PIECE_STEPS, GRADE_MM, PIECE_MIN_INTERVALS, REST_PIECE_INTERVALS
+from .consts import (FD_MIN_STEP, FD_MIN_STEP_BLEND, FD_PIECE_STEPS, GRADE_MM, PIECE_MIN_INTERVALS,
+                     REST_PIECE_INTERVALS)
 from .limits import _check_limits
 from .softlimits import check_box
 from .verify import FD_STEP
@@ -83,11 +84,14 @@ def derivatives(path: P.Path, hx, g: Grid) -> Derivs:
     The step is FD_STEP, or an eighth of a shorter piece (the stencil of a piece far shorter than FD_STEP
     reads its polynomial far outside the piece: a 1 um blend's third derivative came out orders too large);
     a zero-length piece keeps FD_STEP (its polynomial is only read at its point); the rounding of a third
-    difference grows as 1 / step^3, FD_MIN_STEP keeps it far below any jerk bound that matters.
+    difference grows as 1 / step^3, FD_MIN_STEP keeps it far below any jerk bound that matters; a corner
+    blend's step goes down to FD_MIN_STEP_BLEND (its L''' grows as 1 / length^2: a fixed step overestimated
+    a sub-micrometre blend's by a factor that shrank as the blend grew).
     """
     sg, pidx = g.sg, g.pidx
     sl = path.slen[pidx]
-    d = np.where(sl > 0, np.minimum(FD_STEP, np.maximum(sl / FD_PIECE_STEPS, FD_MIN_STEP)), FD_STEP)
+    lo = np.where(path.kind[pidx] == P.BLEND, FD_MIN_STEP_BLEND, FD_MIN_STEP)
+    d = np.where(sl > 0, np.minimum(FD_STEP, np.maximum(sl / FD_PIECE_STEPS, lo)), FD_STEP)
     offs = (-2, -1, 0, 1, 2)
     Ls = []
     tips = []
