@@ -57,6 +57,18 @@ def _speeds(tap, cfg, t_from: float) -> np.ndarray:
     return np.max(np.abs(np.diff(L, axis=0)), axis=1) / cfg.cycle.period_s
 
 
+def _wait_moving(tap, cfg, timeout_s: float = 30.0) -> None:
+    """Until the frames show the struts moving (the move's rows reach the hot loop; on a loaded machine that
+    can take a while, and a stop that comes first finds nothing to stop)."""
+    t_end = time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        v = _speeds(tap, cfg, time.monotonic() - 0.05)
+        if v.size and v.max() > 0.5:
+            return
+        time.sleep(0.02)
+    raise AssertionError(f"the struts did not move within {timeout_s} s of the move")
+
+
 def _planning(daemon, timeout_s: float = 60.0) -> StreamPlan:
     """The streamed plan of the program once its children run."""
     t_end = time.monotonic() + timeout_s
@@ -84,6 +96,7 @@ def test_stop_while_a_large_program_is_planned_ends_motion_and_planning(chunked)
             pose = np.array(cfg.home_pose, dtype=float)
             pose[0] += 100.0
             daemon.move_to(pose, 6.0)                       # ~17 s of motion
+            _wait_moving(tap, cfg)
             if chunked:
                 half = len(text) // 2
                 c.call("program_begin", name="big.ngc", bytes=len(data))
@@ -108,8 +121,8 @@ def test_stop_while_a_large_program_is_planned_ends_motion_and_planning(chunked)
             assert sp.cancelled and not sp.alive() and not daemon._planning
             # on the frames: moving when the stop came, at rest afterwards, never the program's motion
             time.sleep(0.5)
-            v = _speeds(tap, cfg, t0 - 0.02)
-            assert v[0] > 0.5 and v[-1] < 1e-6
+            v = _speeds(tap, cfg, t0 - 0.1)
+            assert v[:200].max() > 0.5 and v[-1] < 1e-6     # moving in the 0.1 s before the stop, at rest after
             st = c.call("status")
             assert st["state"] == "idle" and st["program"]["name"] == "move_to"
             # nothing accepted is lost: the daemon takes and runs the next program to its end
