@@ -66,46 +66,50 @@ def _third_derivative_gram() -> np.ndarray:
 
 
 _G = _third_derivative_gram()
+#: per piece, q = S u with u = [V_j, T_j, K_j, V_j+1, T_j+1, K_j+1] and q = [V_j, h T_j, h^2 K_j, h^2 K_j+1,
+#: h T_j+1, V_j+1]: the row of S holding column i's one entry
+_ROW = np.array([0, 1, 2, 5, 4, 3])
 
 
-def _fit_run(V0: np.ndarray, h: np.ndarray, length: float):
-    """Smoothing spline through the run's vertices ``V0`` (m+1, 6) with piece lengths ``h`` (m,).
+def _fit_runs(V0: np.ndarray, h: np.ndarray, nv: np.ndarray, length: np.ndarray):
+    """Smoothing splines of several runs at once: one banded solve of their block-diagonal system (no entry
+    couples two runs, so each run's solution is the one its own system gives).
 
-    Returns (V, T, K) each (m+1, 6): positions, d/ds and d2/ds2 at the vertices; the end
-    vertices are pinned to their programmed positions.
+    ``V0`` (sum nv, 6) the runs' vertices one run after the other, ``h`` (sum nv - len(nv),) their piece
+    lengths, ``nv`` (r,) vertices per run, ``length`` (r,) each run's smoothing length.  Returns (V, T, K) each
+    (sum nv, 6): positions, d/ds and d2/ds2 at the vertices; every run's end vertices are pinned to their
+    programmed positions.
     """
-    m = h.shape[0]
-    n = 3 * (m + 1)
+    nv = np.asarray(nv, dtype=np.int64)
+    first = np.concatenate([[0], np.cumsum(nv)[:-1]])               # first vertex of each run
+    last = first + nv - 1
+    pv = np.repeat(first - np.concatenate([[0], np.cumsum(nv - 1)[:-1]]), nv - 1) + np.arange(h.shape[0])
+    n = 3 * int(nv.sum())
     ab = np.zeros((6, n))                          # lower banded storage: ab[i - j, j] = A[i, j]
-    # per piece: u = [V_j, T_j, K_j, V_j+1, T_j+1, K_j+1] -> q = [V_j, h T_j, h^2 K_j, h^2 K_j+1, h T_j+1, V_j+1]
-    S = np.zeros((m, 6, 6))
-    S[:, 0, 0] = 1.0
-    S[:, 1, 1] = h
-    S[:, 2, 2] = h * h
-    S[:, 3, 5] = h * h
-    S[:, 4, 4] = h
-    S[:, 5, 3] = 1.0
-    M = np.einsum("mki,kl,mlj->mij", S, _G, S) / (h ** 5)[:, None, None]
-    base = 3 * np.arange(m)
+    # M = S^T G S / h^5 per piece; S has one entry per row and column (S[_ROW[i], i] = s), so each entry of
+    # M is the product s_i G[_ROW[i], _ROW[j]] s_j, in the order S^T G S takes it
+    one = np.ones_like(h)
+    s = np.stack([one, h, h * h, h * h, h, one], axis=1)[:, _ROW]
+    M = (s[:, :, None] * _G[np.ix_(_ROW, _ROW)][None]) * s[:, None, :] / (h ** 5)[:, None, None]
+    base = 3 * pv
     for r in range(6):
         for c in range(r + 1):
             np.add.at(ab[r - c], base + c, M[:, r, c])
-    mu = np.zeros(m + 1)
-    hv = np.concatenate([[h[0]], 0.5 * (h[:-1] + h[1:]), [h[-1]]])
-    mu[:] = hv / length ** 6
-    pin = PIN * float(np.max(ab[0]))
-    mu[0] = mu[-1] = pin
+    # smoothing weight per vertex: the mean of its pieces' lengths (an end vertex: its piece's) / length^6
+    hp = np.zeros(int(nv.sum()))
+    np.add.at(hp, pv, 0.5 * h)
+    np.add.at(hp, pv + 1, 0.5 * h)
+    hp[first] = h[first - np.arange(nv.size)]
+    hp[last] = h[last - np.arange(nv.size) - 1]
+    mu = hp / np.repeat(length, nv) ** 6
+    pin = PIN * np.maximum.reduceat(ab[0], 3 * first)
+    mu[first] = pin
+    mu[last] = pin
     ab[0, 0::3] += mu
     rhs = np.zeros((n, 6))
     rhs[0::3] = mu[:, None] * V0
     x = solveh_banded(ab, rhs, lower=True, check_finite=False)
     return x[0::3], x[1::3], x[2::3]
-
-
-def _pieces(V, T, K, h):
-    """Quintic coefficients (m, 36) of the pieces between consecutive vertices."""
-    D = h[:, None]
-    return np.hstack([V[:-1], T[:-1] * D, K[:-1] * D * D, K[1:] * D * D, T[1:] * D, V[1:]])
 
 
 def _deviation(qc: np.ndarray, c0: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -152,28 +156,37 @@ def smooth_runs(ra, stop_after_raw: set, max_segment_mm: float):
             j += 1
         todo.append((i, j))                                     # moves i..j (j - i >= 1 junctions)
         i = j
-    while todo:
-        a, b = todo.pop()
-        h = ra.slen[a:b + 1]
-        t0 = float(np.min(tol[a:b + 1]))
-        length = LENGTH_TOL * t0
-        for _ in range(MAX_ROUNDS):
-            V, T, K = _fit_run(V0[a:b + 2], h, length)
-            qc = _pieces(V, T, K, h)
-            dev = _deviation(qc, c[a:b + 1, 0:6], d[a:b + 1])
-            if np.all(dev <= TOL_SHARE * tol[a:b + 1]):
-                break
-            length *= 0.5
-        else:
-            # split at the worst piece: it stays a line, both sides are tried again
-            w = a + int(np.argmax(dev / (TOL_SHARE * tol[a:b + 1])))
-            if w - 1 > a:
-                todo.append((a, w - 1))
-            if b > w + 1:
-                todo.append((w + 1, b))
-            continue
-        kind[a:b + 1] = P.SPLINE
-        coef[a:b + 1] = 0.0
-        coef[a:b + 1, :36] = qc
-        tol[a:b + 1] = tol[a:b + 1] - dev
+    # every pending run fitted in one solve per round; a run that stays out of its tolerance is smoothed less
+    # (length halved) and after MAX_ROUNDS split at its worst piece (which stays a line), both sides tried anew
+    pend = [(a, b, LENGTH_TOL * float(np.min(tol[a:b + 1])), 0) for a, b in todo]
+    while pend:
+        runs = np.array([(a, b) for a, b, _, _ in pend], dtype=np.int64)
+        pieces = np.concatenate([np.arange(a, b + 1) for a, b in runs])
+        verts = np.concatenate([np.arange(a, b + 2) for a, b in runs])
+        nv = runs[:, 1] - runs[:, 0] + 2
+        h = ra.slen[pieces]
+        V, T, K = _fit_runs(V0[verts], h, nv, np.array([L for _, _, L, _ in pend]))
+        vi = np.concatenate([np.arange(o, o + k - 1) for o, k in zip(np.cumsum(nv) - nv, nv)])   # piece -> vertex
+        D = h[:, None]
+        qc = np.hstack([V[vi], T[vi] * D, K[vi] * D * D, K[vi + 1] * D * D, T[vi + 1] * D, V[vi + 1]])
+        dev = _deviation(qc, c[pieces, 0:6], d[pieces])
+        nxt = []
+        o = 0
+        for (a, b, length, rounds) in pend:
+            k = b - a + 1
+            dv, q = dev[o:o + k], qc[o:o + k]
+            o += k
+            if np.all(dv <= TOL_SHARE * tol[a:b + 1]):
+                kind[a:b + 1] = P.SPLINE
+                coef[a:b + 1] = 0.0
+                coef[a:b + 1, :36] = q
+                tol[a:b + 1] = tol[a:b + 1] - dv
+            elif rounds + 1 < MAX_ROUNDS:
+                nxt.append((a, b, 0.5 * length, rounds + 1))
+            else:
+                w = a + int(np.argmax(dv / (TOL_SHARE * tol[a:b + 1])))
+                for a2, b2 in ((a, w - 1), (w + 1, b)):
+                    if b2 > a2:
+                        nxt.append((a2, b2, LENGTH_TOL * float(np.min(tol[a2:b2 + 1])), 0))
+        pend = nxt
     return dataclasses.replace(ra, kind=kind, coef=coef, tolerance=tol)
