@@ -51,6 +51,11 @@ def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
     return [float(v) for v in tip] + [math.degrees(float(v)) for v in X[3:6]]
 
 
+def _floats(a) -> list:
+    """A pose or point as plain floats (the splitter looks at every block: no numpy scalars)."""
+    return a.tolist() if isinstance(a, np.ndarray) else [float(v) for v in a]
+
+
 def _direction(blk, at_end: bool):
     """Unit xyz direction (3 floats) of a move at its start or end (arcs: tangent from centre and normal), or
     None.  Plain floats: the splitter looks at every block."""
@@ -63,7 +68,8 @@ def _direction(blk, at_end: bool):
         sg = -1.0 if blk.clockwise else 1.0
         dx, dy, dz = sg * (ny * pz - nz * py), sg * (nz * px - nx * pz), sg * (nx * py - ny * px)
     else:
-        dx, dy, dz = float(e[0]) - float(s[0]), float(e[1]) - float(s[1]), float(e[2]) - float(s[2])
+        (sx, sy, sz), (ex, ey, ez) = _floats(s)[:3], _floats(e)[:3]
+        dx, dy, dz = ex - sx, ey - sy, ez - sz
     n = math.sqrt(dx * dx + dy * dy + dz * dz)
     return (dx / n, dy / n, dz / n) if n > 1e-9 else None
 
@@ -98,13 +104,15 @@ def _seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
         return 0.0
     if blk.inverse_time_s is not None:
         return max(0.0, float(blk.inverse_time_s))
-    s, e = blk.start, blk.end
-    length = math.sqrt(sum((float(e[k]) - float(s[k])) ** 2 for k in range(3)))
+    s, e = _floats(blk.start), _floats(blk.end)
+    d0, d1, d2 = e[0] - s[0], e[1] - s[1], e[2] - s[2]
+    length = math.sqrt(d0 ** 2 + d1 ** 2 + d2 ** 2)
     if length == 0.0:
-        length = math.sqrt(sum((float(e[k]) - float(s[k])) ** 2 for k in range(3, 6)))
+        d3, d4, d5 = e[3] - s[3], e[4] - s[4], e[5] - s[5]
+        length = math.sqrt(d3 ** 2 + d4 ** 2 + d5 ** 2)
     if blk.kind == B.ARC and blk.center is not None:
-        c = blk.center
-        r = math.sqrt(sum((float(s[k]) - float(c[k])) ** 2 for k in range(3)))
+        c = _floats(blk.center)
+        r = math.sqrt((s[0] - c[0]) ** 2 + (s[1] - c[1]) ** 2 + (s[2] - c[2]) ** 2)
         length += 2 * math.pi * r * (int(blk.turns or 0) + (1 if length < 1e-9 else 0))
     feed = rapid_mm_s if blk.kind == B.RAPID else (blk.feed_mm_s or default_mm_s)
     return length / max(float(feed), 1e-9)
