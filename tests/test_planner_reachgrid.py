@@ -36,11 +36,11 @@ M2
 """
 
 
-@pytest.fixture(scope="module")
-def setup():
-    cfg = load_config(None)
+def planner_stages(cfg, text: str) -> tuple:
+    """The planner's stages before the grid's reach points (as plan_program runs them) on a program text:
+    (hx, path, events, dt, lims, nf, grid, derivatives, (xlim, c, e, dd), rests)."""
     hx = Hexapod(cfg)
-    path, events = P.build_path(program_from_config(PROGRAM, "t.ngc", cfg).blocks, cfg)
+    path, events = P.build_path(program_from_config(text, "t.ngc", cfg).blocks, cfg)
     dt = float(cfg.cycle.period_s)
     lims = tuple(np.asarray(v, dtype=float) for v in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
                                                       cfg.max_jerk_mm_s3))
@@ -49,7 +49,13 @@ def setup():
     dv = derivatives(path, hx, g)
     limits = speed_limits(path, cfg, g, dv, dt, *lims)
     rs = rests(path, events, g, nf * dt + 2 * dt, dt)
-    return cfg, hx, path, events, dt, lims, nf, g, dv, limits, rs
+    return hx, path, events, dt, lims, nf, g, dv, limits, rs
+
+
+@pytest.fixture(scope="module")
+def setup():
+    cfg = load_config(None)
+    return (cfg, *planner_stages(cfg, PROGRAM))
 
 
 def test_inserted_points_have_the_derivatives_and_limits_of_a_grid_built_with_them(setup):

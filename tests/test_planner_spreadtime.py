@@ -11,18 +11,14 @@ import pytest
 
 from hexacnc.config import load_config
 from hexacnc.gcode.factory import program_from_config
-from hexacnc.kinematics import Hexapod
-from hexacnc.planner import path as P
 from hexacnc.planner import plan_program
 from hexacnc.planner import tighten as TG
-from hexacnc.planner.consts import FILTER_JERK_SHARE, SPREAD_REACH
-from hexacnc.planner.grid import build_grid, derivatives
-from hexacnc.planner.holds import rests
+from hexacnc.planner.consts import SPREAD_REACH
 from hexacnc.planner.reachgrid import with_reach_points
-from hexacnc.planner.speeds import speed_limits
 from hexacnc.planner.spread import time_coordinate
 from hexacnc.planner.toppvec import WavefrontTopp
 from test_planner_motion import run, utilisation
+from test_planner_reachgrid import planner_stages
 
 
 def _zigzag(seed: int, n: int = 24, tol: float = 0.01) -> str:
@@ -62,16 +58,7 @@ def test_limits_spread_in_time_hold_within_t_seconds_at_the_distance_spreadings_
     j's at the speeds of the TOPP solution under the distance spreading has a spread limit no higher than j's
     own limit; on the planner's grid (points at the distance spreading's reach ends) they are never below the
     distance spreading's limits, and above them beside the slow corners."""
-    hx = Hexapod(cfg)
-    path, events = P.build_path(program_from_config(_zigzag(seed), "t.ngc", cfg).blocks, cfg)
-    dt = float(cfg.cycle.period_s)
-    lims = tuple(np.asarray(v, dtype=float) for v in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
-                                                      cfg.max_jerk_mm_s3))
-    nf = int(math.ceil(float(np.max(lims[1] / lims[2])) / FILTER_JERK_SHARE / dt))
-    g = build_grid(path, hx, cfg, events)
-    dv = derivatives(path, hx, g)
-    xlim, c, e, dd = speed_limits(path, cfg, g, dv, dt, *lims)
-    rs = rests(path, events, g, nf * dt + 2 * dt, dt)
+    hx, path, events, dt, lims, nf, g, dv, (xlim, c, e, dd), rs = planner_stages(cfg, _zigzag(seed))
     # the grid with its points at the distance spreading's reach ends, as plan_program builds it
     g, dv, rs, (xlim, c, e, dd) = with_reach_points(path, hx, cfg, events, g, dv, rs, (xlim, c, e, dd), lims, dt,
                                                     SPREAD_REACH * nf * dt, nf * dt + 2 * dt)
