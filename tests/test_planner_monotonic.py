@@ -215,3 +215,34 @@ def test_a_stop_keeps_the_next_moves_limits_out(cfg, d):
     easy = _plan(cfg, first + f"G1 X{d} F6000\nM2\n")
     hard = _plan(cfg, first + f"G1 Z{d / 3} A{d} B{-d} F6000\nM2\n")
     assert hard.line_times[3][0] == easy.line_times[3][0], (hard.line_times, easy.line_times)
+
+
+@pytest.mark.parametrize("seed, lengths_mm, p_mm", [
+    (102, (0.1956, 0.21, 0.22, 0.23, 0.24), 0.05),
+    (143, (0.89082, 0.95, 1.0, 1.067803), 0.2),
+])
+def test_the_acceleration_cap_is_taken_nearer_the_speeds_it_allows(cfg, seed, lengths_mm, p_mm):
+    """Twelve G64 moves (the draw of :func:`_g64_random`) with P0.05 / P0.2: the blends with rotations run at
+    their curvature jerk limit ``|L'''| s_dot^3 <= 0.855 j`` in the uncapped TOPP solution, so the filter's
+    acceleration cap, taken at those speeds, had 10 % of the jerk budget left (25 mm/s^2 against ~1000 beside
+    it) and was spread over the blend and the line before it, where the capped profile then ran at half those
+    speeds.  As the moves grew, the line's ramp left the low caps' reach: seed 102 planned 0.6535 s at 0.21 mm
+    and 0.6450 s at 0.24 mm (blend 5 entered at 1.8 mm/s, then 3.9 mm/s), seed 143 0.849 s at 0.89 mm and
+    0.8445 s at 1.0 mm.  The cap is now taken at speeds halfway between the capped and the uncapped solution,
+    which become a ceiling there (tighten.Tightener.__init__)."""
+    U = _g64_random(seed)
+    dur = [_plan(cfg, _moves(U, d, "G64 P%g" % p_mm)).duration_s for d in lengths_mm]
+    assert not _dips(lengths_mm, dur), _dips(lengths_mm, dur)
+
+
+def test_a_reach_end_interpolates_towards_the_spread_limit_beyond_it(cfg):
+    """Twelve G64 P0.005 moves (seed 109 of :func:`_g64_random`): a 0.44 mm/s blend's limit spread in time ended
+    0.013 ms short of a grid point on the 0.0125 mm line after it, and that point took the limit interpolated
+    towards its own (50 mm/s: the sliver of the interval beyond the reach gave it 2.2 mm/s).  TOPP(p1) then ramped
+    over the whole interval, the time of that solution shrank, and the second spreading in it carried the slow
+    limit 0.012 mm further, over the whole line: 0.4315 s at 0.037638 mm but 0.4155 s at 0.04 mm and 0.4065 s at
+    0.037 mm.  The point beyond now interpolates towards the limit the other spreadings leave it."""
+    U = _g64_random(109)
+    L = (0.037, 0.037638, 0.04, 0.042, 0.045116)
+    dur = [_plan(cfg, _moves(U, d, "G64 P0.005")).duration_s for d in L]
+    assert not _dips(L, dur), _dips(L, dur)

@@ -26,6 +26,13 @@ SPREAD_REACH = 0.5
 #: the speed limits spread over the filter's reach in time at the speeds of a TOPP solution (tighten.py
 #: ``_spread_in_time``), not only over the distance ``T sqrt(x_j)`` travelled at each limit's own speed
 SPREAD_IN_TIME = True
+#: the filter's acceleration cap (profile._accel_cap) is taken at x0, the speeds of the uncapped TOPP solution,
+#: and only grows as speeds drop; where the capped solution y runs slower, it is taken again at the speeds
+#: ``v_y + CAP_SPEED_SHARE (v_0 - v_y)``, which become a ceiling there (tighten.Tightener.__init__; 1: off).  On
+#: blends that run at their curvature jerk limit in x0 the cap kept 10 % of the jerk budget (25 mm/s^2 against
+#: ~1000 beside them) while the capped profile ran at half that speed: twelve G64 P0.05 moves planned 0.6535 s
+#: at 0.21 mm and 0.6450 s at 0.24 mm as a line's ramp left the low caps' reach (now 0.6240 / 0.6275 s)
+CAP_SPEED_SHARE = 0.5
 #: rounds of peak caps per pass (a re-solve moves a ramp by up to a grid step: the second catches that)
 CAP_ROUNDS = 2
 #: share of the jerk limit the curvature term |L'''| s_dot^3 may take in the TOPP pass

@@ -11,8 +11,8 @@ import numpy as np
 
 from ..errors import PlanError
 from . import path as P
-from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, LOWER_AIM, LOWER_MARGIN_SLOPE, MAX_ITERATIONS, MODEL_SCREEN,
-                     SCREEN, SPREAD_IN_TIME, SPREAD_REACH)
+from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, CAP_SPEED_SHARE, ETA_V, LOWER_AIM, LOWER_MARGIN_SLOPE,
+                     MAX_ITERATIONS, MODEL_SCREEN, SCREEN, SPREAD_IN_TIME, SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
@@ -66,16 +66,25 @@ class Tightener:
             # (the cap stays at the speeds x0 of the distance spreading: at the faster speeds of the spreading in
             # time it would be lower on every curve, and the verification measures the jerk either way)
             self.xlim = self._spread_in_time(xlim, x0)
-        self.ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, nf * dt)
-        if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
-            self.ecap = spread_cap(self.sg_sep, self.ecap, x0, SPREAD_REACH * nf * dt, self.keep)
+        p2 = self.xlim
+        self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, p2, x0)
+        # speeds (x units) the cap was taken at, where below x0: a ceiling for the cap's sake, not a limit of the
+        # struts, so the verification's lowering does not scale it (a ceiling right at a ramp's speeds, lowered,
+        # would cut the ramp into a hill of its own)
+        self.ceiling = np.full(Ng, np.inf)
+        if CAP_SPEED_SHARE < 1.0:
+            # where the cap holds the profile below x0, take it at speeds xu between the capped solution y and x0,
+            # with xu as a ceiling: the cap is valid for the profile (it runs at most xu), and y stays feasible
+            # (a higher cap, looser xcap limits), so the profile runs at least as fast as y
+            y = WavefrontTopp(g.h, c7, self.e, self.dd).solve(self.xlim.copy())
+            slow = y < x0
+            if slow.any():
+                v0, vy = np.sqrt(np.maximum(x0, 0.0)), np.sqrt(np.maximum(y, 0.0))
+                xu = np.where(slow, (vy + CAP_SPEED_SHARE * (v0 - vy)) ** 2, x0)
+                self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, p2, xu)
+                self.ceiling = np.where(slow, xu, np.inf)
+        c = c7
         del x0
-        c, self.e, self.dd, xcap = _with_accel_cap(c, e, dd, self.ecap)
-        lower = np.nonzero(xcap < self.xlim)[0]
-        if lower.size:      # curvature alone needs more than the cap: a speed limit, spread like the others
-            xw = np.full(Ng, np.inf)
-            xw[lower] = xcap[lower]
-            self.xlim = np.minimum(self.xlim, self._spread(xw, self.xlim))
         self.topp = WavefrontTopp(g.h, c, self.e, self.dd)   # same result as topp.forward_backward
         self.factor = np.ones(Ng)
         self.caps = np.full(Ng, np.inf)             # speed caps at peaks (x units)
@@ -83,6 +92,23 @@ class Tightener:
         self.xcapf = np.full(Ng, np.inf)            # speed limits where a lowered cap leaves no acceleration
         self.bounds = _Bounds(dv.Lp, dv.Lpp, dv.Lppp, self.vmax, self.amax, self.jmax)
         self.xc = None
+
+    def _capped(self, c, e, dd, xlim, xs):
+        """The acceleration cap (N,) valid at speeds^2 up to ``xs`` (N,), spread over the filter's reach at those
+        speeds; the TOPP bounds ``c, e, dd`` with its row; the limits ``xlim`` lowered where curvature alone
+        needs more than the cap.  Returns (cap, c, e, dd, limits)."""
+        nf, dt, Ng = self.nf, self.dt, self.g.n
+        dv = self.dv
+        ecap = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, xs, self.jmax, nf * dt)
+        if SPREAD_CAP:   # the moving average carries an acceleration to every sample whose window holds it
+            ecap = spread_cap(self.sg_sep, ecap, xs, SPREAD_REACH * nf * dt, self.keep)
+        c7, e7, dd7, xcap = _with_accel_cap(c, e, dd, ecap)
+        lower = np.nonzero(xcap < xlim)[0]
+        if lower.size:      # curvature alone needs more than the cap: a speed limit, spread like the others
+            xw = np.full(Ng, np.inf)
+            xw[lower] = xcap[lower]
+            xlim = np.minimum(xlim, self._spread(xw, xlim))
+        return ecap, c7, e7, dd7, xlim
 
     def _spread(self, xw, upper):
         """Speed limits spread over the filter's reach (the window reaches w/2 either side of its
@@ -94,7 +120,9 @@ class Tightener:
         out = dilate_min(self.sg_sep, xw, T, max_reach=self.reach_mm)
         out[sa] = 0.0
         # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated
-        np.minimum(out, reach_end_limits(self.sg_sep, xw, upper, T, self.reach_mm), out=out)
+        # the points beyond interpolate towards the limits the other spreadings leave them (``out`` there: beyond a
+        # reach, its own spot does not hold), not towards their own limits
+        np.minimum(out, reach_end_limits(self.sg_sep, xw, np.minimum(upper, out), T, self.reach_mm), out=out)
         out[sa] = 0.0
         return out
 
@@ -122,14 +150,14 @@ class Tightener:
         tau = time_coordinate(self.sg_sep, xs)
         one = np.ones(xw.shape[0])
         out = dilate_min(tau, xw, T, speed2=one)
-        np.minimum(out, reach_end_limits(tau, xw, xlim, T, speed2=one), out=out)
+        np.minimum(out, reach_end_limits(tau, xw, np.minimum(xlim, out), T, speed2=one), out=out)   # as in _spread
         out[sa] = 0.0
         return out
 
     def solve(self, first: bool, changed, cap_changed) -> np.ndarray:
         """TOPP on the current limits (from scratch the first time, else on the changed ranges)."""
         if first:
-            self.xc = self.xlim.copy()
+            self.xc = np.minimum(self.xlim, self.ceiling)
             return self.topp.solve(self.xc)
         Ng = self.g.n
         for a0, a1 in cap_changed:
@@ -143,7 +171,8 @@ class Tightener:
         xc = self.xc
         for a0, a1 in changed:
             sl = slice(a0, a1 + 1)
-            xc[sl] = np.minimum(np.minimum(self.xlim[sl] * self.factor[sl], self.xcapf[sl]), self.caps[sl])
+            xl = np.minimum(self.xlim[sl] * self.factor[sl], self.ceiling[sl])   # the ceiling is not lowered
+            xc[sl] = np.minimum(np.minimum(xl, self.xcapf[sl]), self.caps[sl])
         return self.topp.solve_ranges(xc, changed, bounds_changed=bool(cap_changed))
 
     def plateaus(self, x: np.ndarray, rounds: int) -> np.ndarray:
