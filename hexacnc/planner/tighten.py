@@ -66,8 +66,8 @@ class Tightener:
             # (the cap stays at the speeds x0 of the distance spreading: at the faster speeds of the spreading in
             # time it would be lower on every curve, and the verification measures the jerk either way)
             self.xlim = self._spread_in_time(xlim, x0)
-        p2 = self.xlim
-        self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, p2, x0)
+        spread_lim = self.xlim
+        self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, spread_lim, x0)
         # speeds (x units) the cap was taken at, where below x0: a ceiling for the cap's sake, not a limit of the
         # struts, so the verification's lowering does not scale it (a ceiling right at a ramp's speeds, lowered,
         # would cut the ramp into a hill of its own)
@@ -81,7 +81,7 @@ class Tightener:
             if slow.any():
                 v0, vy = np.sqrt(np.maximum(x0, 0.0)), np.sqrt(np.maximum(y, 0.0))
                 xu = np.where(slow, (vy + CAP_SPEED_SHARE * (v0 - vy)) ** 2, x0)
-                self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, p2, xu)
+                self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, spread_lim, xu)
                 self.ceiling = np.where(slow, xu, np.inf)
         c = c7
         del x0
