@@ -110,19 +110,27 @@ class Tightener:
             xlim = np.minimum(xlim, self._spread(xw, xlim))
         return ecap, c7, e7, dd7, xlim
 
-    def _spread(self, xw, upper):
-        """Speed limits spread over the filter's reach (the window reaches w/2 either side of its
-        centre); stops spread nothing and stay at rest.  ``upper``: the limits without these (finite), which
-        the points just beyond a reach's end are interpolated towards (:func:`reach_end_limits`)."""
+    def _spread(self, xw, upper, xs=None):
+        """Speed limits spread over the filter's reach (the window reaches w/2 = T either side of its centre);
+        stops spread nothing and stay at rest.  ``upper``: the limits without these (finite), towards which the
+        points just beyond a reach's end are interpolated (:func:`reach_end_limits`).
+
+        ``xs`` None: over the distance ``T sqrt(x_j)`` travelled at each limit's own speed.  ``xs`` (speeds^2 of a
+        TOPP solution): over T seconds of travel at those speeds (:meth:`_spread_in_time`)."""
         sa = self.rs.stop_all
+        xw = xw.copy()
         xw[sa] = np.inf
         T = SPREAD_REACH * self.nf * self.dt
-        out = dilate_min(self.sg_sep, xw, T, max_reach=self.reach_mm)
+        if xs is None:
+            pos, speed2, reach = self.sg_sep, None, self.reach_mm
+        else:
+            pos, speed2, reach = time_coordinate(self.sg_sep, xs), np.ones(xw.shape[0]), math.inf
+        out = dilate_min(pos, xw, T, max_reach=reach, speed2=speed2)
         out[sa] = 0.0
-        # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated
-        # the points beyond interpolate towards the limits the other spreadings leave them (``out`` there: beyond a
-        # reach, its own spot does not hold), not towards their own limits
-        np.minimum(out, reach_end_limits(self.sg_sep, xw, np.minimum(upper, out), T, self.reach_mm), out=out)
+        # the grid has a point at every binding reach end known before (reachgrid); the others are interpolated,
+        # towards the limits the other spreadings leave the points beyond (``out`` there: beyond a reach, its own
+        # spot does not hold), not towards their own limits
+        np.minimum(out, reach_end_limits(pos, xw, np.minimum(upper, out), T, reach, speed2), out=out)
         out[sa] = 0.0
         return out
 
@@ -139,20 +147,7 @@ class Tightener:
         solution, but TOPP(p1) ramps off a slow spot far faster than the raw profile with its plateaus runs:
         the windows it gives are far too wide, and the planned time jumped by up to 76 cycles between
         neighbouring lengths of twelve G64 moves.)"""
-        return self._spread_time(xlim, x0)
-
-    def _spread_time(self, xlim, xs):
-        """``xlim`` spread over T seconds either side at the speeds^2 ``xs``; stops stay at rest."""
-        sa = self.rs.stop_all
-        xw = xlim.copy()
-        xw[sa] = np.inf
-        T = SPREAD_REACH * self.nf * self.dt
-        tau = time_coordinate(self.sg_sep, xs)
-        one = np.ones(xw.shape[0])
-        out = dilate_min(tau, xw, T, speed2=one)
-        np.minimum(out, reach_end_limits(tau, xw, np.minimum(xlim, out), T, speed2=one), out=out)   # as in _spread
-        out[sa] = 0.0
-        return out
+        return self._spread(xlim, xlim, x0)
 
     def solve(self, first: bool, changed, cap_changed) -> np.ndarray:
         """TOPP on the current limits (from scratch the first time, else on the changed ranges)."""

@@ -61,10 +61,9 @@ def _direction(blk, at_end: bool):
     None.  Plain floats: the splitter looks at every block."""
     s, e = blk.start, blk.end
     if blk.kind == B.ARC and blk.center is not None and blk.normal is not None:
-        p = e if at_end else s
-        c, n = blk.center, blk.normal
-        px, py, pz = float(p[0]) - float(c[0]), float(p[1]) - float(c[1]), float(p[2]) - float(c[2])
-        nx, ny, nz = float(n[0]), float(n[1]), float(n[2])
+        p, c = _floats(e if at_end else s), _floats(blk.center)
+        px, py, pz = p[0] - c[0], p[1] - c[1], p[2] - c[2]
+        nx, ny, nz = _floats(blk.normal)[:3]
         sg = -1.0 if blk.clockwise else 1.0
         dx, dy, dz = sg * (ny * pz - nz * py), sg * (nz * px - nx * pz), sg * (nx * py - ny * px)
     else:
