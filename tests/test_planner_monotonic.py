@@ -200,6 +200,19 @@ def test_single_moves_from_rest(cfg, move):
     assert not _dips(L, dur)
 
 
+@pytest.mark.parametrize("axis, feed", [("X", 600), ("Z", 300), ("X", 1800)])
+def test_a_move_from_rest_at_its_feed_is_not_slower_than_a_longer_one(cfg, axis, feed):
+    """One move from rest that cruises at its programmed feed: the interval from the rest to the first
+    grid point ramped at constant acceleration when the point sat at its speed limit, but into the same
+    speed held by a plateau cap at the largest acceleration and then the cap.  Which one ran depended on
+    a rounding of the cruise speed (10 or 9.9997 mm/s), so G1 X F600 planned 211 cycles at 0.4538 mm and
+    205 at 0.4405 mm (17 drops of up to 8 cycles between 0.3 and 0.9 mm).  A point at its limit now ramps
+    like a capped one (profile.ramp_kinks)."""
+    L = np.geomspace(0.2, 1.2, 60)
+    dur = [_plan(cfg, f"G21 G91\nG1 {axis}{d:.7f} F{feed}\nM2\n").duration_s for d in L]
+    assert not _dips(L, dur), _dips(L, dur)
+
+
 def test_a_model_violation_the_table_does_not_have_slows_nothing(cfg):
     """Twelve 0.847 mm moves: the model pass put the jerk at 0.975 of the limit on a corner blend where
     the table measures 0.74; before the verification measured such samples exactly, that slowed the plan

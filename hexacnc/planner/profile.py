@@ -131,24 +131,36 @@ def _ramp_times(h, xa, xb, ur, uf) -> np.ndarray:
     return t
 
 
-def ramp_kinks(h, x, caps, ramps):
+def ramp_kinks(h, x, caps, ramps, limit=None):
     """Ramp accelerations (N-1,) into (``ur``) and out of (``uf``) every capped point: a rising interval
     that ends at its end point's cap ramps at the largest acceleration of the TOPP bounds, then holds the
     cap; a falling one that starts at its start point's cap holds it, then ramps down at the largest
     deceleration.  That is ``min(x(s), cap)`` with the plateau's ends inside the intervals, where the
     uncapped ramp crosses the cap (a plateau from grid point to grid point made its ramps, and the
-    move's time, shrink as the move grew)."""
+    move's time, shrink as the move grew).  With ``limit`` (the speed limits TOPP solved on, x units) a
+    flat top at the limits (a point at its limit whose neighbours are no faster) is entered and left the
+    same way where the limit at the interval's other end is at least as high, or that end is a rest: the
+    top of a feed-limited move ramped at constant acceleration over its first interval when it sat at the
+    limit, but at the largest one when a plateau cap a rounding lower held it, so a longer move planned up
+    to 8 cycles shorter."""
     n = h.shape[0]
     ur = np.zeros(n)
     uf = np.zeros(n)
     if ramps is None or caps is None or n == 0:
         return ur, uf
     capped = np.isfinite(caps) & (x >= caps * (1 - 1e-12))
+    into, out = capped[1:], capped[:-1]
+    if limit is not None:
+        at = x >= limit * (1 - 1e-12)
+        top = np.zeros(x.shape[0], dtype=bool)           # a flat top: at the limit, the neighbours no higher
+        top[1:-1] = at[1:-1] & (x[:-2] <= x[1:-1]) & (x[2:] <= x[1:-1])
+        into = into | (top[1:] & ((limit[:-1] >= x[1:]) | (x[:-1] <= 0.0)))
+        out = out | (top[:-1] & ((limit[1:] >= x[:-1]) | (x[1:] <= 0.0)))
     pos = h > 0
-    k = np.nonzero(pos & (x[1:] > x[:-1]) & capped[1:])[0]
+    k = np.nonzero(pos & (x[1:] > x[:-1]) & into)[0]
     if k.size:
         ur[k] = np.maximum(ramps.up(k, x[k]), 0.0)
-    k = np.nonzero(pos & (x[:-1] > x[1:]) & capped[:-1])[0]
+    k = np.nonzero(pos & (x[:-1] > x[1:]) & out)[0]
     if k.size:
         uf[k] = np.maximum(ramps.down(k, x[k]), 0.0)
     return ur, uf
@@ -315,12 +327,13 @@ def _runs(mask: np.ndarray) -> list:
     return list(zip(np.nonzero(d == 1)[0].tolist(), (np.nonzero(d == -1)[0] - 1).tolist()))
 
 
-def _sample_profile(sg, h, x, holds_s, dt, ramps: RampBounds | None = None, caps=None):
+def _sample_profile(sg, h, x, holds_s, dt, ramps: RampBounds | None = None, caps=None, limit=None):
     """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point); with ``ramps`` and
     ``caps`` the intervals into and out of a capped plateau ramp at the largest acceleration and hold the
-    cap for the rest (:func:`ramp_kinks`), the others run at constant acceleration."""
+    cap for the rest (:func:`ramp_kinks`; with ``limit`` also those into and out of a point at its speed
+    limit), the others run at constant acceleration."""
     N = sg.shape[0]
-    ur, uf = ramp_kinks(h, x, caps, ramps)
+    ur, uf = ramp_kinks(h, x, caps, ramps, limit)
     D = _ramp_times(h, x[:-1], x[1:], ur, uf)      # (N-1,)
     if not np.all(np.isfinite(D)):
         k = int(np.nonzero(~np.isfinite(D))[0][0])

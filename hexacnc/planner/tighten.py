@@ -193,7 +193,7 @@ class Tightener:
         """Raw profile at dt, its moving average, and rows that rest exactly at each hold."""
         g, rs, dt, nf = self.g, self.rs, self.dt, self.nf
         try:
-            s_raw, TH, _total = _sample_profile(g.sg, g.h, x, rs.holds_s, dt, self.ramps(), self.caps)
+            s_raw, TH, _total = _sample_profile(g.sg, g.h, x, rs.holds_s, dt, self.ramps(), self.caps, self.xc)
         except FloatingPointError as exc:
             k = int(str(exc).rsplit(" ", 1)[-1])
             raise PlanError("the path cannot be traversed: zero speed allowed over a stretch", line=int(
