@@ -213,6 +213,20 @@ def test_a_move_from_rest_at_its_feed_is_not_slower_than_a_longer_one(cfg, axis,
     assert not _dips(L, dur), _dips(L, dur)
 
 
+@pytest.mark.parametrize("body", [
+    "G1 X{d:.7f} F1200\n" * 10,                                              # ten in a row, blended
+    "".join("G1 X{d:.7f} F1200\nG1 X-{d:.7f}\n" for _ in range(5)),        # reversals
+    "G61\nG1 X{d:.7f} F1200\nG1 Y{d:.7f}\nG1 Z{d:.7f}\n",                 # exact stops at corners
+    "G0 X{d:.7f} Y{d:.7f}\n",                                               # a rapid
+])
+def test_short_programs_an_operator_writes(cfg, body):
+    """Programs as an operator types them at the feed they bind (issue 15 item 9): the planned time is
+    monotonic in the move length from 1 um to 2 mm."""
+    L = np.geomspace(1e-3, 2.0, 40)
+    dur = [_plan(cfg, "G21 G91\n" + body.format(d=d) + "M2\n").duration_s for d in L]
+    assert not _dips(L, dur), _dips(L, dur)
+
+
 def test_a_model_violation_the_table_does_not_have_slows_nothing(cfg):
     """Twelve 0.847 mm moves: the model pass put the jerk at 0.975 of the limit on a corner blend where
     the table measures 0.74; before the verification measured such samples exactly, that slowed the plan
