@@ -16,8 +16,11 @@ from hexacnc.planner import path as P
 from hexacnc.planner.consts import FILTER_JERK_SHARE, SPREAD_REACH
 from hexacnc.planner.grid import Grid, build_grid, derivatives
 from hexacnc.planner.holds import rests
-from hexacnc.planner.spread import dilate_min, reach_end_limits, reach_ends, spread_cap
-from hexacnc.planner.reachgrid import end_positions, insert_points, spread_frame, with_reach_points
+from hexacnc.planner.profile import _accel_cap
+from hexacnc.planner.spread import (dilate_min, reach_end_limits, reach_ends, rest_ramp_ceiling, rest_ramp_sides,
+                                   spread_cap)
+from hexacnc.planner.reachgrid import (REST_RAMP_POINTS, end_positions, insert_points, rest_ramp_positions,
+                                      spread_frame, with_reach_points)
 from hexacnc.planner.speeds import speed_limits
 
 PROGRAM = """G21 G90 G64 P0.05
@@ -101,7 +104,8 @@ def test_points_lie_on_the_ends_of_binding_reaches(setup):
     assert gap.max() < 1e-9 * max(1.0, float(g.sg[-1]))
     g2, _dv2, rs2, lim2 = with_reach_points(path, hx, cfg, events, g, dv, rs, limits, lims, dt, T,
                                             nf * dt + 2 * dt)
-    assert g2.n == g.n + kk.size
+    kr, _sr = rest_ramp_positions(g, dv, rs, limits, lims[2], 2.0 * T)
+    assert g2.n == g.n + kk.size + (kr.size if REST_RAMP_POINTS else 0)
     assert len(rs2.stop_idx) == len(rs.stop_idx)
     assert np.all(g2.sg[rs2.stop_idx] == g.sg[rs.stop_idx])
 
@@ -155,3 +159,49 @@ def test_acceleration_caps_change_continuously_as_a_reach_crosses_grid_points():
     # before: the plain spreading and a neighbour's cap, twice, stepped by whole intervals
     plain = np.array([dilate_min(sg, ecap, T, speed2=x) for T in Ts])
     assert np.abs(np.diff(plain, axis=0)).max() > 100.0
+
+
+def test_a_point_where_the_ramp_from_each_rest_reaches_its_speed(setup):
+    """On every interval beside a rest, a point where a ramp at the largest acceleration there (the TOPP bound
+    or the filter's cap, the smaller) from rest reaches the far point's speed limit, at most a quarter in."""
+    cfg, hx, path, events, dt, lims, nf, g, dv, limits, rs = setup
+    w = nf * dt
+    kk, s = rest_ramp_positions(g, dv, rs, limits, lims[2], w)
+    rest = set(rs.stop_all.tolist())
+    sides = [(i, r, a) for i in range(g.n - 1) for r, a in ((i, i + 1), (i + 1, i))
+             if r in rest and a not in rest and g.sg[i + 1] > g.sg[i]]
+    assert len(sides) > 0 and kk.size == len(sides)
+    for (i, r, a), k, sp in zip(sides, kk, s):
+        assert k == i
+        u = min(float(np.min(limits[2][r])),
+                float(_accel_cap(dv.Lp[[r]], dv.Lpp[[r]], dv.Lppp[[r]], limits[0][[a]], lims[2], w)[0]))
+        d = abs(sp - g.sg[r])
+        h = g.sg[i + 1] - g.sg[i]
+        assert d == pytest.approx(min(limits[0][a] / (2 * u), 0.25 * h), rel=1e-12)
+        assert g.sg[i] < sp < g.sg[i + 1]
+
+
+def test_rest_ramp_sides_and_their_ceilings_by_hand():
+    """Rests at both ends of five 0.01 mm intervals, one low cap (100 against 1000) at 0.03 mm, 4 mm/s, T = 14 ms
+    (reach 0.056 mm): from the first rest its distance from the ramp's far point is 0.02 mm, from the last 0.01 mm;
+    keeping it off asks every point between no faster than distance / T."""
+    sg = np.array([0.0, 0.01, 0.02, 0.03, 0.04, 0.05])
+    h = np.diff(sg)
+    at_rest = np.array([True, False, False, False, False, True])
+    ecap = np.array([1000.0, 1000.0, 1000.0, 100.0, 1000.0, 1000.0])
+    x = np.full(6, 16.0)
+    T = 0.014
+    sides = rest_ramp_sides(sg, h, at_rest, ecap, x, T)
+    assert [(r, a, step) for r, a, step, _p, _l in sides] == [(0, 1, 1), (5, 4, -1)]
+    assert [[k for k, _d, _c in sd[3]] for sd in sides] == [[3], [3]]
+    assert sides[0][3][0][1] == pytest.approx(0.02) and sides[1][3][0][1] == pytest.approx(0.01)
+    assert sides[0][4] == [100.0]
+    out = np.full(6, np.inf)
+    rest_ramp_ceiling(6, T, sides[0], 100.0, out)
+    np.testing.assert_allclose(out[1:4], (0.02 / T) ** 2, rtol=1e-5)
+    assert np.all(np.isinf(out[[0, 4, 5]]))
+    rest_ramp_ceiling(6, T, sides[1], 100.0, out)
+    np.testing.assert_allclose(out[3:5], (0.01 / T) ** 2, rtol=1e-5)
+    # a cap too far to reach the ramp, or not low, asks nothing
+    assert rest_ramp_sides(sg, h, at_rest, ecap, np.full(6, 0.5), T) == []
+    assert rest_ramp_sides(sg, h, at_rest, np.full(6, 1000.0), x, T) == []

@@ -86,3 +86,10 @@ SCREEN = 0.5
 MODEL_SCREEN = (ETA_V * 0.9995 * (1 - 1e-9), ETA * (1 - 1e-9), ETA * (1 - 1e-9))
 #: iterations of the tightening loop (steps 3-5) before the plan is refused
 MAX_ITERATIONS = 40
+
+#: where a corner's low acceleration cap reaches the ramp from or to a rest, also try the stretch to the corner
+#: slow enough to keep it off the ramp, and take the faster (spread.rest_ramp_sides, tighten.Tightener._rest_ramps)
+REST_RAMPS = True
+#: ... on plans of at most this many grid points: each candidate is a TOPP pass with plateaus over the whole grid,
+#: and a longer plan that keeps the ramps at the caps only runs longer, never shorter
+REST_RAMP_MAX_POINTS = 2000

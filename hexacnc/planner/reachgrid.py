@@ -17,6 +17,7 @@ import numpy as np
 from . import path as P
 from .grid import Derivs, Grid, derivatives
 from .holds import Rests, rests
+from .profile import _accel_cap
 from .spread import dilate_min, reach_ends, separated
 from .speeds import speed_limits
 
@@ -28,6 +29,8 @@ MIN_SHARE = 1e-6
 #: comparison flickered with 0.05 % changes of length (twelve 1 um moves: 56 / 54 / 55 grid points, plans of
 #: 0.1055 / 0.1050 / 0.1055 s)
 BIND_REL = 1e-6
+#: a grid point where the ramp from or to each rest reaches its speed (:func:`rest_ramp_positions`)
+REST_RAMP_POINTS = True
 
 
 def spread_frame(g: Grid, rs: Rests) -> tuple:
@@ -88,12 +91,49 @@ def insert_points(path: P.Path, hx, cfg, g: Grid, dv: Derivs, lims, dt: float, k
     return g2, dv2, out
 
 
+def rest_ramp_positions(g: Grid, dv: Derivs, rs: Rests, limits: tuple, jmax, w: float) -> tuple:
+    """A point on every interval next to a rest, where a ramp at the largest acceleration there reaches the far
+    point's speed limit (at most a quarter of the interval in): the ramp gets an interval of its own, and a corner's
+    low cap kept off it (tighten.Tightener._rest_ramps) costs only that short distance.  Returns (interval index,
+    path position), as :func:`end_positions`."""
+    xlim, _c, e, _dd = limits
+    at_rest = np.zeros(g.n, dtype=bool)
+    at_rest[rs.stop_all] = True
+    kk, ss = [], []
+    for r in np.nonzero(at_rest)[0].tolist():
+        for step in (1, -1):
+            a = r + step
+            if not 0 <= a < g.n or at_rest[a]:
+                continue
+            i = min(r, a)
+            h = g.sg[i + 1] - g.sg[i]
+            if not (h > 0.0 and np.isfinite(xlim[a])):
+                continue
+            # the TOPP bound and the filter's acceleration cap at the far point's limit, from the rest
+            cap = _accel_cap(dv.Lp[r:r + 1], dv.Lpp[r:r + 1], dv.Lppp[r:r + 1], xlim[a:a + 1], jmax, w)[0]
+            u = min(float(np.min(e[r])), float(cap))
+            if not u > 0.0:
+                continue
+            d = min(float(xlim[a]) / (2.0 * u), 0.25 * h)
+            if d <= MIN_SHARE * h:
+                continue
+            kk.append(i)
+            ss.append(g.sg[r] + step * d)
+    return np.array(kk, dtype=np.int64), np.array(ss, dtype=float)
+
+
 def with_reach_points(path: P.Path, hx, cfg, events, g: Grid, dv: Derivs, rs: Rests, limits: tuple, lims,
                       dt: float, T: float, hold_min: float) -> tuple:
     """The planning grid with a point at every binding end of the spreading of the speed limits over ``T``
     seconds.  ``limits`` (xlim, c, e, dd) of :func:`~hexacnc.planner.speeds.speed_limits`.  Returns
     (grid, derivs, rests, limits), unchanged where no reach ends inside an interval."""
     kk, s = end_positions(g, rs, limits[0], T)
+    if REST_RAMP_POINTS:
+        kr, sr = rest_ramp_positions(g, dv, rs, limits, lims[2], 2.0 * T)
+        if kr.size:
+            kk, s = np.concatenate([kk, kr]), np.concatenate([s, sr])
+            o = np.lexsort((s, kk))
+            kk, s = kk[o], s[o]
     if kk.size == 0:
         return g, dv, rs, limits
     g, dv, limits = insert_points(path, hx, cfg, g, dv, lims, dt, kk, s, limits)

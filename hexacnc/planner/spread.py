@@ -220,3 +220,63 @@ def separated(sg: np.ndarray, cut: np.ndarray, gap: float) -> tuple:
     cut = cut[cut < sg.shape[0] - 1]
     keep[cut] = False
     return sg + gap * np.concatenate([[0.0], np.cumsum(~keep)]), keep
+
+
+#: a cap point's reach matters to the ramp beside a rest when its cap is below this share of the ramp's own
+#: (the caps along a line differ by a few per mille)
+REST_CAP_SHARE = 0.8
+#: caps within this factor of each other are kept off a ramp together (one level of :func:`rest_ramp_sides`)
+REST_CAP_GROUP = 1.25
+
+
+def rest_ramp_sides(sg: np.ndarray, h: np.ndarray, at_rest: np.ndarray, ecap: np.ndarray, x: np.ndarray,
+                    T: float) -> list:
+    """The intervals next to a rest that low acceleration caps reach (:func:`spread_cap`, at the speeds^2
+    ``x``): per such side (rest point, far point, step +-1, [(point, distance from the far point, cap)],
+    cap levels ascending).
+
+    A corner's low cap reaches the ramp from (or to) a rest while the raw profile runs from the interval's
+    far point to the corner in less than ``T``; then the whole ramp is taken at that cap.  As moves grow the
+    reach leaves the interval and the ramp is suddenly quick: a G1 X then G1 Y planned 17 cycles shorter at
+    0.084 mm than at 0.078 mm.  The alternative (:func:`rest_ramp_ceiling`): every point from the far point
+    to such a cap point no faster than ``dist / T``, so that its reach ends at the far point.  At the reach's
+    edge that ceiling is the speed already run.  ``sg`` (N,) positions with gaps at stops, ``h`` (N-1,)
+    interval lengths, ``at_rest`` (N,) bool, ``ecap`` (N,) caps before spreading."""
+    N = sg.shape[0]
+    vcap = SPREAD_CAP_MM / T
+    sides = []
+    for r in np.nonzero(at_rest)[0].tolist():
+        for step in (1, -1):
+            a = r + step
+            if not 0 <= a < N or h[min(r, a)] <= 0.0 or at_rest[a]:
+                continue
+            own = min(ecap[r], ecap[a])
+            pts = []
+            k = a + step
+            while 0 <= k < N and not at_rest[k] and abs(sg[k] - sg[a]) < SPREAD_CAP_MM:
+                dist = abs(sg[k] - sg[a])
+                if ecap[k] < REST_CAP_SHARE * own and T * min(math.sqrt(max(x[k], 0.0)), vcap) > dist > 0.0:
+                    pts.append((k, dist, float(ecap[k])))
+                k += step
+            if not pts:
+                continue
+            levels = []
+            for cap in sorted(p[2] for p in pts):
+                if not levels or cap > levels[-1] * REST_CAP_GROUP:
+                    levels.append(cap)
+                else:
+                    levels[-1] = cap
+            sides.append((r, a, step, pts, levels))
+    return sides
+
+
+def rest_ramp_ceiling(N: int, T: float, side: tuple, level: float, out: np.ndarray) -> None:
+    """Lower ``out`` (N,) x units to the ceiling that keeps the caps of ``side`` (:func:`rest_ramp_sides`)
+    up to ``level`` off its ramp: the points from the far point to each such cap point no faster than its
+    distance / T (in place)."""
+    _r, a, step, pts, _levels = side
+    for k, dist, cap in pts:
+        if cap <= level:
+            v2 = (dist / T * (1.0 - 1e-6)) ** 2
+            lo, hi = (a, k) if step > 0 else (k, a)
+            np.minimum(out[lo:hi + 1], v2, out=out[lo:hi + 1])

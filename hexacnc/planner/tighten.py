@@ -3,6 +3,7 @@
 measurement, and local lowering of the limits where a sample exceeds its target."""
 from __future__ import annotations
 
+import copy
 import logging
 import math
 from dataclasses import dataclass
@@ -12,13 +13,15 @@ import numpy as np
 from ..errors import PlanError
 from . import path as P
 from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, CAP_SPEED_SHARE, ETA_V, LOWER_AIM, LOWER_MARGIN_SLOPE,
-                     MAX_ITERATIONS, MODEL_SCREEN, SCREEN, SPREAD_IN_TIME, SPREAD_REACH)
+                     MAX_ITERATIONS, MODEL_SCREEN, REST_RAMP_MAX_POINTS, REST_RAMPS, SCREEN, SPREAD_IN_TIME,
+                     SPREAD_REACH)
 from .grid import Derivs, Grid
 from .holds import Rests
 from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
                       _with_accel_cap)
 from .reachgrid import spread_frame
-from .spread import SPREAD_CAP, dilate_min, reach_end_limits, spread_cap, time_coordinate
+from .spread import (SPREAD_CAP, dilate_min, reach_end_limits, rest_ramp_ceiling, rest_ramp_sides, spread_cap,
+                     time_coordinate)
 from .toppvec import WavefrontTopp
 from .verify import _Bounds, _measure_fast
 
@@ -66,23 +69,11 @@ class Tightener:
             # (the cap stays at the speeds x0 of the distance spreading: at the faster speeds of the spreading in
             # time it would be lower on every curve, and the verification measures the jerk either way)
             self.xlim = self._spread_in_time(xlim, x0)
-        spread_lim = self.xlim
-        self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, spread_lim, x0)
-        # speeds (x units) the cap was taken at, where below x0: a ceiling for the cap's sake, not a limit of the
-        # struts, so the verification's lowering does not scale it (a ceiling right at a ramp's speeds, lowered,
-        # would cut the ramp into a hill of its own)
-        self.ceiling = np.full(Ng, np.inf)
-        if CAP_SPEED_SHARE < 1.0:
-            # where the cap holds the profile below x0, take it at speeds xu between the capped solution y and x0,
-            # with xu as a ceiling: the cap is valid for the profile (it runs at most xu), and y stays feasible
-            # (a higher cap, looser xcap limits), so the profile runs at least as fast as y
-            y = WavefrontTopp(g.h, c7, self.e, self.dd).solve(self.xlim.copy())
-            slow = y < x0
-            if slow.any():
-                v0, vy = np.sqrt(np.maximum(x0, 0.0)), np.sqrt(np.maximum(y, 0.0))
-                xu = np.where(slow, (vy + CAP_SPEED_SHARE * (v0 - vy)) ** 2, x0)
-                self.ecap, c7, self.e, self.dd, self.xlim = self._capped(c, e, dd, spread_lim, xu)
-                self.ceiling = np.where(slow, xu, np.inf)
+        self._cap_args = (c, e, dd, self.xlim, x0)
+        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(np.full(Ng, np.inf))
+        if REST_RAMPS:
+            c7 = self._rest_ramps(c7)
+        del self._cap_args
         c = c7
         del x0
         self.topp = WavefrontTopp(g.h, c, self.e, self.dd)   # same result as topp.forward_backward
@@ -92,6 +83,85 @@ class Tightener:
         self.xcapf = np.full(Ng, np.inf)            # speed limits where a lowered cap leaves no acceleration
         self.bounds = _Bounds(dv.Lp, dv.Lpp, dv.Lppp, self.vmax, self.amax, self.jmax)
         self.xc = None
+
+    def _caps_for(self, ceil: np.ndarray) -> tuple:
+        """The acceleration cap taken at the uncapped solution's speeds ``x0`` under the ceiling ``ceil`` (x units,
+        inf: none), then again nearer the speeds it allows where it holds the profile below them.  Returns (cap,
+        c, e, dd, limits, ceiling) with the TOPP bounds' cap row in ``c``."""
+        c, e, dd, spread_lim, x0 = self._cap_args
+        x0 = np.minimum(x0, ceil)
+        ecap, c7, e7, dd7, xl = self._capped(c, e, dd, spread_lim, x0)
+        # speeds (x units) the cap was taken at, where below x0: a ceiling for the cap's sake, not a limit of the
+        # struts, so the verification's lowering does not scale it (a ceiling right at a ramp's speeds, lowered,
+        # would cut the ramp into a hill of its own)
+        ceiling = ceil.copy()
+        if CAP_SPEED_SHARE < 1.0:
+            # where the cap holds the profile below x0, take it at speeds xu between the capped solution y and x0,
+            # with xu as a ceiling: the cap is valid for the profile (it runs at most xu), and y stays feasible
+            # (a higher cap, looser xcap limits), so the profile runs at least as fast as y
+            y = WavefrontTopp(self.g.h, c7, e7, dd7).solve(np.minimum(xl, ceil))
+            slow = y < x0
+            if slow.any():
+                v0, vy = np.sqrt(np.maximum(x0, 0.0)), np.sqrt(np.maximum(y, 0.0))
+                xu = np.where(slow, (vy + CAP_SPEED_SHARE * (v0 - vy)) ** 2, x0)
+                ecap, c7, e7, dd7, xl = self._capped(c, e, dd, spread_lim, xu)
+                ceiling = np.minimum(ceiling, np.where(slow, xu, np.inf))
+        return ecap, c7, e7, dd7, xl, ceiling
+
+    def _rest_ramps(self, c7):
+        """Where corners' low caps reach the ramp from or to a rest (:func:`rest_ramp_sides`), the fastest of:
+        the ramp at those caps, or the stretch to the corner slow enough to keep the lowest one, two, ... cap
+        levels off the ramp (a ceiling, :meth:`_caps_for`).  Each candidate is run through TOPP and the plateaus,
+        and every stretch between two rests takes the one whose raw profile is shortest there.  Returns the TOPP
+        bounds' cap row (``c7``); the caps, limits and ceiling are updated where a ceiling was chosen."""
+        g, dv = self.g, self.dv
+        if g.n > REST_RAMP_MAX_POINTS:
+            return c7
+        T = SPREAD_REACH * self.nf * self.dt
+        at_rest = np.zeros(g.n, dtype=bool)
+        at_rest[self.rs.stop_all] = True
+        x0 = self._cap_args[4]
+        raw = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, self.nf * self.dt)
+        sides = rest_ramp_sides(self.sg_sep, g.h, at_rest, raw, x0, T)
+        if not sides:
+            return c7
+        n_lev = max(len(sd[4]) for sd in sides)
+        # the stretch between rests each point belongs to
+        sec_of = np.searchsorted(np.nonzero(at_rest)[0], np.arange(g.n), side="right")
+        cands = [(self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling)]
+        for lev in range(n_lev):
+            cl = np.full(g.n, np.inf)
+            for sd in sides:
+                rest_ramp_ceiling(g.n, T, sd, sd[4][min(lev, len(sd[4]) - 1)], cl)
+            cands.append(self._caps_for(cl))
+        n_sec = int(sec_of.max()) + 1
+        times = np.array([np.bincount(sec_of[:-1], self._raw_times(cd), minlength=n_sec) for cd in cands])
+        best = np.argmin(times, axis=0)
+        chosen = np.full(g.n, np.inf)
+        for sd in sides:
+            lev = int(best[sec_of[min(sd[0], sd[1])]])
+            if lev > 0:
+                rest_ramp_ceiling(g.n, T, sd, sd[4][min(lev - 1, len(sd[4]) - 1)], chosen)
+        if not np.isfinite(chosen).any():
+            return c7
+        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(chosen)
+        return c7
+
+    def _raw_times(self, cand: tuple) -> np.ndarray:
+        """(N-1,) seconds of the raw profile per interval (TOPP, plateaus, sampling) under the caps, limits and
+        ceiling ``cand`` of :meth:`_caps_for`."""
+        g = self.g
+        t = copy.copy(self)
+        _ecap, c7, t.e, t.dd, t.xlim, t.ceiling = cand
+        t.topp = WavefrontTopp(g.h, c7, t.e, t.dd)
+        t.caps = np.full(g.n, np.inf)
+        x = t.solve(True, [], [])
+        x = t.plateaus(x, CAP_ROUNDS)
+        try:
+            _s, TH, total = _sample_profile(g.sg, g.h, x, self.rs.holds_s, self.dt, t.ramps(), t.caps, t.xc)
+        except FloatingPointError:
+            return np.full(g.n - 1, np.inf)
+        return np.diff(np.append(TH, total))[:-1] - self.rs.holds_s[:-1]
 
     def _capped(self, c, e, dd, xlim, xs):
         """The acceleration cap (N,) valid at speeds^2 up to ``xs`` (N,), spread over the filter's reach at those
