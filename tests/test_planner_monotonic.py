@@ -206,8 +206,8 @@ def test_a_move_from_rest_at_its_feed_is_not_slower_than_a_longer_one(cfg, axis,
     grid point ramped at constant acceleration when the point sat at its speed limit, but into the same
     speed held by a plateau cap at the largest acceleration and then the cap.  Which one ran depended on
     a rounding of the cruise speed (10 or 9.9997 mm/s), so G1 X F600 planned 211 cycles at 0.4538 mm and
-    205 at 0.4405 mm (17 drops of up to 8 cycles between 0.3 and 0.9 mm).  A point at its limit now ramps
-    like a capped one (profile.ramp_kinks)."""
+    205 at 0.4405 mm (17 drops of up to 8 cycles between 0.3 and 0.9 mm).  A flat top at the limits is now
+    entered like a capped plateau (profile.ramp_kinks)."""
     L = np.geomspace(0.2, 1.2, 60)
     dur = [_plan(cfg, f"G21 G91\nG1 {axis}{d:.7f} F{feed}\nM2\n").duration_s for d in L]
     assert not _dips(L, dur), _dips(L, dur)
