@@ -197,10 +197,10 @@ def test_rest_ramp_sides_and_their_ceilings_by_hand():
     assert sides[0][3][0][1] == pytest.approx(0.02) and sides[1][3][0][1] == pytest.approx(0.01)
     assert sides[0][4] == [100.0]
     out = np.full(6, np.inf)
-    rest_ramp_ceiling(6, T, sides[0], 100.0, out)
+    rest_ramp_ceiling(T, sides[0], 100.0, out)
     np.testing.assert_allclose(out[1:4], (0.02 / T) ** 2, rtol=1e-5)
     assert np.all(np.isinf(out[[0, 4, 5]]))
-    rest_ramp_ceiling(6, T, sides[1], 100.0, out)
+    rest_ramp_ceiling(T, sides[1], 100.0, out)
     np.testing.assert_allclose(out[3:5], (0.01 / T) ** 2, rtol=1e-5)
     # a cap too far to reach the ramp, or not low, asks nothing
     assert rest_ramp_sides(sg, h, at_rest, ecap, np.full(6, 0.5), T) == []

@@ -18,7 +18,7 @@ from . import path as P
 from .grid import Derivs, Grid, derivatives
 from .holds import Rests, rests
 from .profile import _accel_cap
-from .spread import dilate_min, reach_ends, separated
+from .spread import dilate_min, reach_ends, rest_sides, separated
 from .speeds import speed_limits
 
 #: a reach end closer than this share of its interval to a grid point gets no point of its own (the
@@ -52,7 +52,8 @@ def end_positions(g: Grid, rs: Rests, xlim: np.ndarray, T: float) -> tuple:
     out = dilate_min(sg_sep, xw, T, max_reach=reach_mm)
     out[rs.stop_all] = 0.0
     kk, t, xs, b = reach_ends(sg_sep, xw, T, reach_mm)
-    bind = (out[b] > xs * (1.0 + BIND_REL)) & (t > MIN_SHARE) & (t < 1.0 - MIN_SHARE)   # the point beyond has a higher limit
+    # the point beyond has a higher limit
+    bind = (out[b] > xs * (1.0 + BIND_REL)) & (t > MIN_SHARE) & (t < 1.0 - MIN_SHARE)
     kk, t = kk[bind], t[bind]
     if kk.size == 0:
         return kk, np.zeros(0)
@@ -99,27 +100,18 @@ def rest_ramp_positions(g: Grid, dv: Derivs, rs: Rests, limits: tuple, jmax, w: 
     xlim, _c, e, _dd = limits
     at_rest = np.zeros(g.n, dtype=bool)
     at_rest[rs.stop_all] = True
-    kk, ss = [], []
-    for r in np.nonzero(at_rest)[0].tolist():
-        for step in (1, -1):
-            a = r + step
-            if not 0 <= a < g.n or at_rest[a]:
-                continue
-            i = min(r, a)
-            h = g.sg[i + 1] - g.sg[i]
-            if not (h > 0.0 and np.isfinite(xlim[a])):
-                continue
-            # the TOPP bound and the filter's acceleration cap at the far point's limit, from the rest
-            cap = _accel_cap(dv.Lp[r:r + 1], dv.Lpp[r:r + 1], dv.Lppp[r:r + 1], xlim[a:a + 1], jmax, w)[0]
-            u = min(float(np.min(e[r])), float(cap))
-            if not u > 0.0:
-                continue
-            d = min(float(xlim[a]) / (2.0 * u), 0.25 * h)
-            if d <= MIN_SHARE * h:
-                continue
-            kk.append(i)
-            ss.append(g.sg[r] + step * d)
-    return np.array(kk, dtype=np.int64), np.array(ss, dtype=float)
+    r, a = rest_sides(at_rest, g.h)
+    ok = np.isfinite(xlim[a])
+    r, a = r[ok], a[ok]
+    # the TOPP bound and the filter's acceleration cap at the far point's limit, from the rest
+    cap = _accel_cap(dv.Lp[r], dv.Lpp[r], dv.Lppp[r], xlim[a], jmax, w)
+    u = np.minimum(np.min(e[r], axis=1), cap)
+    i = np.minimum(r, a)
+    h = g.h[i]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d = np.minimum(xlim[a] / (2.0 * u), 0.25 * h)
+    ok = (u > 0.0) & (d > MIN_SHARE * h)
+    return i[ok].astype(np.int64), g.sg[r[ok]] + (a[ok] - r[ok]) * d[ok]
 
 
 def with_reach_points(path: P.Path, hx, cfg, events, g: Grid, dv: Derivs, rs: Rests, limits: tuple, lims,

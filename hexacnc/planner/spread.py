@@ -109,8 +109,8 @@ def reach_end_limits(sg: np.ndarray, x: np.ndarray, upper: np.ndarray, T: float,
     scaled up around it, so its end crosses grid points).  The point beyond gets the spread limit
     interpolated towards ``upper`` by the share of the interval that lies beyond the reach, so the limits
     change continuously with the reach; every copy of a duplicated junction point alike (the smallest of all
-    reach ends at a point).  ``speed2``: as in :func:`dilate_min`.  The planner puts a grid point at each end it knows beforehand
-    (:mod:`~hexacnc.planner.reachgrid`); this covers the others."""
+    reach ends at a point).  ``speed2``: as in :func:`dilate_min`.  The planner puts a grid point at each end it
+    knows beforehand (:mod:`~hexacnc.planner.reachgrid`); this covers the others."""
     N = x.shape[0]
     lim = np.full(N, np.inf)
     k, t, xs, b = reach_ends(sg, x, T, max_reach, speed2)
@@ -229,6 +229,24 @@ REST_CAP_SHARE = 0.8
 REST_CAP_GROUP = 1.25
 
 
+def rest_sides(at_rest: np.ndarray, h: np.ndarray) -> tuple:
+    """The intervals of positive length beside a rest whose other end moves: (rest point, far point) (m,) each,
+    sorted by interval (the far point is the rest point +-1).  ``at_rest`` (N,) bool, ``h`` (N-1,) lengths."""
+    N = at_rest.shape[0]
+    r = np.nonzero(at_rest)[0]
+    rr, aa = [], []
+    for step in (1, -1):
+        a = r + step
+        ok = (a >= 0) & (a < N)
+        rs, a = r[ok], a[ok]
+        ok = ~at_rest[a] & (h[np.minimum(rs, a)] > 0.0)
+        rr.append(rs[ok])
+        aa.append(a[ok])
+    r, a = np.concatenate(rr), np.concatenate(aa)
+    o = np.argsort(np.minimum(r, a), kind="stable")
+    return r[o], a[o]
+
+
 def rest_ramp_sides(sg: np.ndarray, h: np.ndarray, at_rest: np.ndarray, ecap: np.ndarray, x: np.ndarray,
                     T: float) -> list:
     """The intervals next to a rest that low acceleration caps reach (:func:`spread_cap`, at the speeds^2
@@ -245,32 +263,29 @@ def rest_ramp_sides(sg: np.ndarray, h: np.ndarray, at_rest: np.ndarray, ecap: np
     N = sg.shape[0]
     vcap = SPREAD_CAP_MM / T
     sides = []
-    for r in np.nonzero(at_rest)[0].tolist():
-        for step in (1, -1):
-            a = r + step
-            if not 0 <= a < N or h[min(r, a)] <= 0.0 or at_rest[a]:
-                continue
-            own = min(ecap[r], ecap[a])
-            pts = []
-            k = a + step
-            while 0 <= k < N and not at_rest[k] and abs(sg[k] - sg[a]) < SPREAD_CAP_MM:
-                dist = abs(sg[k] - sg[a])
-                if ecap[k] < REST_CAP_SHARE * own and T * min(math.sqrt(max(x[k], 0.0)), vcap) > dist > 0.0:
-                    pts.append((k, dist, float(ecap[k])))
-                k += step
-            if not pts:
-                continue
-            levels = []
-            for cap in sorted(p[2] for p in pts):
-                if not levels or cap > levels[-1] * REST_CAP_GROUP:
-                    levels.append(cap)
-                else:
-                    levels[-1] = cap
-            sides.append((r, a, step, pts, levels))
+    for r, a in zip(*(v.tolist() for v in rest_sides(at_rest, h))):
+        step = a - r
+        own = min(ecap[r], ecap[a])
+        pts = []
+        k = a + step
+        while 0 <= k < N and not at_rest[k] and abs(sg[k] - sg[a]) < SPREAD_CAP_MM:
+            dist = abs(sg[k] - sg[a])
+            if ecap[k] < REST_CAP_SHARE * own and T * min(math.sqrt(max(x[k], 0.0)), vcap) > dist > 0.0:
+                pts.append((k, dist, float(ecap[k])))
+            k += step
+        if not pts:
+            continue
+        levels = []
+        for cap in sorted(p[2] for p in pts):
+            if not levels or cap > levels[-1] * REST_CAP_GROUP:
+                levels.append(cap)
+            else:
+                levels[-1] = cap
+        sides.append((r, a, step, pts, levels))
     return sides
 
 
-def rest_ramp_ceiling(N: int, T: float, side: tuple, level: float, out: np.ndarray) -> None:
+def rest_ramp_ceiling(T: float, side: tuple, level: float, out: np.ndarray) -> None:
     """Lower ``out`` (N,) x units to the ceiling that keeps the caps of ``side`` (:func:`rest_ramp_sides`)
     up to ``level`` off its ramp: the points from the far point to each such cap point no faster than its
     distance / T (in place)."""

@@ -69,11 +69,10 @@ class Tightener:
             # (the cap stays at the speeds x0 of the distance spreading: at the faster speeds of the spreading in
             # time it would be lower on every curve, and the verification measures the jerk either way)
             self.xlim = self._spread_in_time(xlim, x0)
-        self._cap_args = (c, e, dd, self.xlim, x0)
-        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(np.full(Ng, np.inf))
+        base = (c, e, dd, self.xlim, x0)      # what the caps are taken from, under any ceiling
+        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(base, np.full(Ng, np.inf))
         if REST_RAMPS:
-            c7 = self._rest_ramps(c7)
-        del self._cap_args
+            c7 = self._rest_ramps(base, c7)
         c = c7
         del x0
         self.topp = WavefrontTopp(g.h, c, self.e, self.dd)   # same result as topp.forward_backward
@@ -84,11 +83,12 @@ class Tightener:
         self.bounds = _Bounds(dv.Lp, dv.Lpp, dv.Lppp, self.vmax, self.amax, self.jmax)
         self.xc = None
 
-    def _caps_for(self, ceil: np.ndarray) -> tuple:
+    def _caps_for(self, base: tuple, ceil: np.ndarray) -> tuple:
         """The acceleration cap taken at the uncapped solution's speeds ``x0`` under the ceiling ``ceil`` (x units,
-        inf: none), then again nearer the speeds it allows where it holds the profile below them.  Returns (cap,
-        c, e, dd, limits, ceiling) with the TOPP bounds' cap row in ``c``."""
-        c, e, dd, spread_lim, x0 = self._cap_args
+        inf: none), then again nearer the speeds it allows where it holds the profile below them.  ``base``: (c, e,
+        dd, spread limits, x0) before any cap.  Returns (cap, c, e, dd, limits, ceiling) with the TOPP bounds' cap
+        row in ``c``."""
+        c, e, dd, spread_lim, x0 = base
         x0 = np.minimum(x0, ceil)
         ecap, c7, e7, dd7, xl = self._capped(c, e, dd, spread_lim, x0)
         # speeds (x units) the cap was taken at, where below x0: a ceiling for the cap's sake, not a limit of the
@@ -108,7 +108,7 @@ class Tightener:
                 ceiling = np.minimum(ceiling, np.where(slow, xu, np.inf))
         return ecap, c7, e7, dd7, xl, ceiling
 
-    def _rest_ramps(self, c7):
+    def _rest_ramps(self, base: tuple, c7):
         """Where corners' low caps reach the ramp from or to a rest (:func:`rest_ramp_sides`), the fastest of:
         the ramp at those caps, or the stretch to the corner slow enough to keep the lowest one, two, ... cap
         levels off the ramp (a ceiling, :meth:`_caps_for`).  Each candidate is run through TOPP and the plateaus,
@@ -120,7 +120,7 @@ class Tightener:
         T = SPREAD_REACH * self.nf * self.dt
         at_rest = np.zeros(g.n, dtype=bool)
         at_rest[self.rs.stop_all] = True
-        x0 = self._cap_args[4]
+        x0 = base[4]
         raw = _accel_cap(dv.Lp, dv.Lpp, dv.Lppp, x0, self.jmax, self.nf * self.dt)
         sides = rest_ramp_sides(self.sg_sep, g.h, at_rest, raw, x0, T)
         if not sides:
@@ -132,8 +132,8 @@ class Tightener:
         for lev in range(n_lev):
             cl = np.full(g.n, np.inf)
             for sd in sides:
-                rest_ramp_ceiling(g.n, T, sd, sd[4][min(lev, len(sd[4]) - 1)], cl)
-            cands.append(self._caps_for(cl))
+                rest_ramp_ceiling(T, sd, sd[4][min(lev, len(sd[4]) - 1)], cl)
+            cands.append(self._caps_for(base, cl))
         n_sec = int(sec_of.max()) + 1
         times = np.array([np.bincount(sec_of[:-1], self._raw_times(cd), minlength=n_sec) for cd in cands])
         best = np.argmin(times, axis=0)
@@ -141,10 +141,10 @@ class Tightener:
         for sd in sides:
             lev = int(best[sec_of[min(sd[0], sd[1])]])
             if lev > 0:
-                rest_ramp_ceiling(g.n, T, sd, sd[4][min(lev - 1, len(sd[4]) - 1)], chosen)
+                rest_ramp_ceiling(T, sd, sd[4][min(lev - 1, len(sd[4]) - 1)], chosen)
         if not np.isfinite(chosen).any():
             return c7
-        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(chosen)
+        self.ecap, c7, self.e, self.dd, self.xlim, self.ceiling = self._caps_for(base, chosen)
         return c7
 
     def _raw_times(self, cand: tuple) -> np.ndarray:
