@@ -71,7 +71,7 @@ def time_loss(blocks, cfg) -> dict:
     x0 = xlim.copy()
     x0[rs.stop_all] = 0.0
     t_limits = float(interval_times(g.h, tt.topp.solve(np.minimum(x0, tt.xcapf))).sum())
-    t_spread = float(interval_times(g.h, tt.topp.solve(np.minimum(tt.xlim, tt.ceiling))).sum())
+    t_spread = float(interval_times(g.h, tt.solve(True, [], [])).sum())     # the first pass's TOPP, as tighten runs it
     prof = tighten(tt)
     t_holds = float(rs.holds_s.sum())
     t_raw = float(interval_times(g.h, prof.x).sum())

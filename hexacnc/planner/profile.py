@@ -330,8 +330,8 @@ def _runs(mask: np.ndarray) -> list:
 def _sample_profile(sg, h, x, holds_s, dt, ramps: RampBounds | None = None, caps=None, limit=None):
     """Raw s(t) at dt from grid speeds x and holds (seconds after each grid point); with ``ramps`` and
     ``caps`` the intervals into and out of a capped plateau ramp at the largest acceleration and hold the
-    cap for the rest (:func:`ramp_kinks`; with ``limit`` also those into and out of a point at its speed
-    limit), the others run at constant acceleration."""
+    cap for the rest (:func:`ramp_kinks`; with ``limit`` also those into and out of a flat top at the speed
+    limits), the others run at constant acceleration."""
     N = sg.shape[0]
     ur, uf = ramp_kinks(h, x, caps, ramps, limit)
     D = _ramp_times(h, x[:-1], x[1:], ur, uf)      # (N-1,)
