@@ -49,6 +49,7 @@ from .holds import Hold, rests  # noqa: F401 (Hold re-exported)
 from .limits import _check_limits
 from .profile import ETA  # noqa: F401 (re-exported)
 from .reachgrid import with_reach_points
+from .reststretch import rest_to_rest, trim_end
 from .retime import hold_times, retime
 from .softlimits import check_box
 from .speeds import speed_limits
@@ -61,6 +62,8 @@ from .verify import _measure_fast
 RETIME = False
 #: a grid point at every binding end of the speed limits' spreading (:mod:`.reachgrid`)
 REACH_POINTS = True
+#: short stretches between rests also planned as one S-curve, kept where it takes fewer cycles (:mod:`.reststretch`)
+REST_STRETCHES = True
 
 
 class Plan:
@@ -176,6 +179,10 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_f, TH, meas = prof.s_f, prof.TH, prof.meas
     if RETIME:            # the verified table, run faster where its rows leave room (retime.py)
         s_f, TH, meas = _retimed(path, hx, g, dv, tt, cfg, prof, dt, nf, lims)
+    s_f, meas = trim_end(s_f, TH, meas, g.sg, rs.holds_s, nf, dt)
+    if REST_STRETCHES:    # short stretches between rests as one S-curve where that is faster (reststretch.py)
+        s_f, TH, meas = rest_to_rest(path, hx, cfg, g, rs.stop_idx, rs.holds_s, s_f, TH, meas,
+                                     lambda t: tt.measure(t, True), nf, dt, lims)
     line_tab, flag_tab, ev_out, pause_idx, line_times = row_tables(path, events, g, rs, s_f, TH, dt, nf)
     uv, ua, uj, va, ajr, vjr, _n = meas
     util = {"velocity": float(uv.max()), "acceleration": float(ua.max()), "jerk": float(uj.max())}

@@ -294,6 +294,10 @@ class PlanSampler:
                 # at rest (the table stands still around here) the rate changes at once: a rapid override
                 # ends with the rapid's stop, not a transition into the feed move after it
                 self.f, self.fd, self._lim = tgt, 0.0, None
+                # and back on the table's own rows (anywhere between rows i and i + 1 is the same rest): the
+                # interpolation at a fractional phase reads a jerk step of the table up to 4 % higher
+                if self.k < i + 1 and self.k != i:
+                    self.k = float(i + 1)
                 continue
             if self.f == tgt and self.fd == 0.0 and self.state == RUN:
                 # steady: vectorised advance up to the next pause, the end or a cap change

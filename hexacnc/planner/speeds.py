@@ -14,15 +14,14 @@ from .profile import ETA
 from .toppvec import accel_coefficients
 
 
-def speed_limits(path: P.Path, cfg, g: Grid, dv: Derivs, dt: float, vmax, amax, jmax):
-    """Returns ``xlim`` (Ng,) and the acceleration bounds ``c, e, dd`` (Ng,6) of the TOPP pass."""
-    pc = cfg.planner
-    dtip, Xg, Lp, Lppp = dv.dtip, dv.Xg, dv.Lp, dv.Lppp
+def feed_angular_limits(path: P.Path, cfg, pidx: np.ndarray, dtip: np.ndarray, Xg: np.ndarray) -> np.ndarray:
+    """Limits on ``x = s_dot^2`` (N,) from the programmed feed and ``[planner] max_angular_velocity_deg_s`` at
+    samples of pieces ``pidx`` with tool-tip rates ``dtip`` (N,6; mm and rad per s-unit) and platform poses
+    ``Xg`` (N,6; mm, rad)."""
     xyz_speed = np.linalg.norm(dtip[:, :3], axis=1)
     ang_speed_deg = np.linalg.norm(np.degrees(dtip[:, 3:]), axis=1)
     meas = np.where(xyz_speed > 1e-6, xyz_speed, np.maximum(ang_speed_deg, 1e-12))
-    feed = path.feed[g.pidx]
-    xlim = (feed / meas) ** 2
+    xlim = (path.feed[pidx] / meas) ** 2
     # angular velocity |omega| = |E abc'| s_dot
     abc = Xg[:, 3:]
     cb_, sb_, cc_, sc_ = np.cos(abc[:, 1]), np.sin(abc[:, 1]), np.cos(abc[:, 2]), np.sin(abc[:, 2])
@@ -31,9 +30,16 @@ def speed_limits(path: P.Path, cfg, g: Grid, dv: Derivs, dt: float, vmax, amax, 
     wy = sc_ * cb_ * da_ + cc_ * db_
     wz = -sb_ * da_ + dc_
     wn = np.sqrt(wx * wx + wy * wy + wz * wz)
-    wmax = math.radians(pc.max_angular_velocity_deg_s)
+    wmax = math.radians(cfg.planner.max_angular_velocity_deg_s)
     with np.errstate(divide="ignore", over="ignore"):
-        xlim = np.minimum(xlim, np.where(wn > 1e-12, (wmax / np.maximum(wn, 1e-12)) ** 2, np.inf))
+        return np.minimum(xlim, np.where(wn > 1e-12, (wmax / np.maximum(wn, 1e-12)) ** 2, np.inf))
+
+
+def speed_limits(path: P.Path, cfg, g: Grid, dv: Derivs, dt: float, vmax, amax, jmax):
+    """Returns ``xlim`` (Ng,) and the acceleration bounds ``c, e, dd`` (Ng,6) of the TOPP pass."""
+    Lp, Lppp = dv.Lp, dv.Lppp
+    xlim = feed_angular_limits(path, cfg, g.pidx, dv.dtip, dv.Xg)
+    with np.errstate(divide="ignore", over="ignore"):
         aLp = np.abs(Lp)
         xv = np.min(np.where(aLp > 1e-12, (ETA_V * 0.995 * vmax[None] / np.maximum(aLp, 1e-300)) ** 2, np.inf),
                     axis=1)
