@@ -103,15 +103,16 @@ class Admission:
     def _refuse_socket(self, s: socket.socket, who: str, op: str, why: str, plain: bool = True,
                        **extra: Any) -> None:
         """Refuse a connection before it is registered: the reason sent (best effort; not to a
-        TLS client, which expects a handshake), logged, closed."""
+        TLS client, which expects a handshake), logged first (a client that reads the refusal finds it in the
+        log), closed."""
         self.stats["refused"] += 1
+        self._log_refusal(who, op, why)
         try:
             if plain:
                 s.send(P.encode(P.error_reply(None, P.UNAUTHORIZED, why, **extra)))
         except OSError:
             pass
         s.close()
-        self._log_refusal(who, op, why)
 
     def _refuse_conn(self, conn: Any, op: str, why: str, req_id: int | None = None,
                      code: str = P.UNAUTHORIZED, **extra: Any) -> None:
