@@ -51,16 +51,8 @@ def double_s_time(d_mm: float, v_max: float, a_max: float, j_max: float) -> floa
         return 0.0
     if not math.isfinite(j):
         return d / v + v / a if d >= v * v / a else 2.0 * math.sqrt(d / a)
-    # time to reach speed w from rest (and the distance covered is w * t / 2 by symmetry)
-    ta = (lambda w: w / a + a / j if w * j >= a * a else 2.0 * math.sqrt(w / j))
-    if d >= v * ta(v):
-        return d / v + ta(v)
-    # v_max not reached: peak speed w with d = w * ta(w)
-    if a * a / j * (a / j) * 2.0 <= d:
-        # a_max reached: d = w^2 / a + w a / j
-        w = 0.5 * (-a * a / j + math.sqrt((a * a / j) ** 2 + 4.0 * a * d))
-        return 2.0 * ta(w)
-    return 4.0 * (d / (2.0 * j)) ** (1.0 / 3.0)
+    from ..planner.scurve import move_time
+    return float(move_time(d, v, a, j))
 
 
 def jerk_floor(plan, cfg, stops=None, max_moves: int = 20) -> dict:

@@ -49,7 +49,7 @@ from .holds import Hold, rests  # noqa: F401 (Hold re-exported)
 from .limits import _check_limits
 from .profile import ETA  # noqa: F401 (re-exported)
 from .reachgrid import with_reach_points
-from .reststretch import rest_to_rest, trim_end
+from .reststretch import rest_to_rest, trim_end, trim_start
 from .retime import hold_times, retime
 from .softlimits import check_box
 from .speeds import speed_limits
@@ -179,6 +179,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     s_f, TH, meas = prof.s_f, prof.TH, prof.meas
     if RETIME:            # the verified table, run faster where its rows leave room (retime.py)
         s_f, TH, meas = _retimed(path, hx, g, dv, tt, cfg, prof, dt, nf, lims)
+    s_f, TH, meas = trim_start(s_f, TH, meas, g.sg, rs.holds_s, nf, dt)
     s_f, meas = trim_end(s_f, TH, meas, g.sg, rs.holds_s, nf, dt)
     if REST_STRETCHES:    # short stretches between rests as one S-curve where that is faster (reststretch.py)
         s_f, TH, meas = rest_to_rest(path, hx, cfg, g, rs.stop_idx, rs.holds_s, s_f, TH, meas,

@@ -36,17 +36,16 @@ from .speeds import feed_angular_limits
 
 #: stretches with more pieces keep the filtered profile (constant bounds suit short stretches only)
 MAX_PIECES = 64
-#: samples per piece (both ends included) at which the bounds are taken, and the parts of a piece other than a
-#: line that each get their own bounds: every sample (a twelve-move 0.07 mm square: 0.163 s; one bound per
-#: quarter of each corner blend 0.182 s, slower than the filtered profile)
+#: samples per piece (both ends included) at which the bounds are taken: every one of them on a blend, arc or
+#: spline (one bound over a blend's quarters: a twelve-move 0.07 mm square 0.182 s instead of 0.163 s, slower than
+#: the filtered profile), the largest on a line
 SAMPLES = 17
-SUB_PARTS = SAMPLES
-#: the search grid over log V and log A (fractions of the largest, down to V_RANGE, A_RANGE), zoomed in around
-#: the best point ZOOMS times
+#: the search: GRID speeds (log-spaced fractions of the largest feasible one, down to V_RANGE), then ZOOMS scans
+#: of ZOOM_POINTS around the best; at each speed a golden section of GOLDEN_STEPS over log A (down to A_RANGE)
 GRID = 32
 ZOOM_POINTS = 9
 ZOOMS = 3
-GOLDEN_STEPS = 30
+GOLDEN_STEPS = 22
 V_RANGE, A_RANGE = 1e-4, 1e-6
 #: candidate x piece x strut values per temporary array of the search
 CHUNK_VALUES = 1 << 20
@@ -97,11 +96,11 @@ def stretches(path: P.Path, g: Grid, stop_idx: np.ndarray, holds_s: np.ndarray) 
 
 
 def _samples(path: P.Path, hx, cfg, pieces: list[np.ndarray]):
-    """Bounds on parts of every piece of every stretch from derivatives at SAMPLES fractions of it.  A line is one
-    part, any other piece SUB_PARTS parts (consecutive samples).  Returns (a1, a2, a3, step, vcap, first part of
-    each stretch): the largest |L'|, |L''|, |L'''| over each part (n,6; each taken at its own worst sample, which
-    only makes the inequalities stricter), the curvature steps |dL''| (n,6) at the junctions inside a stretch,
-    and the smallest feed / angular speed cap (n,)."""
+    """Bounds on the parts of every piece of every stretch from derivatives at SAMPLES fractions of it: a line is
+    one part (its largest values), any other piece one part per sample.  Returns (a1, a2, a3, step, vcap, first
+    part of each stretch): |L'|, |L''|, |L'''| (n,6; on a line each at its own worst sample, which only makes the
+    inequalities stricter), the curvature steps |dL''| (n,6) at the junctions inside a stretch, and the feed /
+    angular speed cap (n,)."""
     m = np.concatenate(pieces)
     u = np.linspace(0.0, 1.0, SAMPLES)
     pidx = np.repeat(m, SAMPLES)
@@ -111,21 +110,18 @@ def _samples(path: P.Path, hx, cfg, pieces: list[np.ndarray]):
                                     np.zeros(0), np.zeros(0)))
     vc = np.sqrt(feed_angular_limits(path, cfg, pidx, dv.dtip, dv.Xg)).reshape(m.size, SAMPLES)
     d3 = [np.abs(d).reshape(m.size, SAMPLES, 6) for d in (dv.Lp, dv.Lpp, dv.Lppp)]
-    nparts = np.where(path.kind[m] == P.LINE, 1, SUB_PARTS)
+    line = path.kind[m] == P.LINE
+    nparts = np.where(line, 1, SAMPLES)
     first_part = np.concatenate([[0], np.cumsum(nparts)[:-1]])
     N = int(nparts.sum())
     a = [np.empty((N, 6)) for _ in range(3)]
     vcap = np.empty(N)
-    edges = np.linspace(0, SAMPLES, SUB_PARTS + 1).round().astype(int)
-    line = nparts == 1
+    other = (first_part[~line][:, None] + np.arange(SAMPLES)[None]).ravel()
     for out, d in zip(a, d3):
         out[first_part[line]] = d[line].max(axis=1)
+        out[other] = d[~line].reshape(-1, 6)
     vcap[first_part[line]] = vc[line].min(axis=1)
-    for j in range(SUB_PARTS):
-        sl = slice(edges[j], edges[j + 1])
-        for out, d in zip(a, d3):
-            out[first_part[~line] + j] = d[~line, sl].max(axis=1)
-        vcap[first_part[~line] + j] = vc[~line, sl].min(axis=1)
+    vcap[other] = vc[~line].ravel()
     step = np.zeros((N, 6))
     first = np.concatenate([[0], np.cumsum([p.size for p in pieces])[:-1]])
     inner = np.ones(m.size, dtype=bool)
@@ -317,12 +313,6 @@ def _moving(s_f: np.ndarray, s0: float, s1: float) -> tuple[int, int]:
     return int(np.searchsorted(s_f, s0, side="right")), int(np.searchsorted(s_f, s1, side="left")) - 1
 
 
-def _rest_rows(hold_s: float, nf: int, dt: float) -> int:
-    """Rows at rest the filtered table has at a stop with raw hold ``hold_s``: the rows whose window lies inside
-    the hold (the ones :func:`~hexacnc.planner.tables.row_tables` marks as the hold's) and the one after."""
-    return max(1, int(math.floor(hold_s / dt + 1e-9)) - nf) + 1
-
-
 def _at(sg: np.ndarray, k: int) -> tuple[int, int]:
     """The grid points at the position of point k (a stop's duplicated junction points): [lo, hi)."""
     return int(np.searchsorted(sg, sg[k], side="left")), int(np.searchsorted(sg, sg[k], side="right"))
@@ -338,6 +328,20 @@ def _group_rest(sg: np.ndarray, holds_s: np.ndarray, b: int, nf: int, dt: float)
     """:func:`_rest_rows` of all the holds at the position of grid point b (they may sit on its duplicates)."""
     lo, hi = _at(sg, b)
     return _rest_rows(float(holds_s[lo:hi].sum()), nf, dt)
+
+
+def trim_start(s_f: np.ndarray, TH: np.ndarray, meas: tuple, sg: np.ndarray, holds_s: np.ndarray, nf: int,
+               dt: float):
+    """The table without the rows at rest before the first hold's rows: with events at the start the raw profile
+    holds there first, and the moving average stands still for its whole width before the hold rows
+    (``TH / dt + nf``, as for every hold) begin.  Returns (table, raw times moved with the rows, measurement)."""
+    lo, hi = _at(sg, 0)
+    if not np.any(holds_s[lo:hi] > 0):
+        return s_f, TH, meas
+    r = min(int(math.ceil(TH[0] / dt - 1e-9)) + nf, int(np.searchsorted(s_f, sg[0], side="right")) - 1)
+    if r <= 0:
+        return s_f, TH, meas
+    return s_f[r:], TH - r * dt, tuple(m[r:] if isinstance(m, np.ndarray) else m for m in meas)
 
 
 def trim_end(s_f: np.ndarray, TH: np.ndarray, meas: tuple, sg: np.ndarray, holds_s: np.ndarray, nf: int, dt: float):

@@ -25,7 +25,7 @@ def peak_velocity(D, V, A, J):
     vA = A * A / J                                    # velocity at which the acceleration saturates
     ta = np.where(V >= vA, V / A + A / J, 2.0 * np.sqrt(V / J))
     reach = V * ta <= D                               # the two ramps to V (each V ta / 2) fit
-    d_a = vA * np.sqrt(vA / J)                        # both ramps to vA (each vA * 2 A/J / 2)
+    d_a = 2.0 * vA * np.sqrt(vA / J)                  # both ramps to vA (each vA * 2 A/J / 2)
     with np.errstate(invalid="ignore"):
         v_sat = 0.5 * (-vA + np.sqrt(vA * vA + 4.0 * A * D))
         v_jerk = np.cbrt(0.5 * D * np.sqrt(J)) ** 2

@@ -30,7 +30,7 @@ def row_tables(path: P.Path, events, g: Grid, rs: Rests, s_f: np.ndarray, TH: np
     pause_idx = []
     for k, hd in sorted(rs.holds.items()):
         # the smoothed table stands still once the filter window lies inside the raw hold
-        c0 = min(Nt - 1, int(math.ceil(TH[k] / dt - 1e-9)) + nf)
+        c0 = max(0, min(Nt - 1, int(math.ceil(TH[k] / dt - 1e-9)) + nf))
         c1 = min(Nt - 1, max(c0, int(math.floor((TH[k] + rs.holds_s[k]) / dt + 1e-9)) - 1))
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
@@ -45,7 +45,7 @@ def row_tables(path: P.Path, events, g: Grid, rs: Rests, s_f: np.ndarray, TH: np
     for m, blk in events:
         if blk.kind not in P.STOP_EVENTS:
             k = int(g.last[m]) if m >= 0 else 0
-            j = min(Nt - 1, int((TH[k]) / dt) + nf // 2)
+            j = max(0, min(Nt - 1, int(math.floor(TH[k] / dt)) + nf // 2))
             ev_out.append((j * dt, int(blk.line), blk.kind, getattr(blk, "coolant", None)))
             flag_tab[j] |= FLAG_EVENT
     flag_tab[-1] |= FLAG_END
