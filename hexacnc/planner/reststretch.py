@@ -2,23 +2,25 @@
 :mod:`hexacnc.planner.plan`).
 
 The filtered profile spends about the filter's width on every slowdown and a plateau of that width on every
-speed peak, whatever the distance: a 1 um move takes ~60 ms, and features closer than the filter's reach
+speed peak, whatever the distance (a 1 um move took 86.5 ms), and features closer than the filter's reach
 interact through its window, so a longer stretch could plan shorter.  A stretch from rest to rest with at most
-``MAX_PIECES`` pieces is also planned as the time-optimal rest-to-rest motion of its path position ``s``
-(:mod:`.scurve`) under constant bounds ``V, A, J`` on ``s``, chosen so that at every sample of every piece (and
-strut ``i``) of the stretch::
+``MAX_PIECES`` pieces and no hold inside is also planned as the time-optimal rest-to-rest motion of its path
+position ``s`` (:mod:`.scurve`) under constant bounds ``V, A, J`` on ``s``, chosen so that at every sample of
+every piece (and strut ``i``) of the stretch::
 
     |L_i'| V <= ETA_V 0.995 v_i                      (and V within the feed and the angular limit)
     |L_i'| A + |L_i''| V^2 <= ETA a_i
     |L_i'| J + 3 |L_i''| V A + |L_i'''| V^3 + |dL_i''| V^2 / dt <= JERK_SHARE ETA j_i
 
-(``dL''``: the curvature step at a junction, read as a jerk by differences at the cycle period).  ``V`` is the
-one of shortest time (A and J follow from it).  Scaling a stretch by ``k > 1`` divides ``L''`` by k and ``L'''``
-by k^2: the bounds of the scaled stretch divided by k satisfy these inequalities on the original one, and
-:func:`~hexacnc.planner.scurve.move_time` is the same for a move and bounds scaled together, so the time of a
-stretch never exceeds the time of a scaled-up copy (up to the kinematics' nonlinearity over the stretch).
-Where the S-curve takes fewer cycles than the filtered rows, its rows replace them; the new table is measured
-exactly and any stretch whose rows exceed a target gets its filtered rows back.
+(``dL''``: the curvature step at a junction, read as a jerk by differences at the cycle period).  ``V`` and
+``A`` are those of shortest time, ``J`` the largest they leave.  Scaling a stretch by ``k > 1`` divides ``L''``
+by k and ``L'''`` by k^2: the bounds of the scaled stretch divided by k satisfy these inequalities on the
+original one, and :func:`~hexacnc.planner.scurve.move_time` is the same for a move and bounds scaled together, so
+the time of a stretch never exceeds the time of a scaled-up copy (up to the kinematics' nonlinearity over the
+stretch).  Where the S-curve takes fewer rows (with the rest after it) than the filtered table, its rows replace
+them; the new table is measured exactly and any stretch whose rows exceed a target gets its filtered rows back.
+:func:`trim_start` and :func:`trim_end` drop the rows at rest the moving average adds before the first hold and
+after the last one.
 """
 from __future__ import annotations
 

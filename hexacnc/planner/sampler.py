@@ -291,13 +291,7 @@ class PlanSampler:
             b = min(len(self._cap) - 1, i // GOV_BLOCK)
             tgt = self._target(b, i)
             if self.state == RUN and self.f != tgt and self._flat[i]:
-                # at rest (the table stands still around here) the rate changes at once: a rapid override
-                # ends with the rapid's stop, not a transition into the feed move after it
-                self.f, self.fd, self._lim = tgt, 0.0, None
-                # and back on the table's own rows (anywhere between rows i and i + 1 is the same rest): the
-                # interpolation at a fractional phase reads a jerk step of the table up to 4 % higher
-                if self.k < i + 1 and self.k != i:
-                    self.k = float(i + 1)
+                self._rate_at_rest(tgt, i)
                 continue
             if self.f == tgt and self.fd == 0.0 and self.state == RUN:
                 # steady: vectorised advance up to the next pause, the end or a cap change
@@ -381,6 +375,15 @@ class PlanSampler:
         self._fill(out, ks[:cnt], extra[:cnt])
         self.rows_written += cnt
         return cnt
+
+    def _rate_at_rest(self, tgt: float, i: int) -> None:
+        """At rest (table rows i and i + 1 equal) the rate changes at once: a rapid override ends with the rapid's
+        stop, not a transition into the feed move after it.  The phase moves onto the next table row (anywhere
+        between the two is the same rest): the interpolation at a fractional phase reads a jerk step of the table
+        up to 4 % higher."""
+        self.f, self.fd, self._lim = tgt, 0.0, None
+        if self.k < i + 1 and self.k != i:
+            self.k = float(i + 1)
 
     def _fill(self, out: np.ndarray, k: np.ndarray, extra: np.ndarray) -> None:
         n = k.shape[0]
