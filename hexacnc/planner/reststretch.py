@@ -74,6 +74,7 @@ class Stretch:
     A: float = 0.0
     J: float = 0.0
     T: float = math.inf
+    phase: tuple | None = None  #: the S-curve's phase durations (scurve.phases), once chosen
 
 
 def stretches(path: P.Path, g: Grid, stop_idx: np.ndarray, holds_s: np.ndarray) -> list[tuple[Stretch, np.ndarray]]:
@@ -307,7 +308,7 @@ def _rows(st: Stretch, sg_b: float, dt: float) -> np.ndarray:
     """Positions of the S-curve's moving rows (after the row at rest, before the one that arrives)."""
     n = max(1, int(math.ceil(st.T / dt - 1e-9)))
     t = dt * np.arange(1, n)
-    return np.minimum(st.s0 + scurve.positions(st.D, st.V, st.A, st.J, t), sg_b)
+    return np.minimum(st.s0 + scurve.positions(st.D, st.V, st.A, st.J, t, st.phase), sg_b)
 
 
 def _moving(s_f: np.ndarray, s0: float, s1: float) -> tuple[int, int]:
@@ -411,6 +412,10 @@ def rest_to_rest(path: P.Path, hx, cfg, g: Grid, stop_idx: np.ndarray, holds_s: 
     fit_bounds(st, [c[1] for c in cand], path, hx, cfg, lims, dt, (old + 1) * dt)
     chosen = [s for s, m in zip(st, old) if math.isfinite(s.T)
               and max(1, int(math.ceil(s.T / dt - 1e-9))) - 1 + _group_rest(g.sg, holds_s, s.b, nf, dt) < m]
+    if chosen:
+        ph = scurve.phases(*(np.array([getattr(s, f) for s in chosen]) for f in "DVAJ"))
+        for k, s in enumerate(chosen):
+            s.phase = (ph[0][k], ph[1][k], ph[2][k])
     for _round in range(MAX_ROUNDS):
         if not chosen:
             return s_f, TH, meas

@@ -44,24 +44,32 @@ def move_time(D, V, A, J):
     return np.where(D > 0, 2.0 * ta + cruise, 0.0)
 
 
-def positions(D: float, V: float, A: float, J: float, t: np.ndarray) -> np.ndarray:
-    """Positions (same shape as ``t``) of the move at times ``t`` (clipped to [0, D]; non-decreasing)."""
-    vp = float(peak_velocity(D, V, A, J))
-    t1, t2 = (float(x) for x in _ramp(vp, A, J))
-    ta = 2.0 * t1 + t2
-    t4 = max(float(move_time(D, V, A, J)) - 2.0 * ta, 0.0)
-    dur = np.array([t1, t2, t1, t4, t1, t2, t1])
+def phases(D, V, A, J):
+    """Phase durations (t1, t2, t4) of the moves (arrays): jerk phases t1, constant acceleration t2, cruise t4."""
+    D = np.maximum(np.asarray(D, dtype=float), 0.0)
+    vp = peak_velocity(D, V, A, J)
+    t1, t2 = _ramp(vp, A, J)
+    t4 = np.maximum(move_time(D, V, A, J) - 2.0 * (2.0 * t1 + t2), 0.0)
+    return t1, t2, t4
+
+
+def positions(D: float, V: float, A: float, J: float, t: np.ndarray, phase: tuple | None = None) -> np.ndarray:
+    """Positions (same shape as ``t``) of the move at times ``t`` (clipped to [0, D]; non-decreasing).
+    ``phase``: its :func:`phases` (t1, t2, t4), if known."""
+    t1, t2, t4 = (float(x) for x in (phase if phase is not None else phases(D, V, A, J)))
+    dur = (t1, t2, t1, t4, t1, t2, t1)
     jerk = np.array([J, 0.0, -J, 0.0, -J, 0.0, J])
-    edges = np.concatenate([[0.0], np.cumsum(dur)])
+    edges = np.zeros(8)
     s, v, a = np.zeros(8), np.zeros(8), np.zeros(8)
     for k in range(7):
         h, j = dur[k], jerk[k]
+        edges[k + 1] = edges[k] + h
         s[k + 1] = s[k] + v[k] * h + a[k] * h * h / 2.0 + j * h ** 3 / 6.0
         v[k + 1] = v[k] + a[k] * h + j * h * h / 2.0
         a[k + 1] = a[k] + j * h
     t = np.asarray(t, dtype=float)
     k = np.clip(np.searchsorted(edges, t, side="right") - 1, 0, 6)
-    tau = np.clip(t - edges[k], 0.0, dur[k])
+    tau = np.clip(t - edges[k], 0.0, np.asarray(dur)[k])
     out = s[k] + v[k] * tau + a[k] * tau * tau / 2.0 + jerk[k] * tau ** 3 / 6.0
     out = np.where(t >= edges[-1], D, out)
     return np.maximum.accumulate(np.clip(out, 0.0, D).ravel()).reshape(out.shape)
