@@ -3,6 +3,7 @@ the motion rests (corner stops, events, the ends) and the standstill after each 
 minimum)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -74,3 +75,9 @@ def rests(path: P.Path, events, g: Grid, hold_min: float, dt: float) -> Rests:
     holds_s[0] = max(holds_s[0], 0.0)
     rest_grid = [int(k) for k in np.nonzero(holds_s > 0)[0]]
     return Rests(holds, stop_idx, stop_all, holds_s, rest_grid)
+
+
+def hold_rows(th_s: float, hold_s: float, dt: float, nf: int) -> tuple[int, int]:
+    """First and last row (not clamped to the table) at which the filtered table stands still in a raw hold of
+    ``hold_s`` seconds from raw time ``th_s``: the rows whose filter window of ``nf`` rows lies inside the hold."""
+    return int(math.ceil(th_s / dt - 1e-9)) + nf, int(math.floor((th_s + hold_s) / dt + 1e-9)) - 1

@@ -33,6 +33,7 @@ from . import path as P
 from . import scurve
 from .consts import ETA_V
 from .grid import Grid, derivatives
+from .holds import hold_rows
 from .profile import ETA
 from .speeds import feed_angular_limits
 
@@ -337,11 +338,11 @@ def trim_start(s_f: np.ndarray, TH: np.ndarray, meas: tuple, sg: np.ndarray, hol
                dt: float):
     """The table without the rows at rest before the first hold's rows: with events at the start the raw profile
     holds there first, and the moving average stands still for its whole width before the hold rows
-    (``TH / dt + nf``, as for every hold) begin.  Returns (table, raw times moved with the rows, measurement)."""
+    (:func:`~hexacnc.planner.holds.hold_rows`) begin.  Returns (table, raw times moved with the rows, measurement)."""
     lo, hi = _at(sg, 0)
     if not np.any(holds_s[lo:hi] > 0):
         return s_f, TH, meas
-    r = min(int(math.ceil(TH[0] / dt - 1e-9)) + nf, int(np.searchsorted(s_f, sg[0], side="right")) - 1)
+    r = min(hold_rows(TH[0], 0.0, dt, nf)[0], int(np.searchsorted(s_f, sg[0], side="right")) - 1)
     if r <= 0:
         return s_f, TH, meas
     return s_f[r:], TH - r * dt, tuple(m[r:] if isinstance(m, np.ndarray) else m for m in meas)
@@ -349,10 +350,10 @@ def trim_start(s_f: np.ndarray, TH: np.ndarray, meas: tuple, sg: np.ndarray, hol
 
 def trim_end(s_f: np.ndarray, TH: np.ndarray, meas: tuple, sg: np.ndarray, holds_s: np.ndarray, nf: int, dt: float):
     """The table without the rows at rest after the last stop's hold rows (:func:`_rest_rows`, counted from the
-    row where the table reaches the end, ``TH / dt + nf`` as for every hold): the moving average stands still
+    row where the table reaches the end, :func:`~hexacnc.planner.holds.hold_rows`): the moving average stands still
     for its whole width after the raw hold.  Returns (table, measurement)."""
     lo = _at(sg, sg.shape[0] - 1)[0]
-    n = int(math.ceil(TH[lo] / dt - 1e-9)) + nf + _group_rest(sg, holds_s, sg.shape[0] - 1, nf, dt)
+    n = hold_rows(TH[lo], 0.0, dt, nf)[0] + _group_rest(sg, holds_s, sg.shape[0] - 1, nf, dt)
     if n >= s_f.shape[0]:
         return s_f, meas
     return s_f[:n], tuple(m[:n] if isinstance(m, np.ndarray) else m for m in meas)

@@ -10,7 +10,7 @@ from ..gcode import blocks as B
 from ..setpoint import FLAG_DWELL, FLAG_END, FLAG_EVENT, FLAG_MOTION, FLAG_PROGRAM_PAUSE, FLAG_RAPID
 from . import path as P
 from .grid import Grid
-from .holds import Rests
+from .holds import Rests, hold_rows
 
 
 def event_value(blk):
@@ -30,8 +30,9 @@ def row_tables(path: P.Path, events, g: Grid, rs: Rests, s_f: np.ndarray, TH: np
     pause_idx = []
     for k, hd in sorted(rs.holds.items()):
         # the smoothed table stands still once the filter window lies inside the raw hold
-        c0 = max(0, min(Nt - 1, int(math.ceil(TH[k] / dt - 1e-9)) + nf))
-        c1 = min(Nt - 1, max(c0, int(math.floor((TH[k] + rs.holds_s[k]) / dt + 1e-9)) - 1))
+        c0, c1 = hold_rows(TH[k], rs.holds_s[k], dt, nf)
+        c0 = max(0, min(Nt - 1, c0))
+        c1 = min(Nt - 1, max(c0, c1))
         line_tab[c0:c1 + 1] = hd.line
         flag_tab[c0:c1 + 1] = FLAG_DWELL
         for blk in hd.kinds:

@@ -16,7 +16,7 @@ from .consts import (CAP_JERK_SPEED, CAP_ROUNDS, CAP_SPEED_SHARE, ETA_V, LOWER_A
                      MAX_ITERATIONS, MODEL_SCREEN, REST_RAMP_MAX_POINTS, REST_RAMPS, SCREEN, SPREAD_IN_TIME,
                      SPREAD_REACH)
 from .grid import Derivs, Grid
-from .holds import Rests
+from .holds import Rests, hold_rows
 from .profile import (ETA, RampBounds, _accel_cap, _box_filter, _cap_round, _cap_speed, _runs, _sample_profile,
                       _with_accel_cap)
 from .reachgrid import spread_frame
@@ -272,8 +272,8 @@ class Tightener:
         # rows whose window lies inside a stop's hold rest exactly at the stop (the running sum of the
         # filter leaves them an ulp off, which put them on the arriving piece in the model pass)
         for k in rs.rest_grid:
-            c0 = int(math.ceil(TH[k] / dt - 1e-9)) + nf
-            c1 = min(s_f.shape[0] - 1, int(math.floor((TH[k] + rs.holds_s[k]) / dt + 1e-9)) - 1)
+            c0, c1 = hold_rows(TH[k], rs.holds_s[k], dt, nf)
+            c1 = min(s_f.shape[0] - 1, c1)
             if c1 >= c0:
                 s_f[c0:c1 + 1] = g.sg[k]
                 # the rows around stay on their side of the stop (the same rounding, either way)
