@@ -35,13 +35,8 @@ def peak_velocity(D, V, A, J):
 
 def move_time(D, V, A, J):
     """Seconds of the time-optimal rest-to-rest move (0 for D <= 0)."""
-    D = np.asarray(D, dtype=float)
-    vp = peak_velocity(np.maximum(D, 0.0), V, A, J)
-    t1, t2 = _ramp(vp, A, J)
-    ta = 2.0 * t1 + t2
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cruise = np.where(vp > 0, np.maximum(D - vp * ta, 0.0) / np.where(vp > 0, vp, 1.0), 0.0)
-    return np.where(D > 0, 2.0 * ta + cruise, 0.0)
+    t1, t2, t4 = phases(D, V, A, J)
+    return np.where(np.asarray(D, dtype=float) > 0, 2.0 * (2.0 * t1 + t2) + t4, 0.0)
 
 
 def phases(D, V, A, J):
@@ -49,7 +44,8 @@ def phases(D, V, A, J):
     D = np.maximum(np.asarray(D, dtype=float), 0.0)
     vp = peak_velocity(D, V, A, J)
     t1, t2 = _ramp(vp, A, J)
-    t4 = np.maximum(move_time(D, V, A, J) - 2.0 * (2.0 * t1 + t2), 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t4 = np.where(vp > 0, np.maximum(D - vp * (2.0 * t1 + t2), 0.0) / np.where(vp > 0, vp, 1.0), 0.0)
     return t1, t2, t4
 
 
