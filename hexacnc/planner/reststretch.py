@@ -138,9 +138,14 @@ def _samples(path: P.Path, hx, cfg, pieces: list[np.ndarray]):
     return a[0], a[1], a[2], step, vcap, first_part[first]
 
 
+def _on_parts(X, seg, n: int):
+    """Per-stretch values (C, S) repeated onto the n parts of the stretches (C, n, 1)."""
+    return np.repeat(X, np.diff(np.append(seg, n)), axis=1)[:, :, None]
+
+
 def _accel_at(V, seg, a1, a2, amax):
     """The largest A (C, S) that ``|L'| A + |L''| V^2 <= ETA a`` leaves at speeds V (C, S); <= 0: none."""
-    Vs = np.repeat(V, np.diff(np.append(seg, a1.shape[0])), axis=1)[:, :, None]
+    Vs = _on_parts(V, seg, a1.shape[0])
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         ra = ETA * amax[None, None] - a2[None] * Vs * Vs
         A = np.where(a1[None] > 1e-12, ra / np.maximum(a1[None], 1e-300), np.where(ra >= 0, _BIG, -_BIG)).min(axis=2)
@@ -148,11 +153,10 @@ def _accel_at(V, seg, a1, a2, amax):
 
 
 def _limits_at(V, A, seg, a1, a2, a3, step, amax, jmax, dt):
-    """For candidate speeds V and accelerations A (C, S): whether ``|L'| A + |L''| V^2 <= ETA a`` holds on every
-    sample of each stretch, and the largest J the jerk inequality leaves (C, S); 0 where none."""
-    cnt = np.diff(np.append(seg, a1.shape[0]))
-    Vs = np.repeat(V, cnt, axis=1)[:, :, None]            # (C, n, 1)
-    As = np.repeat(A, cnt, axis=1)[:, :, None]
+    """For candidate speeds V and accelerations A (C, S): the largest J the jerk inequality leaves on every part
+    of each stretch; 0 where none, or where ``|L'| A + |L''| V^2 <= ETA a`` fails on a part."""
+    Vs = _on_parts(V, seg, a1.shape[0])
+    As = _on_parts(A, seg, a1.shape[0])
     inv = np.where(a1 > 1e-12, 1.0 / np.maximum(a1, 1e-300), 0.0)[None]
     V2 = Vs * Vs
     ok_a = (a1[None] * As + a2[None] * V2 <= ETA * amax[None, None]).all(axis=2)
@@ -280,7 +284,7 @@ def _golden(f, lo, hi, steps: int):
 
 def _accel_jerk0(V, seg, a1, a2, a3, step, jmax, dt):
     """The A (C, S) at which the jerk inequality leaves no jerk at speeds V (C, S); <= 0: none at any A."""
-    Vs = np.repeat(V, np.diff(np.append(seg, a1.shape[0])), axis=1)[:, :, None]
+    Vs = _on_parts(V, seg, a1.shape[0])
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         c = JERK_SHARE * ETA * jmax[None, None] - a3[None] * Vs ** 3 - step[None] * Vs * Vs / dt
         d = 3.0 * a2[None] * Vs
