@@ -123,8 +123,11 @@ def test_shaped_rate_stays_below_the_room_and_rises_faster_on_slow_rows():
 def test_retime_on_slow_blended_corners_is_shorter_and_within_targets(cfg, monkeypatch):
     """Dense corners (the case the shaped rate is for): the retimed table is shorter than the verified one,
     never goes back, and its rows are within the targets measured independently (Hexapod.inverse_batch,
-    finite differences at the cycle period)."""
+    finite differences at the cycle period).  The table is the one of the former, wider filter
+    (``FILTER_JERK_SHARE`` 0.9: 0.965 s, retimed 0.9365 s), which leaves the room this pass is for; the default
+    filter plans the zigzag in 0.921 s and leaves none (the pass then keeps the table: rounds -1)."""
     monkeypatch.setattr(PL, "RETIME", False)
+    monkeypatch.setattr(PL, "FILTER_JERK_SHARE", 0.9)
     plan = plan_program(_zigzag(cfg), cfg)
     r = retime(plan.path, plan.hexapod, plan.s_tab, plan.dt, cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
                cfg.max_jerk_mm_s3, TARGETS)

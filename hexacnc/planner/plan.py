@@ -14,7 +14,7 @@ Method (see docs/planner.md):
    acceleration limits, a curvature-jerk bound and a path-acceleration cap that
    keeps the filter's jerk within the limit).
 4. The profile ``s(t)`` sampled at the cycle period and smoothed by a moving
-   average of width ``w = max(A/J) / 0.9``; no window holds an acceleration
+   average of width ``w = max(A/J)``; no window holds an acceleration
    reversal: slow spots are spread over the window's reach and every speed peak
    is capped to a plateau of at least ``w`` (stops are holds of at least ``w`` so
    the smoothed motion really stops there).
