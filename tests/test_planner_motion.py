@@ -311,6 +311,36 @@ def test_pause_on_a_plan_at_the_strut_limits(cfg, seed):
     assert on_path_distance(cfg, plan, rows).max() < 0.01
 
 
+def test_a_pause_in_a_cruise_takes_the_headroom_of_the_rows_it_runs_through(cfg):
+    """Pause at 200 mm/s in the middle of a 240 mm line: the rate's limits come from the rows the
+    deceleration runs through, not from the deceleration at the line's end 0.6 s ahead (a window of
+    1.2 s of table time took that in, left 2-14 % of the jerk limit for the rate and the pause took
+    0.2-0.3 s, 29-51 mm).  At rest within 0.1 s (measured 44 ms), within the limits, on the path."""
+    home = np.array(cfg.home_pose, dtype=float)
+    tips = [tip_of(cfg, home + [x, 0, 0, 0, 0, 0]) for x in (-120.0, 120.0, -120.0)]
+    blocks = [Block("line", 1 + i, tips[i], tips[i + 1], feed_mm_s=200.0, blend_tolerance_mm=0.1)
+              for i in range(2)]
+    plan = plan_program(blocks, cfg)
+    mid = float(np.interp(0.0, [-120.0, 120.0], [0.0, plan.line_times[1][1]]))      # about x = 0
+    ev = {}
+
+    def hook(s, n):
+        if n * plan.dt > mid and "p" not in ev:
+            ev["p"] = n
+            s.pause()
+        if s.state == "paused" and "at" not in ev:
+            ev["at"] = n
+        if "at" in ev and n > ev["at"] + 50 and "r" not in ev:
+            ev["r"] = n
+            s.resume()
+    s = plan.sampler()
+    rows = run(s, chunk=10, hook=hook)
+    assert s.done and "r" in ev
+    assert (ev["at"] - ev["p"]) * plan.dt < 0.1, (ev["at"] - ev["p"]) * plan.dt
+    assert max(utilisation(cfg, rows, plan.dt)) <= 1.0
+    assert on_path_distance(cfg, plan, rows).max() < 0.01
+
+
 def test_snapshot_restore_replays_exactly_and_a_rewound_pause_stays_within_limits(cfg):
     """The daemon takes back queued rows by restoring a sampler snapshot: what follows a restore is
     bit-identical to the first run, and a pause applied after the rewind (rows already run

@@ -29,9 +29,10 @@ from ruckig import ControlInterface, InputParameter, OutputParameter, Result, Ru
 
 from ..setpoint import COL_FLAGS, COL_LINE, FLAG_END, FLAG_PAUSED, FLAG_RAPID, FLAG_STOPPING
 
-#: samples per governor block and look-ahead of the governor (seconds)
+#: samples per governor block; blocks a rate transition's limits cover at first (the window then grows until it
+#: covers every block the transition runs through); look-ahead of the override cap (seconds)
 GOV_BLOCK = 20
-GOV_LOOKAHEAD_S = 0.6
+TRANSITION_BLOCKS = 4
 CAP_LOOKAHEAD_S = 4.0
 #: override range accepted by set_override (the plan's headroom may cap it further)
 MAX_OVERRIDE = 2.0
@@ -44,18 +45,17 @@ RUN, PAUSING, PAUSED, PROGRAM_PAUSED, STOPPING, DONE = "running", "pausing", "pa
 
 
 def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
-    """Block maxima of the nominal utilisations, maximised over a look-ahead window."""
+    """Block maxima of the nominal utilisations (each block with the one before it).  A rate transition takes
+    the maxima over the blocks it runs through (:meth:`PlanSampler._transition_limits`), and the override cap
+    the maxima over CAP_LOOKAHEAD_S."""
     N = uv.shape[0]
     nb = (N + GOV_BLOCK - 1) // GOV_BLOCK
     pad = nb * GOV_BLOCK - N
-    W = max(1, int(math.ceil(GOV_LOOKAHEAD_S / (GOV_BLOCK * dt))))
     out = {}
     for name, arr in (("uv", uv), ("ua", ua), ("uj", uj), ("va", va), ("ajr", ajr), ("vjr", vjr)):
         a = np.concatenate([arr, np.full(pad, arr[-1] if N else 0.0)]).reshape(nb, GOV_BLOCK).max(axis=1)
         w = a.copy()
         w[1:] = np.maximum(w[1:], a[:-1])           # one block behind
-        for k in range(1, W + 1):                   # W blocks ahead
-            w[:-k] = np.maximum(w[:-k], a[k:])
         out[name] = w
     # override above 1 only where the nominal leaves room, looking CAP_LOOKAHEAD_S ahead so that a
     # slow (headroom-limited) ramp back down completes in time; never below 1 (the plan itself is valid)
@@ -121,7 +121,6 @@ class PlanSampler:
         g = plan.gov
         self._g = g
         self._nb = g["cap"].shape[0]
-        self._W = max(1, int(math.ceil(GOV_LOOKAHEAD_S / (GOV_BLOCK * plan.dt))))
         self._cap = g["cap"].tolist()
         self._lim = None
         self._lim_tgt = None
@@ -225,7 +224,7 @@ class PlanSampler:
 
     def _transition_limits(self, b: int, tgt: float) -> tuple[float, float]:
         """Constant limits for a whole transition: the window grows until it covers the transition."""
-        nbk = max(4, self._W)
+        nbk = TRANSITION_BLOCKS
         A = J = None
         for _ in range(6):
             A, J = self._limits_window(b - 1, b + nbk, self.f, tgt)
