@@ -223,17 +223,18 @@ class PlanSampler:
         return A, J
 
     def _transition_limits(self, b: int, tgt: float) -> tuple[float, float]:
-        """Constant limits for a whole transition: the window grows until it covers the transition."""
+        """Constant limits for a whole transition: the window grows until it covers the transition (the table
+        time a rate ramp runs through is at most ``max(f, tgt)`` times its duration); if it has not settled after
+        6 rounds, the limits of every block from here to the end."""
         nbk = TRANSITION_BLOCKS
-        A = J = None
         for _ in range(6):
             A, J = self._limits_window(b - 1, b + nbk, self.f, tgt)
             dur = self._duration(tgt, A, J)
             need = int((max(self.f, tgt) * dur / self.plan.dt) / GOV_BLOCK) + 2
             if need <= nbk:
-                break
+                return A, J
             nbk = need
-        return A, J
+        return self._limits_window(b - 1, self._nb, self.f, tgt)
 
     def _rate_input(self, position: float, tgt: float, A: float, J: float) -> InputParameter:
         """Ruckig input for moving the rate from its current state (f, f') to ``tgt`` at rest."""
