@@ -309,16 +309,20 @@ def _v_feasible(vhi, seg, parts, amax, jmax, dt):
     return np.where(top, vhi, np.exp(lo))
 
 
+def _n_rows(T: float, dt: float) -> int:
+    """Moving rows of an S-curve of T seconds (after the row at rest, before the one that arrives)."""
+    return max(1, int(math.ceil(T / dt - 1e-9))) - 1
+
+
 def _rows(st: Stretch, sg_b: float, dt: float) -> np.ndarray:
-    """Positions of the S-curve's moving rows (after the row at rest, before the one that arrives)."""
-    n = max(1, int(math.ceil(st.T / dt - 1e-9)))
-    t = dt * np.arange(1, n)
+    """Positions of the S-curve's moving rows (:func:`_n_rows` of them)."""
+    t = dt * np.arange(1, _n_rows(st.T, dt) + 1)
     return np.minimum(st.s0 + scurve.positions(st.D, st.V, st.A, st.J, t, st.phase), sg_b)
 
 
-def _moving(s_f: np.ndarray, s0: float, s1: float) -> tuple[int, int]:
-    """First and last row of the table strictly between the rests at s0 and s1."""
-    return int(np.searchsorted(s_f, s0, side="right")), int(np.searchsorted(s_f, s1, side="left")) - 1
+def _first_moving(s_f: np.ndarray, s0: float) -> int:
+    """First row of the table past the rest at s0."""
+    return int(np.searchsorted(s_f, s0, side="right"))
 
 
 def _at(sg: np.ndarray, k: int) -> tuple[int, int]:
@@ -374,7 +378,7 @@ def splice(s_f: np.ndarray, TH: np.ndarray, chosen: list[Stretch], sg: np.ndarra
     TH2 = TH.copy()
     n_out, at, g_from = 0, 0, 0      # rows written, next old row to copy, first grid point not yet placed
     for st in chosen:
-        i0, i1 = _moving(s_f, st.s0, float(sg[st.b]))
+        i0 = _first_moving(s_f, st.s0)
         a_hi = _at(sg, st.a)[1]
         TH2[g_from:a_hi] = TH[g_from:a_hi] + (n_out - at) * dt
         parts.append(s_f[at:i0])
@@ -409,14 +413,10 @@ def rest_to_rest(path: P.Path, hx, cfg, g: Grid, stop_idx: np.ndarray, holds_s: 
         return s_f, TH, meas
     st = [c[0] for c in cand]
     # the old rows of each stretch: moving, and at rest at its stop until the next departure (or the end)
-    old = []
-    for s in st:
-        i0, i1 = _moving(s_f, s.s0, float(g.sg[s.b]))
-        old.append(int(np.searchsorted(s_f, g.sg[s.b], side="right")) - i0)
-    old = np.array(old)
+    old = np.array([int(np.searchsorted(s_f, g.sg[s.b], side="right")) - _first_moving(s_f, s.s0) for s in st])
     fit_bounds(st, [c[1] for c in cand], path, hx, cfg, lims, dt, (old + 1) * dt)
     chosen = [s for s, m in zip(st, old) if math.isfinite(s.T)
-              and max(1, int(math.ceil(s.T / dt - 1e-9))) - 1 + _group_rest(g.sg, holds_s, s.b, nf, dt) < m]
+              and _n_rows(s.T, dt) + _group_rest(g.sg, holds_s, s.b, nf, dt) < m]
     if chosen:
         ph = scurve.phases(*(np.array([getattr(s, f) for s in chosen]) for f in "DVAJ"))
         for k, s in enumerate(chosen):
