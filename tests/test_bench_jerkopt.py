@@ -87,3 +87,37 @@ def test_optimum_at_the_planners_shares_lies_between_the_full_optimum_and_its_ti
     assert full["ok"] and part["ok"]
     c = min(JO.PLAN_SHARES[0], JO.PLAN_SHARES[1] ** 0.5, JO.PLAN_SHARES[2] ** (1 / 3))
     assert full["duration_s"] * (1 - 1e-6) <= part["duration_s"] <= full["duration_s"] / c * (1 + 1e-4)
+
+
+def test_jerk_terms_bounded_one_by_one_change_nothing_on_one_axis():
+    """One axis has no curvature terms (L'' = L''' = 0): bounding the terms one by one is the same problem."""
+    pd = JO.one_axis(12.0, 400)
+    V, A, J = np.array([400.0]), np.array([6000.0]), np.array([1.5e5])
+    signed = JO.solve(pd, V, A, J)
+    terms = JO.solve(pd, V, A, J, jerk_by_terms=True)
+    assert signed.status == terms.status == "Solve_Succeeded"
+    assert terms.duration_s == pytest.approx(signed.duration_s, rel=1e-5)
+    assert terms.duration_s == pytest.approx(rest_to_rest_time(12.0, 400.0, 6000.0, 1.5e5), rel=0.01)
+
+
+@pytest.mark.slow
+def test_jerk_terms_bounded_one_by_one_cost_time_and_hold_term_by_term(arc_plan):
+    """On a curved path the signed optimum is at most the one with the terms bounded one by one, and that
+    solution keeps |L'''| v^3 + 3 |L''| v |a| + |L'| |j| within every strut's limit at the nodes (derivatives
+    of the departing interval, taken here again from the path)."""
+    cfg, plan, secs = arc_plan
+    signed = JO.jerk_optimum(plan, cfg, secs)
+    terms = JO.jerk_optimum(plan, cfg, secs, jerk_by_terms=True)
+    assert signed["ok"] and terms["ok"]
+    assert signed["duration_s"] <= terms["duration_s"] * (1 + 1e-6)
+    J = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
+    worst = 0.0
+    for (a, b), o in zip(secs, terms["sections"]):
+        pd = JO.section_derivs(plan.path, plan.hexapod, a, b, max(min(JO.GRID_STEP_MM, (b - a) / JO.MIN_SECTION_NODES),
+                                                                   (b - a) / JO.MAX_NODES))
+        assert np.allclose(pd.s, o.s)
+        v, acc = o.v[:-1, None], o.a[:-1, None]
+        sums = (np.abs(pd.L3b[:-1]) * v ** 3 + 3 * np.abs(pd.L2b[:-1]) * v * np.abs(acc)
+                + np.abs(pd.L1b[:-1]) * np.abs(o.j)[:, None])
+        worst = max(worst, float(np.max(sums / J[None])))
+    assert 0.9 < worst <= 1 + 1e-5

@@ -34,10 +34,11 @@ def bench_excerpts(cfg, gridpoints: int, corpus: Path, excerpts=CAM_EXCERPTS) ->
     return res
 
 
-def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=None) -> dict:
+def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=None, by_terms: bool = False) -> dict:
     """hexacnc against the jerk-limited optimum alone (no TOPP-RA) on the bench paths and the CAM excerpts:
     per path the plan's duration and measured utilisation, the optimum's keys (feeds lifted, dwells zeroed).
-    ``at_shares``: also the optimum at the planner's shares; ``only``: path names (keys' first word) to run."""
+    ``at_shares``: also the optimum at the planner's shares; ``by_terms``: also the optimum with the jerk terms
+    bounded one by one; ``only``: path names (keys' first word) to run."""
     import time
     from ..planner import plan_program
     from .jerkfloor import _rest_points
@@ -63,7 +64,7 @@ def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=N
             out[key] = {"planned": False, "reason": str(exc)}
             continue
         t_plan = time.perf_counter() - t0
-        jo = jerk_optimum_report(plan, cfg, _rest_points(plan), at_shares=at_shares)
+        jo = jerk_optimum_report(plan, cfg, _rest_points(plan), at_shares=at_shares, by_terms=by_terms)
         out[key] = {"hexacnc_duration_s": round(plan.duration_s, 6),
                     "hexacnc_utilisation": {k: round(v, 6) for k, v in plan.utilisation.items()},
                     "utilisation_ok": bool(max(plan.utilisation.values()) <= 1.0),
@@ -73,4 +74,6 @@ def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=N
         out[key]["time_loss"] = time_loss(blocks, cfg)
         if at_shares:
             out[key]["jerk_optimum_at_shares_ratio"] = jo.get("jerk_optimum_at_shares_ratio")
+        if by_terms:
+            out[key]["jerk_optimum_by_terms_ratio"] = jo.get("jerk_optimum_by_terms_ratio")
     return out

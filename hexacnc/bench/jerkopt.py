@@ -160,11 +160,16 @@ def _guess(pd: PathDerivs, V, A, J) -> tuple:
 
 
 def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, guess=None,
-          max_iter: int = 3000, tol: float = 1e-9, accel_jumps: bool = False) -> Optimum:
+          max_iter: int = 3000, tol: float = 1e-9, accel_jumps: bool = False,
+          jerk_by_terms: bool = False) -> Optimum:
     """Minimum-time rest-to-rest traversal of the section ``pd`` under strut limits (each (m,)).
 
     ``accel_jumps``: the path acceleration may jump where two pieces meet (TOPP-RA's model, for checks with
-    the jerk limit lifted); otherwise it is continuous (a finite jerk)."""
+    the jerk limit lifted); otherwise it is continuous (a finite jerk).
+    ``jerk_by_terms``: each strut's three jerk terms are bounded by their magnitudes,
+    ``|L'''| v^3 + 3 |L''| v |a| + |L'| |j| <= J`` (four smooth constraints, one per sign of ``a`` and ``j``),
+    instead of by their signed sum: the optimum of any planner that keeps the terms within the limit one by
+    one, as a second-order speed profile under a jerk filter does."""
     import casadi as ca
     t0 = time.perf_counter()
     V, A, J = (np.asarray(x, dtype=float).reshape(-1) for x in (vmax, amax, jmax))
@@ -209,6 +214,13 @@ def solve(pd: PathDerivs, vmax, amax, jmax, cycle_s: float | None = 0.0005, gues
         for L1, L2, L3, sl, AA in ((pd.L1a[1:, i], pd.L2a[1:, i], pd.L3a[1:, i], slice(1, n), Aa),
                                    (pd.L1b[:-1, i], pd.L2b[:-1, i], pd.L3b[:-1, i], slice(0, N), A_)):
             vv, aa, jv = V_[sl], AA[sl], J_
+            if jerk_by_terms:
+                for sa, sj in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+                    g.append((ca.DM(np.abs(L3)) * vv ** 3 + 3 * ca.DM(np.abs(L2)) * vv * (sa * aa)
+                              + ca.DM(np.abs(L1)) * (sj * jv)) / J[i])
+                    lbg.append(np.full(N, -np.inf))
+                    ubg.append(np.ones(N))
+                continue
             g.append((ca.DM(L3) * vv ** 3 + 3 * ca.DM(L2) * vv * aa + ca.DM(L1) * jv) / J[i])
             lbg.append(-np.ones(N))
             ubg.append(np.ones(N))
@@ -275,7 +287,8 @@ def utilisation(path, hx, cfg, opts: list) -> dict:
 
 
 def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes: int = PIECE_NODES,
-                 jerk_scale: float = 1.0, accel_jumps: bool = False, shares=(1.0, 1.0, 1.0)) -> dict:
+                 jerk_scale: float = 1.0, accel_jumps: bool = False, shares=(1.0, 1.0, 1.0),
+                 jerk_by_terms: bool = False) -> dict:
     """The jerk-limited optimum on the rest-to-rest ``sections`` [(a, b)] of the plan's executed path under
     the strut limits of ``cfg`` (jerk times ``jerk_scale``; velocity, acceleration and jerk times ``shares``):
     total time, per-section times and solver status, the trajectory's measured utilisation."""
@@ -288,7 +301,8 @@ def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes
     for a, b in sections:
         step = max(min(step_mm, (b - a) / MIN_SECTION_NODES), (b - a) / MAX_NODES)
         pd = section_derivs(path, hx, a, b, step, piece_nodes)
-        opts.append(solve(pd, vmax, amax, jmax, cycle_s=float(cfg.cycle.period_s), accel_jumps=accel_jumps))
+        opts.append(solve(pd, vmax, amax, jmax, cycle_s=float(cfg.cycle.period_s), accel_jumps=accel_jumps,
+                          jerk_by_terms=jerk_by_terms))
     total = float(sum(o.duration_s for o in opts))
     return {"duration_s": total, "sections": opts, "solve_s": time.perf_counter() - t0,
             "ok": all(o.status in ("Solve_Succeeded", "Solved_To_Acceptable_Level") for o in opts),
@@ -299,10 +313,12 @@ def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes
 PLAN_SHARES = (0.995, 0.95, 0.95)
 
 
-def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False) -> dict:
+def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False, by_terms: bool = False) -> dict:
     """The jerk-limited optimum (:mod:`hexacnc.bench.jerkopt`) on the plan's rest-to-rest sections; with
     ``at_shares`` also the optimum under the planner's own shares of the limits (``PLAN_SHARES``), which
-    splits hexacnc's gap into the shares' part and the profile method's part."""
+    splits hexacnc's gap into the shares' part and the profile method's part; with ``by_terms`` also the
+    optimum with each strut's jerk terms bounded one by one (``solve(jerk_by_terms=True)``): the best any
+    planner can do that does not let the terms cancel, and the part of the gap that cancellation is worth."""
     if not have_casadi():
         return {"skipped": INSTALL}
     r = jerk_optimum(plan, cfg, _sections(stops))
@@ -313,6 +329,12 @@ def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False) -> dict:
         o2 = rs["duration_s"]
         extra = {"jerk_optimum_at_shares_s": round(o2, 6), "jerk_optimum_at_shares_ratio": round(plan.duration_s / o2, 6),
                  "shares": list(PLAN_SHARES), "shares_cost": round(o2 / opt, 6), "at_shares_solver_ok": rs["ok"]}
+    if by_terms:
+        rt = jerk_optimum(plan, cfg, _sections(stops), jerk_by_terms=True)
+        o3 = rt["duration_s"]
+        extra.update({"jerk_optimum_by_terms_s": round(o3, 6),
+                      "jerk_optimum_by_terms_ratio": round(plan.duration_s / o3, 6),
+                      "by_terms_cost": round(o3 / opt, 6), "by_terms_solver_ok": rt["ok"]})
     return {**extra, "jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
             "within_8_percent": bool(plan.duration_s <= 1.08 * opt),
             "utilisation": {k: round(v, 6) for k, v in utilisation(plan.path, plan.hexapod, cfg,

@@ -62,6 +62,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--optimum-at-shares", action="store_true",
                         help="with --optimum-only: also the optimum under the planner's own shares of the limits "
                              "(v 0.995, a/j 0.95): the gap split into the shares' part and the method's part")
+    parser.add_argument("--optimum-by-terms", action="store_true",
+                        help="with --optimum-only: also the optimum with each strut's jerk terms bounded one by one "
+                             "(|L3| v^3 + 3 |L2| v |a| + |L1| |j| <= J, L1-L3 the strut length's path derivatives): "
+                             "the best a planner that does not let them cancel can reach")
     parser.add_argument("--paths", default="",
                         help="with --optimum-only: only these paths (comma-separated: corners, smooth, stops, "
                              "arcspiral, tort, 3D_Chips)")
@@ -133,8 +137,10 @@ def _optimum_summary(topp: dict) -> dict:
             if isinstance(v.get("jerk_optimum"), dict) and v["jerk_optimum"].get("utilisation")}
     worst = max(ratios.values()) if ratios else None
     at_shares = {k: v.get("jerk_optimum_at_shares_ratio") for k, v in rows.items() if v.get("jerk_optimum_at_shares_ratio")}
+    by_terms = {k: v.get("jerk_optimum_by_terms_ratio") for k, v in rows.items() if v.get("jerk_optimum_by_terms_ratio")}
     return {"ratios": ratios, "worst_ratio": worst, "target_ratio": 1.08,
             **({"ratios_at_shares": at_shares} if at_shares else {}),
+            **({"ratios_by_terms": by_terms} if by_terms else {}),
             "within_target": bool(worst is not None and worst <= 1.08),
             "hexacnc_utilisation_ok": all(bool(v.get("utilisation_ok")) for v in rows.values() if "utilisation_ok" in v),
             "optimum_utilisation": util}
@@ -152,7 +158,8 @@ def main(args: argparse.Namespace) -> int:
         from .excerpts import bench_optimum_only
         only = {p.strip() for p in args.paths.split(",") if p.strip()}
         res["optimum"] = bench_optimum_only(cfg, corpus if corpus.is_dir() else None,
-                                            at_shares=args.optimum_at_shares, only=only or None)
+                                            at_shares=args.optimum_at_shares, only=only or None,
+                                            by_terms=args.optimum_by_terms)
         res["optimum"]["jerk_optimum_summary"] = _optimum_summary(
             {**{k: res["optimum"].get(k) for k in ("corners", "smooth", "stops")},
              "cam_excerpts": {k: v for k, v in res["optimum"].items() if " lines " in k}})
