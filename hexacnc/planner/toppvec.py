@@ -74,8 +74,10 @@ class WavefrontTopp:
         # at h = 0 this is nxt itself: K = min(xlim, nxt), as in the sequential pass
         self.bnum = h2[:, None] * c[:-1]
         coef = 1.0 + h2[:, None] * d[:-1]
-        self.bok = coef > 1e-12
-        self.bden = np.where(self.bok, coef, 1.0)
+        self.bok = bok = coef > 1e-12
+        # no bound where 1 + 2h d_i <= 1e-12: (nxt + inf) / 1 = inf, with no mask to gather in each round
+        self.bnum[~bok] = -np.inf
+        self.bden = np.where(bok, coef, 1.0)
         self.e = np.ascontiguousarray(e[:-1])
         self.d = np.ascontiguousarray(d[:-1])
         self.K = None
@@ -86,18 +88,18 @@ class WavefrontTopp:
     def _g(self, k: np.ndarray) -> np.ndarray:
         nxt = self.K[k + 1]
         with np.errstate(invalid="ignore", over="ignore"):
-            v = np.where(self.bok[k], (nxt[:, None] - self.bnum[k]) / self.bden[k], np.inf)
-        out = np.minimum(self.xl[k], v.min(axis=1))
-        return np.where(self.pos[k], np.maximum(out, 0.0), out)
+            v = (nxt[:, None] - self.bnum[k]) / self.bden[k]
+        # at h = 0 the result min(xl, nxt) is >= 0 already: the clamp is a no-op there
+        return np.maximum(np.minimum(self.xl[k], v.min(axis=1)), 0.0)
 
     def _f(self, k: np.ndarray) -> np.ndarray:
         xk = self.x[k]
         kn = self.K[k + 1]
-        hk = self.h[k]
+        h2 = self.h2[k]
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-            u = (kn - xk) / (2.0 * hk)
+            u = (kn - xk) / h2
             u = np.minimum(u, (self.e[k] + self.d[k] * xk[:, None]).min(axis=1))
-            xn = np.minimum(np.maximum(xk + 2.0 * hk * u, 0.0), kn)
+            xn = np.minimum(np.maximum(xk + h2 * u, 0.0), kn)
         return np.where(self.pos[k], xn, np.minimum(xk, kn))
 
     def _backward(self, k: np.ndarray) -> np.ndarray:
@@ -143,7 +145,7 @@ class WavefrontTopp:
         """Set row ``col`` of the acceleration bounds, one with ``d = 0``, to ``-bound <= u <= bound`` at the
         grid points idx; follow with :meth:`solve_ranges` over them with ``bounds_changed=True``."""
         idx = idx[idx < self.N - 1]
-        self.bnum[idx, col] = self.h2[idx] * -bound[idx]
+        self.bnum[idx, col] = self.h2[idx] * -bound[idx]        # d = 0: 1 + 2h d > 1e-12, a bound
         self.e[idx, col] = bound[idx]
 
     def solve_ranges(self, xlim: np.ndarray, ranges, bounds_changed: bool = False) -> np.ndarray:
