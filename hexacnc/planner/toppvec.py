@@ -66,7 +66,6 @@ class WavefrontTopp:
     def __init__(self, h: np.ndarray, c: np.ndarray, e: np.ndarray, d: np.ndarray):
         h = np.asarray(h, dtype=float)
         self.N = h.shape[0] + 1
-        self.h = h
         self.pos = h > 0.0
         h2 = 2.0 * h
         self.h2 = h2
