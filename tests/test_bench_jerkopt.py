@@ -113,8 +113,7 @@ def test_jerk_terms_bounded_one_by_one_cost_time_and_hold_term_by_term(arc_plan)
     J = np.asarray(cfg.max_jerk_mm_s3, dtype=float)
     worst = 0.0
     for (a, b), o in zip(secs, terms["sections"]):
-        pd = JO.section_derivs(plan.path, plan.hexapod, a, b, max(min(JO.GRID_STEP_MM, (b - a) / JO.MIN_SECTION_NODES),
-                                                                   (b - a) / JO.MAX_NODES))
+        pd = JO.section_derivs(plan.path, plan.hexapod, a, b, JO.section_step(a, b))
         assert np.allclose(pd.s, o.s)
         v, acc = o.v[:-1, None], o.a[:-1, None]
         sums = (np.abs(pd.L3b[:-1]) * v ** 3 + 3 * np.abs(pd.L2b[:-1]) * v * np.abs(acc)

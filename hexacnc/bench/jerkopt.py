@@ -286,6 +286,12 @@ def utilisation(path, hx, cfg, opts: list) -> dict:
     return {"velocity": float(peak[0]), "acceleration": float(peak[1]), "jerk": float(peak[2])}
 
 
+def section_step(a: float, b: float, step_mm: float = GRID_STEP_MM) -> float:
+    """The node step (mm) on the section [a, b]: ``step_mm``, finer on a short section (MIN_SECTION_NODES at
+    least), coarser on a long one (MAX_NODES at most)."""
+    return max(min(step_mm, (b - a) / MIN_SECTION_NODES), (b - a) / MAX_NODES)
+
+
 def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes: int = PIECE_NODES,
                  jerk_scale: float = 1.0, accel_jumps: bool = False, shares=(1.0, 1.0, 1.0),
                  jerk_by_terms: bool = False) -> dict:
@@ -299,8 +305,7 @@ def jerk_optimum(plan, cfg, sections, step_mm: float = GRID_STEP_MM, piece_nodes
     t0 = time.perf_counter()
     opts = []
     for a, b in sections:
-        step = max(min(step_mm, (b - a) / MIN_SECTION_NODES), (b - a) / MAX_NODES)
-        pd = section_derivs(path, hx, a, b, step, piece_nodes)
+        pd = section_derivs(path, hx, a, b, section_step(a, b, step_mm), piece_nodes)
         opts.append(solve(pd, vmax, amax, jmax, cycle_s=float(cfg.cycle.period_s), accel_jumps=accel_jumps,
                           jerk_by_terms=jerk_by_terms))
     total = float(sum(o.duration_s for o in opts))
