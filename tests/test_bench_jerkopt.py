@@ -120,3 +120,26 @@ def test_jerk_terms_bounded_one_by_one_cost_time_and_hold_term_by_term(arc_plan)
                 + np.abs(pd.L1b[:-1]) * np.abs(o.j)[:, None])
         worst = max(worst, float(np.max(sums / J[None])))
     assert 0.9 < worst <= 1 + 1e-5
+
+
+
+@pytest.mark.slow
+def test_the_report_gives_terms_one_by_one_at_the_shares():
+    """A 2 mm move from rest to rest: with both options the report's floor (each jerk term bounded on its own, at
+    the plan's shares) is no faster than either relaxation alone (terms one by one at the full limits, signed
+    sum at the shares), and at most the terms-one-by-one optimum slowed by c = min(0.995, sqrt(0.95),
+    cbrt(0.95)), which keeps every term within its share (each scales with a power >= 1 of the slowing); its
+    cost and ratio are its duration against the optimum's and hexacnc's."""
+    from hexacnc.bench.toppra_peer import _lifted_config, stops_path_blocks
+    cfg = _lifted_config(load_config(None), False)
+    plan = plan_program(stops_path_blocks(cfg, moves=((2.0, (1, 0, 0)),)), cfg)
+    rep = JO.jerk_optimum_report(plan, cfg, _rest_points(plan), at_shares=True, by_terms=True)
+    assert rep["by_terms_at_shares_solver_ok"]
+    both = rep["jerk_optimum_by_terms_at_shares_s"]
+    assert both >= max(rep["jerk_optimum_at_shares_s"], rep["jerk_optimum_by_terms_s"]) * (1 - 1e-5)
+    c = min(JO.PLAN_SHARES[0], JO.PLAN_SHARES[1] ** 0.5, JO.PLAN_SHARES[2] ** (1 / 3))
+    assert both <= rep["jerk_optimum_by_terms_s"] / c * (1 + 1e-4)
+    assert rep["by_terms_at_shares_cost"] == pytest.approx(both / rep["jerk_optimum_s"], rel=1e-4)
+    assert rep["jerk_optimum_by_terms_at_shares_ratio"] == pytest.approx(plan.duration_s / both, rel=1e-4)
+    assert rep["jerk_optimum_by_terms_at_shares_ratio"] > 1.0
+

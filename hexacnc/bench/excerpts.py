@@ -76,4 +76,7 @@ def bench_optimum_only(cfg, corpus: Path | None, at_shares: bool = False, only=N
             out[key]["jerk_optimum_at_shares_ratio"] = jo.get("jerk_optimum_at_shares_ratio")
         if by_terms:
             out[key]["jerk_optimum_by_terms_ratio"] = jo.get("jerk_optimum_by_terms_ratio")
+        if at_shares and by_terms:
+            for k in ("jerk_optimum_by_terms_at_shares_ratio", "by_terms_at_shares_cost"):
+                out[key][k] = jo.get(k)
     return out

@@ -323,7 +323,9 @@ def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False, by_terms: boo
     ``at_shares`` also the optimum under the planner's own shares of the limits (``PLAN_SHARES``), which
     splits hexacnc's gap into the shares' part and the profile method's part; with ``by_terms`` also the
     optimum with each strut's jerk terms bounded one by one (``solve(jerk_by_terms=True)``): the best any
-    planner can do that does not let the terms cancel, and the part of the gap that cancellation is worth."""
+    planner can do that does not let the terms cancel, and the part of the gap that cancellation is worth; with
+    both, also the optimum with the terms bounded one by one at the planner's shares (``by_terms_at_shares_cost``:
+    the least ratio to the optimum that any planner keeping each term and the plan's headroom can reach)."""
     if not have_casadi():
         return {"skipped": INSTALL}
     r = jerk_optimum(plan, cfg, _sections(stops))
@@ -340,6 +342,13 @@ def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False, by_terms: boo
         extra.update({"jerk_optimum_by_terms_s": round(o3, 6),
                       "jerk_optimum_by_terms_ratio": round(plan.duration_s / o3, 6),
                       "by_terms_cost": round(o3 / opt, 6), "by_terms_solver_ok": rt["ok"]})
+    if at_shares and by_terms:
+        # both at once: the floor of every planner that keeps each term within its limit and the plan's headroom
+        rb = jerk_optimum(plan, cfg, _sections(stops), shares=PLAN_SHARES, jerk_by_terms=True)
+        o4 = rb["duration_s"]
+        extra.update({"jerk_optimum_by_terms_at_shares_s": round(o4, 6),
+                      "jerk_optimum_by_terms_at_shares_ratio": round(plan.duration_s / o4, 6),
+                      "by_terms_at_shares_cost": round(o4 / opt, 6), "by_terms_at_shares_solver_ok": rb["ok"]})
     return {**extra, "jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
             "within_8_percent": bool(plan.duration_s <= 1.08 * opt),
             "utilisation": {k: round(v, 6) for k, v in utilisation(plan.path, plan.hexapod, cfg,

@@ -65,7 +65,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--optimum-by-terms", action="store_true",
                         help="with --optimum-only: also the optimum with each strut's jerk terms bounded one by one "
                              "(|L3| v^3 + 3 |L2| v |a| + |L1| |j| <= J, L1-L3 the strut length's path derivatives): "
-                             "the best a planner that does not let them cancel can reach")
+                             "the best a planner that does not let them cancel can reach; with --optimum-at-shares "
+                             "also both at once (by_terms_at_shares_floor)")
     parser.add_argument("--paths", default="",
                         help="with --optimum-only: only these paths (comma-separated: corners, smooth, stops, "
                              "arcspiral, tort, 3D_Chips)")
@@ -138,9 +139,13 @@ def _optimum_summary(topp: dict) -> dict:
     worst = max(ratios.values()) if ratios else None
     at_shares = {k: v.get("jerk_optimum_at_shares_ratio") for k, v in rows.items() if v.get("jerk_optimum_at_shares_ratio")}
     by_terms = {k: v.get("jerk_optimum_by_terms_ratio") for k, v in rows.items() if v.get("jerk_optimum_by_terms_ratio")}
+    both = {k: v.get("jerk_optimum_by_terms_at_shares_ratio") for k, v in rows.items()
+            if v.get("jerk_optimum_by_terms_at_shares_ratio")}
+    floor = {k: v.get("by_terms_at_shares_cost") for k, v in rows.items() if v.get("by_terms_at_shares_cost")}
     return {"ratios": ratios, "worst_ratio": worst, "target_ratio": 1.08,
             **({"ratios_at_shares": at_shares} if at_shares else {}),
             **({"ratios_by_terms": by_terms} if by_terms else {}),
+            **({"ratios_by_terms_at_shares": both, "by_terms_at_shares_floor": floor} if both else {}),
             "within_target": bool(worst is not None and worst <= 1.08),
             "hexacnc_utilisation_ok": all(bool(v.get("utilisation_ok")) for v in rows.values() if "utilisation_ok" in v),
             "optimum_utilisation": util}
