@@ -143,3 +143,39 @@ def test_config_rejects_a_negative_length(tmp_path):
     f.write_text(bad)
     with pytest.raises(ConfigError, match="smooth_max_segment_mm"):
         load_config(str(f))
+
+
+def test_a_run_whose_system_breaks_down_stays_lines_and_the_others_are_smoothed():
+    """The banded solve of a run of 1 nm lines breaks down in floating point (its jerk energy's entries are
+    ~1e30, its smoothing weights ~1e-6): that run keeps its lines, a normal run solved beside it gets the same
+    spline as on its own."""
+    from hexacnc.planner import smooth as S
+    rng = np.random.default_rng(3)
+    ok_run = np.cumsum(rng.normal(size=(6, 6)) * 0.2, axis=0)
+    tiny = np.cumsum(np.random.default_rng(4).normal(size=(5, 6)) * 1e-6, axis=0)
+    h_ok = np.linalg.norm(np.diff(ok_run[:, :3], axis=0), axis=1)
+    h_tiny = np.linalg.norm(np.diff(tiny[:, :3], axis=0), axis=1)
+    alone = S._fit_runs(ok_run, h_ok, np.array([6]), np.array([1.0]))
+    assert alone is not None
+    assert S._fit_runs(tiny, h_tiny, np.array([5]), np.array([1.0])) is None
+    V, T, K, fitted = S._fit_each(np.vstack([ok_run, tiny]), np.concatenate([h_ok, h_tiny]), np.array([6, 5]),
+                                  np.array([1.0, 1.0]))
+    assert fitted.tolist() == [True, False]
+    for got, want in zip((V, T, K), alone):
+        assert np.allclose(got[:6], want, rtol=1e-12, atol=1e-12)
+    assert np.isnan(V[6:]).all()
+
+
+@pytest.mark.parametrize("d_mm", [1e-5, 1e-4, 1e-3])
+def test_micrometre_and_smaller_runs_are_planned_with_smoothing_on(cfg, d_mm):
+    """Twelve G64 P0.01 moves (turns of at most 20 deg, so they form one run) of 10 nm to 1 um with smoothing on
+    plan within the limits: the factorisation broke down on such runs with an uncaught LinAlgError (here at
+    10 and 100 nm; 1 um moves in random directions, seed 105 of the monotonicity tests) until its rows were
+    scaled; a run that still breaks down keeps its lines."""
+    c = smoothing(cfg)
+    rng = np.random.default_rng(7)
+    ang = np.cumsum(np.radians(rng.uniform(-20, 20, size=12)))
+    pts = np.vstack([[0.0, 0.0, 0.0], np.cumsum(d_mm * np.stack([np.cos(ang), np.sin(ang), 0 * ang], 1), 0)])
+    plan = plan_program(polyline(c, pts, tol=0.01), c)
+    assert plan.duration_s > 0
+    assert max(plan.utilisation.values()) <= ETA + 1e-9

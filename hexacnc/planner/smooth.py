@@ -78,7 +78,7 @@ def _fit_runs(V0: np.ndarray, h: np.ndarray, nv: np.ndarray, length: np.ndarray)
     ``V0`` (sum nv, 6) the runs' vertices one run after the other, ``h`` (sum nv - len(nv),) their piece
     lengths, ``nv`` (r,) vertices per run, ``length`` (r,) each run's smoothing length.  Returns (V, T, K) each
     (sum nv, 6): positions, d/ds and d2/ds2 at the vertices; every run's end vertices are pinned to their
-    programmed positions.
+    programmed positions.  None where the factorisation breaks down in floating point.
     """
     nv = np.asarray(nv, dtype=np.int64)
     first = np.concatenate([[0], np.cumsum(nv)[:-1]])               # first vertex of each run
@@ -108,8 +108,38 @@ def _fit_runs(V0: np.ndarray, h: np.ndarray, nv: np.ndarray, length: np.ndarray)
     ab[0, 0::3] += mu
     rhs = np.zeros((n, 6))
     rhs[0::3] = mu[:, None] * V0
-    x = solveh_banded(ab, rhs, lower=True, check_finite=False)
+    # symmetric diagonal scaling D A D y = D b, x = D y (unit diagonal): the entries of a position, a slope and a
+    # curvature differ by h^-2 and h^-4, and a pinned vertex's by PIN more, so on micrometre lines (h^-5 ~ 1e15)
+    # the unscaled factorisation broke down ("leading minor not positive definite")
+    dg = 1.0 / np.sqrt(ab[0])
+    for r in range(1, 6):
+        ab[r, :n - r] *= dg[r:] * dg[:n - r]
+    ab[0] = 1.0
+    try:
+        y = solveh_banded(ab, rhs * dg[:, None], lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    x = y * dg[:, None]
     return x[0::3], x[1::3], x[2::3]
+
+
+def _fit_each(V0: np.ndarray, h: np.ndarray, nv: np.ndarray, length: np.ndarray):
+    """:func:`_fit_runs` on all runs at once, or where that breaks down run by run: (V, T, K, fitted (r,) bool);
+    a run whose own system breaks down gets NaN (its deviation is then not <= anything)."""
+    fit = _fit_runs(V0, h, nv, length)
+    if fit is not None:
+        return (*fit, np.ones(nv.size, dtype=bool))
+    out = [np.full_like(V0, np.nan) for _ in range(3)]
+    fitted = np.zeros(nv.size, dtype=bool)
+    v0 = np.concatenate([[0], np.cumsum(nv)])
+    p0 = np.concatenate([[0], np.cumsum(nv - 1)])
+    for r in range(nv.size):
+        one = _fit_runs(V0[v0[r]:v0[r + 1]], h[p0[r]:p0[r + 1]], nv[r:r + 1], length[r:r + 1])
+        if one is not None:
+            fitted[r] = True
+            for o, x in zip(out, one):
+                o[v0[r]:v0[r + 1]] = x
+    return (*out, fitted)
 
 
 def _deviation(qc: np.ndarray, c0: np.ndarray, d: np.ndarray) -> np.ndarray:
@@ -165,17 +195,19 @@ def smooth_runs(ra, stop_after_raw: set, max_segment_mm: float):
         verts = np.concatenate([np.arange(a, b + 2) for a, b in runs])
         nv = runs[:, 1] - runs[:, 0] + 2
         h = ra.slen[pieces]
-        V, T, K = _fit_runs(V0[verts], h, nv, np.array([L for _, _, L, _ in pend]))
+        V, T, K, fitted = _fit_each(V0[verts], h, nv, np.array([L for _, _, L, _ in pend]))
         vi = np.concatenate([np.arange(o, o + k - 1) for o, k in zip(np.cumsum(nv) - nv, nv)])   # piece -> vertex
         D = h[:, None]
         qc = np.hstack([V[vi], T[vi] * D, K[vi] * D * D, K[vi + 1] * D * D, T[vi + 1] * D, V[vi + 1]])
         dev = _deviation(qc, c[pieces, 0:6], d[pieces])
         nxt = []
         o = 0
-        for (a, b, length, rounds) in pend:
+        for (a, b, length, rounds), ok in zip(pend, fitted):
             k = b - a + 1
             dv, q = dev[o:o + k], qc[o:o + k]
             o += k
+            if not ok:
+                continue                    # no smoothing spline in floating point: the run stays lines
             if np.all(dv <= TOL_SHARE * tol[a:b + 1]):
                 kind[a:b + 1] = P.SPLINE
                 coef[a:b + 1] = 0.0
