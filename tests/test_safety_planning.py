@@ -43,7 +43,10 @@ def test_endless_program_is_refused_at_the_time_bound_naming_it_and_the_line():
 @pytest.mark.slow
 def test_program_over_the_memory_bound_is_refused_naming_it():
     cfg = _cfg(max_plan_memory_mb=700, max_plan_s=120.0)
-    text = "G0 X0 Y0 Z20\nG2 X0 Y0 I10 J0 P10000 F1000\nM2\n"
+    # a 16 h helix of 1500 turns: within [planner] max_block_s raised to its maximum and the check samples' bound,
+    # the memory bound is what refuses it
+    cfg = cfg.replace(planner=dataclasses.replace(cfg.planner, max_block_s=86400.0))
+    text = "G0 X0 Y0 Z20\nG2 X0 Y0 I10 J0 P1500 F100\nM2\n"
     with pytest.raises(PlanError) as e:
         PlanJob(cfg, text, "turns.ngc", _home(cfg), cfg.cycle.period_s).result()
     assert e.value.limit == "max_plan_memory_mb" and "700 MB" in str(e.value)

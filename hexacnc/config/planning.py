@@ -29,6 +29,8 @@ class PlannerConfig:
     #: windowed planning (hexacnc/planner/window.py): motion blocks and estimated seconds per window
     window_blocks: int = 2000
     window_s: float = 120.0
+    #: longest nominal time (s) of one block (a move at its feed, a dwell): the plan holds a row per cycle
+    max_block_s: float = 900.0
     #: motion starts once the first window is planned while the validation of the rest runs ahead
     start_before_validated: bool = False
 
@@ -63,6 +65,7 @@ def parse_planner(p: Section) -> PlannerConfig:
         noop_m_codes=_noop_m_codes(p),
         window_blocks=p.getint("window_blocks", pd.window_blocks, minval=8, maxval=1_000_000),
         window_s=p.getfloat("window_s", pd.window_s, minval=1.0, maxval=3600.0),
+        max_block_s=p.getfloat("max_block_s", pd.max_block_s, minval=1.0, maxval=86400.0),
         start_before_validated=p.getbool("start_before_validated", pd.start_before_validated),
     )
 

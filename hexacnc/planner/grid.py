@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import PlanError
+
 from . import path as P
 from .consts import (FD_MIN_STEP, FD_MIN_STEP_BLEND, FD_PIECE_STEPS, GRADE_MM, PIECE_MIN_INTERVALS,
                      REST_PIECE_INTERVALS)
@@ -44,10 +46,30 @@ class Derivs:
     tip_g: np.ndarray | None  #: tool tips at the grid (Ng,6), dropped after the checks
 
 
+#: most check samples one plan (a window) may take: ~60,000 on a window of dense CAM (3D_Chips.ngc); a single
+#: move of 692,689 deg about A over 1.3 mm asked for tens of millions and 17.5 GB before any check could refuse it
+MAX_GRID_POINTS = 1_000_000
+
+
+def _check_size(path: P.Path, nint: np.ndarray) -> None:
+    """Raise :class:`PlanError` (limit ``"check_samples"``) at the piece where the path's check samples
+    (``nint`` intervals per piece) pass :data:`MAX_GRID_POINTS`, before any of them is allocated."""
+    total = np.cumsum(np.asarray(nint, dtype=np.float64) + 1.0)
+    if total.size == 0 or total[-1] <= MAX_GRID_POINTS:
+        return
+    k = int(np.searchsorted(total, MAX_GRID_POINTS, side="right"))
+    k = min(k, total.size - 1)
+    raise PlanError(f"the path up to here needs {total[k]:.4g} limit-check samples, at most {MAX_GRID_POINTS} in "
+                    f"one plan (the daemon plans a long program window by window): a rotation or curvature this "
+                    f"large for the move's length, or too many such moves", line=int(path.line[k]),
+                    limit="check_samples")
+
+
 def build_grid(path: P.Path, hx, cfg, events) -> Grid:
     """Uniform samples at the bounded spacing plus a geometric refinement near both ends of each piece."""
     h_p, nint, lmarg, amarg = P.sample_spacing(path, hx.plat, float(np.min(hx.min_length)),
                                                cfg.planner.sample_bound_mm)
+    _check_size(path, nint)
     # a piece that rests at both ends (a short move from rest to rest) needs moving grid points inside, and
     # enough of them that its speed peak gets a plateau near the best level (the caps place plateaus
     # between grid points): REST_PIECE_INTERVALS at least (a finer spacing only tightens the bounds above)

@@ -22,6 +22,7 @@ import numpy as np
 from ..gcode import blocks as B
 from ..pose import matrix_from_euler
 from . import path as P
+from .blocktime import block_seconds as _seconds, check_block_seconds
 from .plan import Plan, plan_program
 
 #: motion blocks of the first window when motion starts before the validation ends (then 2x, 4x, ...)
@@ -95,28 +96,6 @@ def rest_after(blk, nxt) -> bool:
     return any(t is not None and t <= 0 for t in tol) and c < 1.0 - 1e-12
 
 
-def _seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
-    """Nominal seconds of a block at its programmed feed (a lower bound of its planned time)."""
-    if blk.kind == B.DWELL:
-        return max(0.0, float(blk.seconds or 0.0))
-    if blk.kind not in B.MOTION_KINDS:
-        return 0.0
-    if blk.inverse_time_s is not None:
-        return max(0.0, float(blk.inverse_time_s))
-    s, e = _floats(blk.start), _floats(blk.end)
-    d0, d1, d2 = e[0] - s[0], e[1] - s[1], e[2] - s[2]
-    length = math.sqrt(d0 ** 2 + d1 ** 2 + d2 ** 2)
-    if length == 0.0:
-        d3, d4, d5 = e[3] - s[3], e[4] - s[4], e[5] - s[5]
-        length = math.sqrt(d3 ** 2 + d4 ** 2 + d5 ** 2)
-    if blk.kind == B.ARC and blk.center is not None:
-        c = _floats(blk.center)
-        r = math.sqrt((s[0] - c[0]) ** 2 + (s[1] - c[1]) ** 2 + (s[2] - c[2]) ** 2)
-        length += 2 * math.pi * r * (int(blk.turns or 0) + (1 if length < 1e-9 else 0))
-    feed = rapid_mm_s if blk.kind == B.RAPID else (blk.feed_mm_s or default_mm_s)
-    return length / max(float(feed), 1e-9)
-
-
 class _Splitter:
     """Cuts a block stream into windows (lists of blocks) at rest points."""
 
@@ -129,6 +108,7 @@ class _Splitter:
         self.ws = float(window_s)
         self.rapid = pc.rapid_feed_mm_min / 60.0
         self.feed = pc.default_feed_mm_min / 60.0
+        self.max_block_s = float(pc.max_block_s)
 
     def windows(self, blocks):
         """Yields (blocks, forced_stop, last); a window is yielded once a block after it arrived (or the
@@ -153,6 +133,7 @@ class _Splitter:
                 rests.append(len(buf))
             buf.append(blk)
             sec.append(_seconds(blk, self.rapid, self.feed))
+            check_block_seconds(blk, sec[-1], self.max_block_s)
             secs += sec[-1]
             if blk.kind == B.END:
                 break
