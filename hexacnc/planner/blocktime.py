@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+
 from ..errors import PlanError
 from ..gcode import blocks as B
 
@@ -16,21 +18,22 @@ from ..gcode import blocks as B
 def block_seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
     """Nominal seconds of a block at its programmed feed (a lower bound of its planned time): dwell seconds,
     G93 time, or length / feed (tool-tip mm, or the rotation in deg where the tip does not move).  Plain
-    floats: the window splitter looks at every block."""
+    floats: the window splitter looks at every block (and :func:`check_blocks`, which
+    :func:`~hexacnc.planner.path.build_path` runs on every block it plans or checks, once they are valid)."""
     if blk.kind == B.DWELL:
         return max(0.0, float(blk.seconds or 0.0))
     if blk.kind not in B.MOTION_KINDS:
         return 0.0
     if blk.inverse_time_s is not None:
         return max(0.0, float(blk.inverse_time_s))
-    s, e = _floats(blk.start), _floats(blk.end)
+    s, e = plain_floats(blk.start), plain_floats(blk.end)
     d0, d1, d2 = e[0] - s[0], e[1] - s[1], e[2] - s[2]
     length = math.sqrt(d0 ** 2 + d1 ** 2 + d2 ** 2)
     if length == 0.0:
         d3, d4, d5 = e[3] - s[3], e[4] - s[4], e[5] - s[5]
         length = math.sqrt(d3 ** 2 + d4 ** 2 + d5 ** 2)
     if blk.kind == B.ARC and blk.center is not None:
-        c = _floats(blk.center)
+        c = plain_floats(blk.center)
         r = math.sqrt((s[0] - c[0]) ** 2 + (s[1] - c[1]) ** 2 + (s[2] - c[2]) ** 2)
         length += 2 * math.pi * r * (int(blk.turns or 0) + (1 if length < 1e-9 else 0))
     feed = rapid_mm_s if blk.kind == B.RAPID else (blk.feed_mm_s or default_mm_s)
@@ -54,6 +57,6 @@ def check_blocks(blocks, cfg) -> None:
         check_block_seconds(blk, block_seconds(blk, rapid, feed), pc.max_block_s)
 
 
-def _floats(a) -> list:
-    """A pose or point as plain floats (no numpy scalars)."""
-    return a.tolist() if hasattr(a, "tolist") else [float(v) for v in a]
+def plain_floats(a) -> list:
+    """A pose or point as plain floats (no numpy scalars: the window splitter looks at every block)."""
+    return a.tolist() if isinstance(a, np.ndarray) else [float(v) for v in a]

@@ -10,7 +10,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import PlanError
-
 from . import path as P
 from .consts import (FD_MIN_STEP, FD_MIN_STEP_BLEND, FD_PIECE_STEPS, GRADE_MM, PIECE_MIN_INTERVALS,
                      REST_PIECE_INTERVALS)
@@ -57,8 +56,7 @@ def _check_size(path: P.Path, nint: np.ndarray) -> None:
     total = np.cumsum(np.asarray(nint, dtype=np.float64) + 1.0)
     if total.size == 0 or total[-1] <= MAX_GRID_POINTS:
         return
-    k = int(np.searchsorted(total, MAX_GRID_POINTS, side="right"))
-    k = min(k, total.size - 1)
+    k = int(np.searchsorted(total, MAX_GRID_POINTS, side="right"))      # < size: total[-1] is over the bound
     raise PlanError(f"the path up to here needs {total[k]:.4g} limit-check samples, at most {MAX_GRID_POINTS} in "
                     f"one plan (the daemon plans a long program window by window): a rotation or curvature this "
                     f"large for the move's length, or too many such moves", line=int(path.line[k]),

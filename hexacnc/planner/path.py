@@ -33,6 +33,7 @@ from ..errors import PlanError
 from ..kinematics import strut_lengths_batch
 from ..pose import rotation_elements_batch
 from ..gcode import blocks as B
+from .blocktime import check_blocks
 from .quintic import ARC, BLEND, LINE, NCOEF, SPLINE, pose_deviation, quintic_derivs  # noqa: F401 (re-exported)
 from .quintic import quintic as _quintic
 from .rawmoves import Raw, RawArrays, raw_arrays, raw_moves  # noqa: F401 (Raw, RawArrays, raw_moves re-exported)
@@ -233,8 +234,11 @@ def _blend_deviation(rk, rc, rl, ia, da, db):
 
 
 def build_path(blocks, cfg) -> tuple[Path, list]:
-    """Blocks -> :class:`Path` with corner blends; returns (path, events placed at piece indices)."""
+    """Blocks -> :class:`Path` with corner blends; returns (path, events placed at piece indices).  Every block
+    longer than ``[planner] max_block_s`` is refused once the blocks are checked, before anything is sampled
+    (:func:`~hexacnc.planner.blocktime.check_blocks`)."""
     ra, events = raw_arrays(blocks, cfg)
+    check_blocks(blocks, cfg)
     nr = ra.kind.shape[0]
     if nr == 0:
         return Path(cfg, [], {}), events

@@ -41,7 +41,6 @@ from ..setpoint import (FLAG_DWELL, FLAG_END, FLAG_EVENT, FLAG_MOTION, FLAG_PAUS
                         FLAG_PROGRAM_PAUSE, FLAG_RAPID, FLAG_STOPPING)
 from . import path as P
 from . import rawmoves as R
-from .blocktime import check_blocks
 from .consts import (ACC_SHARE, CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, FD_MIN_STEP, FD_PIECE_STEPS,  # noqa: F401
                      FILTER_JERK_SHARE, GRADE_MM, MODEL_SCREEN, REST_PIECE_INTERVALS, RHO_J, RHO_STEP, SCREEN,
                      SPREAD_REACH)
@@ -157,7 +156,6 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     dt = float(period_s if period_s is not None else cfg.cycle.period_s)
     lims = tuple(np.asarray(v, dtype=float) for v in (cfg.max_velocity_mm_s, cfg.max_acceleration_mm_s2,
                                                       cfg.max_jerk_mm_s3))
-    check_blocks(blocks, cfg)
     path, events = P.build_path(blocks, cfg)
     if path.n == 0:
         # no motion (empty, comments only, M2 only, dwells and events): a standstill at the start pose

@@ -22,7 +22,7 @@ import numpy as np
 from ..gcode import blocks as B
 from ..pose import matrix_from_euler
 from . import path as P
-from .blocktime import block_seconds as _seconds, check_block_seconds
+from .blocktime import block_seconds as _seconds, plain_floats as _floats
 from .plan import Plan, plan_program
 
 #: motion blocks of the first window when motion starts before the validation ends (then 2x, 4x, ...)
@@ -50,11 +50,6 @@ def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
     R = matrix_from_euler(*X[3:6])
     tip = X[:3] + R @ np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     return [float(v) for v in tip] + [math.degrees(float(v)) for v in X[3:6]]
-
-
-def _floats(a) -> list:
-    """A pose or point as plain floats (the splitter looks at every block: no numpy scalars)."""
-    return a.tolist() if isinstance(a, np.ndarray) else [float(v) for v in a]
 
 
 def _direction(blk, at_end: bool):
@@ -108,7 +103,6 @@ class _Splitter:
         self.ws = float(window_s)
         self.rapid = pc.rapid_feed_mm_min / 60.0
         self.feed = pc.default_feed_mm_min / 60.0
-        self.max_block_s = float(pc.max_block_s)
 
     def windows(self, blocks):
         """Yields (blocks, forced_stop, last); a window is yielded once a block after it arrived (or the
@@ -133,7 +127,6 @@ class _Splitter:
                 rests.append(len(buf))
             buf.append(blk)
             sec.append(_seconds(blk, self.rapid, self.feed))
-            check_block_seconds(blk, sec[-1], self.max_block_s)
             secs += sec[-1]
             if blk.kind == B.END:
                 break
