@@ -331,24 +331,23 @@ def jerk_optimum_report(plan, cfg, stops, at_shares: bool = False, by_terms: boo
     r = jerk_optimum(plan, cfg, _sections(stops))
     opt = r["duration_s"]
     extra = {}
+
+    def variant(name: str, cost_key: str, **kw) -> None:
+        """One more optimum on the same sections: ``jerk_optimum_<name>_s`` / ``_ratio``, its cost against the
+        optimum, ``<name>_solver_ok``."""
+        rv = jerk_optimum(plan, cfg, _sections(stops), **kw)
+        o = rv["duration_s"]
+        extra.update({f"jerk_optimum_{name}_s": round(o, 6), f"jerk_optimum_{name}_ratio": round(plan.duration_s / o, 6),
+                      cost_key: round(o / opt, 6), f"{name}_solver_ok": rv["ok"]})
+
     if at_shares:
-        rs = jerk_optimum(plan, cfg, _sections(stops), shares=PLAN_SHARES)
-        o2 = rs["duration_s"]
-        extra = {"jerk_optimum_at_shares_s": round(o2, 6), "jerk_optimum_at_shares_ratio": round(plan.duration_s / o2, 6),
-                 "shares": list(PLAN_SHARES), "shares_cost": round(o2 / opt, 6), "at_shares_solver_ok": rs["ok"]}
+        extra["shares"] = list(PLAN_SHARES)
+        variant("at_shares", "shares_cost", shares=PLAN_SHARES)
     if by_terms:
-        rt = jerk_optimum(plan, cfg, _sections(stops), jerk_by_terms=True)
-        o3 = rt["duration_s"]
-        extra.update({"jerk_optimum_by_terms_s": round(o3, 6),
-                      "jerk_optimum_by_terms_ratio": round(plan.duration_s / o3, 6),
-                      "by_terms_cost": round(o3 / opt, 6), "by_terms_solver_ok": rt["ok"]})
+        variant("by_terms", "by_terms_cost", jerk_by_terms=True)
     if at_shares and by_terms:
         # both at once: the floor of every planner that keeps each term within its limit and the plan's headroom
-        rb = jerk_optimum(plan, cfg, _sections(stops), shares=PLAN_SHARES, jerk_by_terms=True)
-        o4 = rb["duration_s"]
-        extra.update({"jerk_optimum_by_terms_at_shares_s": round(o4, 6),
-                      "jerk_optimum_by_terms_at_shares_ratio": round(plan.duration_s / o4, 6),
-                      "by_terms_at_shares_cost": round(o4 / opt, 6), "by_terms_at_shares_solver_ok": rb["ok"]})
+        variant("by_terms_at_shares", "by_terms_at_shares_cost", shares=PLAN_SHARES, jerk_by_terms=True)
     return {**extra, "jerk_optimum_s": round(opt, 6), "jerk_optimum_ratio": round(plan.duration_s / opt, 6),
             "within_8_percent": bool(plan.duration_s <= 1.08 * opt),
             "utilisation": {k: round(v, 6) for k, v in utilisation(plan.path, plan.hexapod, cfg,
