@@ -167,6 +167,32 @@ def test_mdi_keeps_the_modal_state_and_checks_limits(sock, capsys):
     assert run(capsys, "mdi", "G0 X0 Y0 Z30", "--socket", sock)[0] == 0
 
 
+def test_a_dwell_or_m0_without_motion_takes_its_time(sock, capsys):
+    """As in LinuxCNC, ``G4 P0.8`` alone (MDI or a program) stands still for 0.8 s and M0 alone pauses until
+    resumed; before, a program without motion queued nothing and returned at once."""
+    t0 = tip(sock)
+    started = time.monotonic()
+    rc, out, err = run(capsys, "mdi", "G4 P0.8", "--socket", sock)
+    assert rc == 0, err
+    assert time.monotonic() - started >= 0.8 and "0.80 s" in out, out
+    with P.Client.unix(sock) as c:
+        r = c.call("program", text="G4 P0.8\nM2\n", name="dwell", reply_timeout_s=60.0)
+        assert r["duration_s"] == pytest.approx(0.8, abs=0.01), r
+        assert c.call("status")["state"] == "running"          # the dwell runs as a job
+        c.call("wait", timeout_s=30.0)
+        c.call("program", text="M0\nM2\n", name="m0", reply_timeout_s=60.0)
+        deadline = time.monotonic() + 10.0
+        while c.call("status")["state"] != "paused" and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert c.call("status")["state"] == "paused"
+        c.call("resume")
+        assert c.call("wait", timeout_s=30.0)["state"] == "idle"
+        # a zero dwell and settings alone still queue nothing
+        r = c.call("program", text="G4 P0\nG55\nG54\nM2\n", name="nothing", reply_timeout_s=60.0)
+        assert r.get("moved") is False and c.call("status")["state"] == "idle", r
+    assert np.allclose(tip(sock), t0, atol=1e-9)
+
+
 def test_mdi_refused_during_a_program_and_non_controller_refused(sock, capsys):
     with P.Client.unix(sock) as a:
         long_program(a)

@@ -213,7 +213,8 @@ class Operator:
         def accept(sp, info: dict, src) -> bool:
             src.sampler.set_override(min(self.feed, 2.0))     # the overrides in force carry over
             src.sampler.set_rapid_override(self.rapid)
-            moves = sp.motion_blocks != 0 or bool(sp.io_blocks)
+            # dwells and M0/M1 take their time standing still, as in LinuxCNC: a standstill job
+            moves = sp.motion_blocks != 0 or bool(sp.io_blocks) or bool(sp.timed_blocks)
             self.status_view.program_loaded(name, text, sp, float(info["duration_s"]) if moves else 0.0)
             if not moves:                 # settings only (offsets, tools, ...): nothing is queued
                 with lock:
@@ -540,10 +541,16 @@ def interpret_and_plan(cfg, text: str, name: str, start_rad, period_s: float, ti
     from .program import tool_tip_pose_deg
     check_io(cfg, prog.blocks)      # I/O the machine does not map: refused before motion, with the line
     plan = None
-    if prog.motion_blocks or any(b.kind == "io" for b in prog.blocks):    # outputs alone: a standstill plan
+    if prog.motion_blocks or any(_takes_time(b) for b in prog.blocks):   # outputs, dwells, M0/M1: a standstill
         plan = plan_with_io(prog.blocks, cfg, planner_plan, hexapod=Hexapod(cfg), period_s=period_s,
                             start_pose=tool_tip_pose_deg(cfg, start_rad))
     return plan, prog, new_state
+
+
+def _takes_time(b) -> bool:
+    """An output (M62-M68, M66), a dwell of more than 0 s or a pause (M0/M1): planned even without motion."""
+    from ..gcode import blocks as B
+    return b.kind in (B.IO, B.PAUSE, B.OPTIONAL_PAUSE) or (b.kind == B.DWELL and (b.seconds or 0.0) > 0.0)
 
 
 def _check_tip_limits(cfg, prog) -> None:

@@ -114,14 +114,17 @@ def _blocks(cfg, text: str, name: str, start_tip, state=None):
 
 
 class _Counted:
-    """The blocks of a stream, counting motion blocks and M62-M68 / M66 blocks on the way."""
+    """The blocks of a stream, counting motion blocks, M62-M68 / M66 blocks and the blocks that take time
+    standing still (a G4 of more than 0 s, M0, M1) on the way."""
 
     def __init__(self, blocks):
         from ..gcode import blocks as B
         self._it = iter(blocks)
         self._motion, self._io = B.MOTION_KINDS, B.IO
+        self._dwell, self._pauses = B.DWELL, (B.PAUSE, B.OPTIONAL_PAUSE)
         self.motion = 0
         self.io = 0
+        self.timed = 0
 
     def __iter__(self):
         return self
@@ -133,6 +136,8 @@ class _Counted:
             self.motion += 1
         elif k == self._io:
             self.io += 1
+        elif k in self._pauses or (k == self._dwell and (b.seconds or 0.0) > 0.0):
+            self.timed += 1
         return b
 
 
@@ -155,7 +160,7 @@ def _validate_child(conn, cfg, name, start_tip, start_rad, max_mb, max_s, state=
         prog = stream.wait_program()        # set by the interpreter thread, maybe after the last block
         if prog is None:
             raise HexacncError(f"{name}: the interpreter did not reach the program's end")
-        extra = {"motion_blocks": counted.motion, "io_blocks": counted.io,
+        extra = {"motion_blocks": counted.motion, "io_blocks": counted.io, "timed_blocks": counted.timed,
                  "messages": list(prog.messages[:MAX_MESSAGES])}
         if state is not None:
             from ..state import state_after_stream
@@ -319,6 +324,7 @@ class StreamPlan:
         self.messages: list = []        #: (line, text) of its (MSG, ...) comments, once valid
         self.motion_blocks = None       #: motion blocks of the whole program, once valid
         self.io_blocks = None           #: M62-M68 / M66 blocks of the whole program, once valid
+        self.timed_blocks = None        #: dwells (> 0 s) and M0/M1 of the whole program, once valid
         self.on_valid = on_valid
         self._cv = threading.Condition()
         self._have: dict = {}
@@ -388,6 +394,7 @@ class StreamPlan:
                 self.final_state = extra.get("state")
                 self.messages = extra.get("messages", [])
                 self.motion_blocks, self.io_blocks = extra.get("motion_blocks"), extra.get("io_blocks")
+                self.timed_blocks = extra.get("timed_blocks")
                 ok = not self.cancelled
             if ok and self.on_valid is not None:
                 try:                    # before ready / end_rad: the state is committed before the next load
