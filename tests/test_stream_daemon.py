@@ -54,6 +54,36 @@ def test_default_validates_the_whole_program_before_any_motion():
     assert not sp.alive()
 
 
+def test_the_estimated_duration_follows_the_planned_windows_not_the_programmed_feeds():
+    """A program of many windows at a feed the struts cannot follow (as 3D_Chips.ngc's F4.5e6): the
+    validation's nominal seconds at the programmed feeds are a small fraction of the planned time; the
+    answer's ``duration_s`` and the time left extrapolate the windows planned so far (by nominal seconds
+    and by blocks) and converge as the planner gets ahead."""
+    cfg = _cfg()
+    dt = cfg.cycle.period_s
+    text = cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
+    sp, (src, info) = _start(cfg, text)
+    totals = []                                   # (elapsed s, elapsed + time left s)
+    try:
+        assert not info["duration_exact"]
+        n, t_end = 0, time.monotonic() + 300
+        while not src.finished and time.monotonic() < t_end:
+            n += len(src.next_rows(200))           # 0.1 s of motion per 5 ms
+            moved = (n - src.sampler.starved_rows) * dt     # rows at rest waiting for the planner left out
+            totals.append((moved, moved + src.sampler.progress[1]))
+            time.sleep(0.005)
+        assert src.finished and sp.error is None
+        planned, nominal = sp.planned_s, sp.validation["estimate_s"]
+    finally:
+        src.close()
+    assert planned > 5.0 * nominal, (planned, nominal)           # the feeds say little about the time
+    # the first windows hold the approach from home (a rapid: more time per block than the raster)
+    assert abs(info["duration_s"] - planned) <= 0.3 * planned, (info["duration_s"], planned, nominal)
+    assert abs(totals[0][1] - planned) <= 0.3 * planned, (totals[0], planned)
+    half = [tot for t, tot in totals if t >= 0.5 * planned]
+    assert half and abs(half[0] - planned) <= 0.1 * planned, (half[:1], planned)
+
+
 def test_start_before_validated_moves_then_stops_before_the_bad_line():
     cfg = _cfg(before=True)
     bad = 11_000

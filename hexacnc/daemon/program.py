@@ -153,8 +153,10 @@ def program_source(sp, name: str, start_rad, period_s: float):
     """Wait until the streamed program ``sp`` (a :class:`~hexacnc.daemon.planstream.StreamPlan`) may move
     (``wait_ready``); returns
     (ProgramSource, info: blocks, duration_s, duration_exact, validated, end_rad or None).  ``duration_s``
-    is the planned duration for a program of one window, else the validation's nominal estimate at the
-    programmed feeds (a lower bound; ``duration_exact`` false)."""
+    is the planned duration for a program of one window, else an estimate (``duration_exact`` false): the
+    windows planned so far and the rest extrapolated from them by nominal seconds and blocks
+    (:meth:`~hexacnc.daemon.planstream.StreamPlan.unplanned_s`); before the validation has counted the
+    program, the windows planned so far."""
     from ..planner.chain import ChainSampler
     try:
         first = sp.wait_ready()
@@ -170,7 +172,7 @@ def program_source(sp, name: str, start_rad, period_s: float):
     val = dict(sp.validation)
     single = first.last
     info = {"blocks": int(first.blocks if single else val.get("blocks", 0)),
-            "duration_s": float(first.plan.duration_s if single else val.get("estimate_s", first.plan.duration_s)),
+            "duration_s": float(first.plan.duration_s if single else sp.planned_s + sp.unplanned_s()),
             "duration_exact": bool(single), "validated": val.get("state") == "valid",
             "end_rad": np.asarray(first.plan.end_pose_platform, dtype=float) if single else sp.end_rad}
     return src, info

@@ -190,7 +190,8 @@ class ChainSampler:
 
     @property
     def progress(self) -> tuple[float, float]:
-        """(percent done by program line, nominal time left s of the windows planned so far)."""
+        """(percent done by program line, time left s: the windows planned so far, and the feed's estimate
+        of the rest, ``unplanned_s()``, where it has one)."""
         finished = self._done and self.error is None and self._intent != "stop"    # a stopped program is not
         if self._s is None:
             return (100.0 if finished else 0.0), 0.0
@@ -203,6 +204,9 @@ class ChainSampler:
             w = self.feed.peek(k)
         if finished:
             return 100.0, 0.0
+        rest = getattr(self.feed, "unplanned_s", None)
+        if rest is not None:
+            left += rest()
         total = max(1, int(getattr(self.feed, "total_lines", 0) or 0))
         return min(100.0, 100.0 * self.line / total), left
 

@@ -42,6 +42,7 @@ class Window:
     last_line: int
     blocks: int
     forced_stop: bool = False  #: ends at a stop the program does not have (no rest point in the window)
+    nominal_s: float = 0.0     #: its blocks' nominal seconds at their programmed feeds (blocktime)
 
 
 def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
@@ -105,8 +106,8 @@ class _Splitter:
         self.feed = pc.default_feed_mm_min / 60.0
 
     def windows(self, blocks):
-        """Yields (blocks, forced_stop, last); a window is yielded once a block after it arrived (or the
-        stream ended), so that ``last`` is known."""
+        """Yields (blocks, forced_stop, last, nominal seconds of the blocks); a window is yielded once a
+        block after it arrived (or the stream ended), so that ``last`` is known."""
         buf: list = []
         sec: list = []              # nominal seconds of each block in buf
         rests: list = []            # indices i in buf after which the motion rests
@@ -116,7 +117,7 @@ class _Splitter:
         pending = None
         for blk in blocks:
             if pending is not None:
-                yield pending[0], pending[1], False
+                yield pending[0], pending[1], False, pending[2]
                 pending = None
             if blk.kind in B.MOTION_KINDS:
                 if prev_mot is not None and rest_after(buf[prev_mot], blk):
@@ -133,7 +134,7 @@ class _Splitter:
             if nmot >= self.grow or secs >= self.ws:
                 self.grow = min(self.wb, 2 * self.grow)
                 cut, forced = self._cut(buf, rests)
-                pending = (buf[:cut + 1], forced)
+                pending = (buf[:cut + 1], forced, sum(sec[:cut + 1]))
                 buf, sec = buf[cut + 1:], sec[cut + 1:]
                 rests = [i - cut - 1 for i in rests if i > cut]
                 nmot = sum(1 for b in buf if b.kind in B.MOTION_KINDS)
@@ -141,9 +142,9 @@ class _Splitter:
                 mot = [i for i, b in enumerate(buf) if b.kind in B.MOTION_KINDS]
                 prev_mot = mot[-1] if mot else None
         if pending is not None:
-            yield pending[0], pending[1], not buf
+            yield pending[0], pending[1], not buf, pending[2]
         if buf or pending is None:
-            yield buf, False, True
+            yield buf, False, True, sum(sec)
 
     def _cut(self, buf: list, rests: list) -> tuple[int, bool]:
         """Index of the last block of the window, and whether the window forces a stop there."""
@@ -177,10 +178,10 @@ def plan_windows(blocks, cfg, hexapod=None, period_s: float | None = None, start
     wb = int(window_blocks if window_blocks is not None else pc.window_blocks)
     ws = float(window_s if window_s is not None else pc.window_s)
     start = start_pose
-    for i, (blks, forced, last) in enumerate(_Splitter(cfg, wb, ws, first_blocks).windows(blocks)):
+    for i, (blks, forced, last, nominal) in enumerate(_Splitter(cfg, wb, ws, first_blocks).windows(blocks)):
         plan = plan_program(blks, cfg, hexapod=hx, period_s=period_s, start_pose=start)
         lines = [int(b.line) for b in blks] or [0]
-        yield Window(i, plan, last, min(lines), max(lines), len(blks), forced)
+        yield Window(i, plan, last, min(lines), max(lines), len(blks), forced, float(nominal))
         start = tool_tip_pose_deg(cfg, plan.end_pose_platform)
 
 
@@ -195,11 +196,11 @@ def validate_windows(blocks, cfg, hexapod=None, start_rad=None):
     sp = _Splitter(cfg, cfg.planner.window_blocks, cfg.planner.window_s)
     nb, est = 0, 0.0
     end = None if start_rad is None else np.asarray(start_rad, dtype=float)
-    for blks, _forced, _last in sp.windows(blocks):
+    for blks, _forced, _last, nominal in sp.windows(blocks):
         path, events = P.build_path(blks, cfg)
         if path.n:
             check_path(path, hx, cfg, events)
             end = path.platform(np.array([path.n - 1]), np.array([path.total]))[0]
         nb += len(blks)
-        est += sum(_seconds(b, sp.rapid, sp.feed) for b in blks)
+        est += nominal
         yield nb, est, int(max((b.line for b in blks), default=0)), end
