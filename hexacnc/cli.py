@@ -32,6 +32,7 @@ COMMANDS: dict[str, str] = {
     "home": "hexacnc.commands.machine:HOME",
     "feed": "hexacnc.commands.machine:FEED",
     "rapid": "hexacnc.commands.machine:RAPID",
+    "optional-stop": "hexacnc.commands.machine:OPTIONAL_STOP",
     "mdi": "hexacnc.commands.machine:MDI",
     "jog": "hexacnc.commands.jog",
     "offsets": "hexacnc.commands.offsets:OFFSETS",

@@ -58,7 +58,7 @@ def sock(machine):
         elif st["state"] in ("running", "paused"):
             c.call("stop")
         c.call("wait", timeout_s=30.0)
-        c.call("override", feed=1.0, rapid=1.0)
+        c.call("override", feed=1.0, rapid=1.0, optional_stop=False)
         work = c.call("status")["tool_tip"]["work"]
         if max(abs(work[0]), abs(work[1]), abs(work[2] - 30.0)) > 0.01:     # a test left it elsewhere
             c.call("mdi", text="G90 G0 X0 Y0 Z30")
@@ -191,6 +191,47 @@ def test_a_dwell_or_m0_without_motion_takes_its_time(sock, capsys):
         r = c.call("program", text="G4 P0\nG55\nG54\nM2\n", name="nothing", reply_timeout_s=60.0)
         assert r.get("moved") is False and c.call("status")["state"] == "idle", r
     assert np.allclose(tip(sock), t0, atol=1e-9)
+
+
+def _states_until_idle(c, timeout_s: float = 30.0, resume_paused: bool = False) -> list[str]:
+    seen, t_end = [], time.monotonic() + timeout_s
+    while time.monotonic() < t_end:
+        st = c.call("status")["state"]
+        if not seen or seen[-1] != st:
+            seen.append(st)
+        if st == "idle" and len(seen) > 1:
+            break
+        if st == "paused" and resume_paused:
+            c.call("resume")
+        time.sleep(0.02)
+    return seen
+
+
+def test_m1_pauses_only_with_the_optional_stop_switch_on(sock, capsys):
+    """LinuxCNC's optional stop: M1 is skipped with the switch off (the default, ``[planner] optional_stop``)
+    and pauses as M0 with it on; switched while a program runs, it acts on an M1 still ahead."""
+    prog = "G21 G90 G1 X2 F600\nM1\nG1 X0\nM2\n"
+    rc, out, err = run(capsys, "optional-stop", "--socket", sock)
+    assert rc == 0 and out.strip() == "optional stop off", (out, err)
+    with P.Client.unix(sock) as c:
+        c.call("program", text=prog, name="m1-off", reply_timeout_s=60.0)
+        assert "paused" not in _states_until_idle(c)
+    rc, out, err = run(capsys, "optional-stop", "on", "--socket", sock)
+    assert rc == 0 and out.strip() == "optional stop on", (out, err)
+    with P.Client.unix(sock) as c:
+        assert c.call("status")["overrides"]["optional_stop"] is True
+        c.call("program", text=prog, name="m1-on", reply_timeout_s=60.0)
+        assert "paused" in _states_until_idle(c, resume_paused=True)
+        # switched on while the program runs: 1.5 s of motion before the M1
+        c.call("override", optional_stop=False)
+        c.call("program", text="G21 G90 G1 X3 F120\nM1\nG1 X0 F600\nM2\n", name="m1-live", reply_timeout_s=60.0)
+        time.sleep(0.3)
+        assert c.call("status")["state"] == "running"
+        assert c.call("override", optional_stop=True)["optional_stop"] is True
+        assert "paused" in _states_until_idle(c, resume_paused=True)
+        with pytest.raises(P.DaemonError, match="optional_stop"):
+            c.call("override", optional_stop="yes")
+    assert np.allclose(tip(sock)[:3], [0.0, 0.0, tip(sock)[2]], atol=1e-6)
 
 
 def test_mdi_refused_during_a_program_and_non_controller_refused(sock, capsys):

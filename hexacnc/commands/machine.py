@@ -151,6 +151,25 @@ FEED = OverrideOp("feed", "feed override in percent (0 .. [planner] max_feed_ove
 RAPID = OverrideOp("rapid", "rapid override in percent (0 .. 100): acts on G0 moves only", 1.0)
 
 
+class OptionalStopOp:
+    HELP = "show or set the optional-stop switch: on, M1 pauses a program as M0 does"
+
+    def configure(self, parser: argparse.ArgumentParser) -> None:
+        parser.add_argument("switch", nargs="?", choices=("on", "off"), help="on or off (none: show it)")
+        add_common(parser)
+
+    def main(self, args: argparse.Namespace) -> int:
+        def body(client) -> int:
+            kw = {} if args.switch is None else {"optional_stop": args.switch == "on"}
+            r = client.call("override", **kw)
+            print_reply(args, r, f"optional stop {'on' if r.get('optional_stop') else 'off'}")
+            return EXIT_OK
+        return run_op(args, "optional-stop", body)
+
+
+OPTIONAL_STOP = OptionalStopOp()
+
+
 class MdiOp:
     HELP = "execute G-code lines now (MDI), in the modal state the last program left"
 

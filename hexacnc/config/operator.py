@@ -8,7 +8,9 @@ Keys (all optional, every value range-checked):
   ``tip_min`` / ``tip_max``: the Cartesian soft limits of the tool tip (x y z mm, a b c deg,
   machine frame); default: ``min`` / ``max`` (the platform pose box) carried to the tool tip at the
   home orientation, i.e. shifted by ``R(home) tip_platform_mm``.
-* ``[planner] max_feed_override``: the largest feed override accepted (1.0 .. 2.0, default 2.0).
+* ``[planner] max_feed_override``: the largest feed override accepted (1.0 .. 2.0, default 2.0);
+  ``optional_stop``: the optional-stop switch at start (M1 pauses like M0 when on; default false, the
+  operator switches it with the ``override`` op / ``hexacnc optional-stop``).
 * ``[daemon] state_dir``: where the persistent offsets and tool table live (default: beside the
   config file; for the embedded default machine ``$XDG_STATE_HOME/hexacnc``, else
   ``~/.local/state/hexacnc``).
@@ -60,6 +62,7 @@ class OperatorConfig:
     tip_max: np.ndarray | None = None
     max_feed_override: float = 2.0
     state_dir: str = ""
+    optional_stop: bool = False               #: the M1 switch at start
 
 
 def _frozen(v) -> np.ndarray:
@@ -102,11 +105,12 @@ def parse_operator(w, p, d, hm, jg) -> OperatorConfig:
                 raise w.error("tip_max", f"coordinate {'xyzabc'[i]}: tip_max {tmax[i]} must exceed "
                                          f"tip_min {tmin[i]}")
     mfo = p.getfloat("max_feed_override", 2.0, minval=1.0, maxval=2.0)
+    ostop = p.getbool("optional_stop", False)
     sdir = d.getstr("state_dir", "")
     return OperatorConfig(homing=homing, jog=jog, pivot_mm=None if pivot is None else _frozen(pivot),
                           tip_min=None if tmin is None else _frozen(tmin),
                           tip_max=None if tmax is None else _frozen(tmax),
-                          max_feed_override=mfo, state_dir=sdir)
+                          max_feed_override=mfo, state_dir=sdir, optional_stop=ostop)
 
 
 def tip_box(cfg) -> tuple[np.ndarray, np.ndarray]:

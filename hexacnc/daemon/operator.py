@@ -57,6 +57,7 @@ class Operator:
         self.store = StateStore(self.cfg, state_dir)
         self.feed = 1.0
         self.rapid = 1.0
+        self.optional_stop = bool(self.cfg.operator.optional_stop)    #: the M1 switch
         self.max_feed = float(self.cfg.operator.max_feed_override)
         hm = self.cfg.operator.homing
         self.ref = ReferenceWatch(hm.method, hm.method == "absolute")
@@ -179,6 +180,7 @@ class Operator:
         src = ProgramSource(plan, d.period_s, name)
         src.sampler.user = src.sampler.f = min(self.feed, 2.0)
         src.sampler.set_rapid_override(self.rapid)
+        src.set_optional_stop(self.optional_stop)
         job = Job(name=name, source=src, start_rad=start, end_rad=np.asarray(plan.end_pose_platform, dtype=float),
                   blocks=len(prog.blocks), duration_s=float(plan.duration_s))
         with d.lock:
@@ -213,6 +215,7 @@ class Operator:
         def accept(sp, info: dict, src) -> bool:
             src.sampler.set_override(min(self.feed, 2.0))     # the overrides in force carry over
             src.sampler.set_rapid_override(self.rapid)
+            src.set_optional_stop(self.optional_stop)
             # dwells and M0/M1 take their time standing still, as in LinuxCNC: a standstill job
             moves = sp.motion_blocks != 0 or bool(sp.io_blocks) or bool(sp.timed_blocks)
             self.status_view.program_loaded(name, text, sp, float(info["duration_s"]) if moves else 0.0)
@@ -241,7 +244,8 @@ class Operator:
         _check_tip_limits(self.cfg, prog)
 
     # ------------------------------------------------------------------ overrides
-    def set_override(self, feed: float | None = None, rapid: float | None = None) -> dict:
+    def set_override(self, feed: float | None = None, rapid: float | None = None,
+                     optional_stop: bool | None = None) -> dict:
         if feed is not None:
             f = float(feed)
             if not (math.isfinite(f) and 0.0 <= f <= self.max_feed):
@@ -259,6 +263,13 @@ class Operator:
                 self.rapid = float(rapid)
             job = d.current
             src = getattr(job, "source", None) if job is not None else None
+            if optional_stop is not None:
+                self.optional_stop = on = bool(optional_stop)
+                for j in d.queue:                    # queued programs: from their start
+                    if hasattr(j.source, "set_optional_stop"):
+                        j.source.set_optional_stop(on)
+                if hasattr(src, "set_optional_stop"):   # the running one: from REWIND_LEAD_S on (an M1 in
+                    d._command(lambda: src.set_optional_stop(on))   # the rows already sent passes as it was)
             sampler = getattr(src, "sampler", None)
             if sampler is not None:
                 fv, rv = self.feed, self.rapid
@@ -269,7 +280,8 @@ class Operator:
                 d._command(act)
             elif src is not None and feed is not None:
                 d._command(lambda: src.set_feed_override(self.feed))
-        return {"feed": self.feed, "rapid": self.rapid, "max_feed_override": self.max_feed}
+        return {"feed": self.feed, "rapid": self.rapid, "max_feed_override": self.max_feed,
+                "optional_stop": self.optional_stop}
 
     # ------------------------------------------------------------------ drives
     def enable(self, timeout_s: float = 10.0) -> dict:

@@ -122,7 +122,8 @@ class OperatorStatus:
             elapsed, remaining = self._times(st, running, name)
         st["block"] = block
         st["feed"] = {"programmed_mm_min": fprog, "actual_mm_s": round(self._speed, 3) if running else 0.0}
-        st["overrides"] = {"feed": op.feed, "rapid": op.rapid, "max_feed": op.max_feed}
+        st["overrides"] = {"feed": op.feed, "rapid": op.rapid, "max_feed": op.max_feed,
+                           "optional_stop": op.optional_stop}
         st["modal"] = modal_text(ms, ms.modal)
         st["message"] = msg
         st["elapsed_s"] = None if elapsed is None else round(elapsed, 3)

@@ -60,6 +60,9 @@ class ProgramSource:
     def set_feed_override(self, f: float) -> None:
         self.sampler.set_override(float(f))
 
+    def set_optional_stop(self, on: bool) -> None:
+        self.sampler.set_optional_stop(bool(on))
+
     @property
     def paused(self) -> bool:
         return self.sampler.state in ("pausing", "paused", "program_paused")

@@ -128,6 +128,12 @@ class ChainSampler:
         return True
 
     # -- commands --------------------------------------------------------------------------
+    def set_optional_stop(self, on: bool) -> None:
+        """The optional-stop switch, for the window running and the next ones."""
+        self.optional_stop = bool(on)
+        if self._s is not None:
+            self._s.set_optional_stop(on)
+
     def set_override(self, f: float) -> None:
         self._user = float(f)
         if self._s is not None:

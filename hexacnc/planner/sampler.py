@@ -136,6 +136,10 @@ class PlanSampler:
         self.rows_written = 0
 
     # -- commands --------------------------------------------------------------------
+    def set_optional_stop(self, on: bool) -> None:
+        """The optional-stop switch: M1 pauses (as M0) when on; read when the motion reaches an M1."""
+        self.optional_stop = bool(on)
+
     def set_override(self, f: float) -> None:
         """Feed override (0 .. 2; above 1 only where the plan has headroom); jerk-limited transition."""
         f = float(f)
