@@ -208,8 +208,11 @@ def _states_until_idle(c, timeout_s: float = 30.0, resume_paused: bool = False) 
 
 
 def test_m1_pauses_only_with_the_optional_stop_switch_on(sock, capsys):
-    """LinuxCNC's optional stop: M1 is skipped with the switch off (the default, ``[planner] optional_stop``)
-    and pauses as M0 with it on; switched while a program runs, it acts on an M1 still ahead."""
+    """LinuxCNC's optional stop: M1 pauses as M0 with the switch on (at start: ``[planner] optional_stop``,
+    default on as LinuxCNC's canon) and is skipped with it off; switched while a program runs, it acts on
+    an M1 still ahead.  (The fixture switches it off before each test.)"""
+    from hexacnc.config import load_config
+    assert load_config(None).operator.optional_stop is True
     prog = "G21 G90 G1 X2 F600\nM1\nG1 X0\nM2\n"
     rc, out, err = run(capsys, "optional-stop", "--socket", sock)
     assert rc == 0 and out.strip() == "optional stop off", (out, err)

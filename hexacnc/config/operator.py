@@ -9,8 +9,8 @@ Keys (all optional, every value range-checked):
   machine frame); default: ``min`` / ``max`` (the platform pose box) carried to the tool tip at the
   home orientation, i.e. shifted by ``R(home) tip_platform_mm``.
 * ``[planner] max_feed_override``: the largest feed override accepted (1.0 .. 2.0, default 2.0);
-  ``optional_stop``: the optional-stop switch at start (M1 pauses like M0 when on; default false, the
-  operator switches it with the ``override`` op / ``hexacnc optional-stop``).
+  ``optional_stop``: the optional-stop switch at start (M1 pauses like M0 when on; default true, as
+  LinuxCNC's canon starts it; the operator switches it with the ``override`` op / ``hexacnc optional-stop``).
 * ``[daemon] state_dir``: where the persistent offsets and tool table live (default: beside the
   config file; for the embedded default machine ``$XDG_STATE_HOME/hexacnc``, else
   ``~/.local/state/hexacnc``).
@@ -62,7 +62,7 @@ class OperatorConfig:
     tip_max: np.ndarray | None = None
     max_feed_override: float = 2.0
     state_dir: str = ""
-    optional_stop: bool = False               #: the M1 switch at start
+    optional_stop: bool = True                #: the M1 switch at start (LinuxCNC: on)
 
 
 def _frozen(v) -> np.ndarray:
@@ -105,7 +105,7 @@ def parse_operator(w, p, d, hm, jg) -> OperatorConfig:
                 raise w.error("tip_max", f"coordinate {'xyzabc'[i]}: tip_max {tmax[i]} must exceed "
                                          f"tip_min {tmin[i]}")
     mfo = p.getfloat("max_feed_override", 2.0, minval=1.0, maxval=2.0)
-    ostop = p.getbool("optional_stop", False)
+    ostop = p.getbool("optional_stop", True)
     sdir = d.getstr("state_dir", "")
     return OperatorConfig(homing=homing, jog=jog, pivot_mm=None if pivot is None else _frozen(pivot),
                           tip_min=None if tmin is None else _frozen(tmin),

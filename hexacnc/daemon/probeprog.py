@@ -157,6 +157,7 @@ class _Run:
         if self.op is not None:
             src.sampler.user = src.sampler.f = min(self.op.feed, 2.0)
             src.sampler.set_rapid_override(self.op.rapid)
+            src.set_optional_stop(self.op.optional_stop)
         job = Job(name=self.name, source=src, start_rad=self.start,
                   end_rad=np.asarray(plan.end_pose_platform, dtype=float), blocks=nblocks,
                   duration_s=float(plan.duration_s))
