@@ -109,7 +109,9 @@ def test_closed_cycle_measure_resume_fit_apply_reload_verify(machine, client, wo
     # the tracker's noise alone shows ~15 um on 3 poses (their RMS scatters up to ~1.6x that): a machine with
     # little error (seed 1992010430: 196 um before) ends at the noise, not at 10 % of before
     floor = noise_floor_um("tracker", np.c_[valid[:, :3], np.radians(valid[:, 3:])], cfg.tool.tip_platform_mm)
-    assert before["rms_um"] > 100.0, (SEED, before["rms_um"])
+    # the error to calibrate away (offline, 2000 seeds of synth_truth_doc at these poses: smallest 86 um, 1 %
+    # under 210 um; 100 um failed one seed in 2000)
+    assert before["rms_um"] > 60.0, (SEED, before["rms_um"])
     assert after["rms_um"] < max(0.1 * before["rms_um"], 2.0 * floor), (SEED, before["rms_um"], after["rms_um"], floor)
 
 
