@@ -49,8 +49,9 @@ def format_compact(st: dict) -> str:
     out.append(_row("machine", tip.get("machine") or st.get("pose_cmd")))
     out.append(_row(f"work{wo.get('name', '')[1:]:>4}", tip.get("work")))
     out.append(_row("platform", st.get("pose_cmd")))
+    m1 = "" if "optional_stop" not in ov else f"   M1 {'stops' if ov['optional_stop'] else 'skipped'}"
     out.append(f"tool     T{tool.get('number', 0)} length {_n(tool.get('length_mm'), 1, 3)} mm   "
-               f"offset {wo.get('name', '-')}")
+               f"offset {wo.get('name', '-')}{m1}")
     fp = feed.get("programmed_mm_min")
     out.append(f"feed     prog {_n(fp, 1, 0) if fp is not None else '-'} mm/min  actual "
                f"{_n((feed.get('actual_mm_s') or 0.0) * 60.0, 1, 0)} mm/min  override "
