@@ -33,6 +33,7 @@ COMMANDS: dict[str, str] = {
     "feed": "hexacnc.commands.machine:FEED",
     "rapid": "hexacnc.commands.machine:RAPID",
     "optional-stop": "hexacnc.commands.machine:OPTIONAL_STOP",
+    "block-delete": "hexacnc.commands.machine:BLOCK_DELETE",
     "mdi": "hexacnc.commands.machine:MDI",
     "jog": "hexacnc.commands.jog",
     "offsets": "hexacnc.commands.offsets:OFFSETS",

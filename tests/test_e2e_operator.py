@@ -58,7 +58,7 @@ def sock(machine):
         elif st["state"] in ("running", "paused"):
             c.call("stop")
         c.call("wait", timeout_s=30.0)
-        c.call("override", feed=1.0, rapid=1.0, optional_stop=False)
+        c.call("override", feed=1.0, rapid=1.0, optional_stop=False, block_delete=True)
         work = c.call("status")["tool_tip"]["work"]
         if max(abs(work[0]), abs(work[1]), abs(work[2] - 30.0)) > 0.01:     # a test left it elsewhere
             c.call("mdi", text="G90 G0 X0 Y0 Z30")
@@ -237,6 +237,35 @@ def test_m1_pauses_only_with_the_optional_stop_switch_on(sock, capsys):
         with pytest.raises(P.DaemonError, match="optional_stop"):
             c.call("override", optional_stop="yes")
     assert np.allclose(tip(sock)[:3], [0.0, 0.0, tip(sock)[2]], atol=1e-6)
+
+
+def test_block_delete_switch_skips_or_runs_the_slash_lines(sock, capsys):
+    """LinuxCNC's block delete: on (the default, ``[planner] block_delete``) a line starting with '/' is
+    skipped, off it runs; the switch acts on programs and MDI sent after it."""
+    from hexacnc.config import load_config
+    assert load_config(None).operator.block_delete is True
+    prog = "G21 G90 G1 X1 F600\n/G1 X3\nM2\n"
+    t0 = tip(sock)
+    with P.Client.unix(sock) as c:
+        c.call("program", text=prog, name="bd-on", reply_timeout_s=60.0)
+        c.call("wait", timeout_s=30.0)
+        assert tip(sock)[0] == pytest.approx(t0[0] + 1.0, abs=1e-6)
+    rc, out, err = run(capsys, "block-delete", "off", "--socket", sock)
+    assert rc == 0 and out.strip() == "block delete off", (out, err)
+    with P.Client.unix(sock) as c:
+        assert c.call("status")["overrides"]["block_delete"] is False
+        c.call("program", text=prog, name="bd-off", reply_timeout_s=60.0)
+        c.call("wait", timeout_s=30.0)
+        assert tip(sock)[0] == pytest.approx(t0[0] + 3.0, abs=1e-6)
+        c.call("mdi", text="/G1 X0")                      # MDI too
+        c.call("wait", timeout_s=30.0)
+        assert tip(sock)[0] == pytest.approx(t0[0], abs=1e-6)
+        assert c.call("override", block_delete=True)["block_delete"] is True
+        c.call("mdi", text="/G1 X2")
+        c.call("wait", timeout_s=30.0)
+        assert tip(sock)[0] == pytest.approx(t0[0], abs=1e-6)
+    rc, out, err = run(capsys, "block-delete", "--socket", sock)
+    assert rc == 0 and out.strip() == "block delete on", (out, err)
 
 
 def test_mdi_refused_during_a_program_and_non_controller_refused(sock, capsys):

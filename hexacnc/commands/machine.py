@@ -151,8 +151,12 @@ FEED = OverrideOp("feed", "feed override in percent (0 .. [planner] max_feed_ove
 RAPID = OverrideOp("rapid", "rapid override in percent (0 .. 100): acts on G0 moves only", 1.0)
 
 
-class OptionalStopOp:
-    HELP = "show or set the optional-stop switch: on, M1 pauses a program as M0 does"
+@dataclass
+class SwitchOp:
+    """An operator's panel switch, a boolean field of the ``override`` op."""
+    name: str
+    key: str
+    HELP: str
 
     def configure(self, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("switch", nargs="?", choices=("on", "off"), help="on or off (none: show it)")
@@ -160,14 +164,18 @@ class OptionalStopOp:
 
     def main(self, args: argparse.Namespace) -> int:
         def body(client) -> int:
-            kw = {} if args.switch is None else {"optional_stop": args.switch == "on"}
+            kw = {} if args.switch is None else {self.key: args.switch == "on"}
             r = client.call("override", **kw)
-            print_reply(args, r, f"optional stop {'on' if r.get('optional_stop') else 'off'}")
+            print_reply(args, r, f"{self.name.replace('-', ' ')} {'on' if r.get(self.key) else 'off'}")
             return EXIT_OK
-        return run_op(args, "optional-stop", body)
+        return run_op(args, self.name, body)
 
 
-OPTIONAL_STOP = OptionalStopOp()
+OPTIONAL_STOP = SwitchOp("optional-stop", "optional_stop",
+                         "show or set the optional-stop switch: on, M1 pauses a program as M0 does")
+BLOCK_DELETE = SwitchOp("block-delete", "block_delete",
+                        "show or set the block-delete switch: on, lines starting with '/' are skipped "
+                        "(programs sent after it)")
 
 
 class MdiOp:

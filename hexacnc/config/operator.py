@@ -10,7 +10,9 @@ Keys (all optional, every value range-checked):
   home orientation, i.e. shifted by ``R(home) tip_platform_mm``.
 * ``[planner] max_feed_override``: the largest feed override accepted (1.0 .. 2.0, default 2.0);
   ``optional_stop``: the optional-stop switch at start (M1 pauses like M0 when on; default true, as
-  LinuxCNC's canon starts it; the operator switches it with the ``override`` op / ``hexacnc optional-stop``).
+  LinuxCNC's canon starts it; the operator switches it with the ``override`` op / ``hexacnc optional-stop``);
+  ``block_delete``: the block-delete switch at start (lines starting with ``/`` are skipped when on; default
+  true, as LinuxCNC's canon; ``override`` op / ``hexacnc block-delete``, for programs taken after it).
 * ``[daemon] state_dir``: where the persistent offsets and tool table live (default: beside the
   config file; for the embedded default machine ``$XDG_STATE_HOME/hexacnc``, else
   ``~/.local/state/hexacnc``).
@@ -63,6 +65,7 @@ class OperatorConfig:
     max_feed_override: float = 2.0
     state_dir: str = ""
     optional_stop: bool = True                #: the M1 switch at start (LinuxCNC: on)
+    block_delete: bool = True                 #: skip '/' lines (LinuxCNC: on)
 
 
 def _frozen(v) -> np.ndarray:
@@ -106,11 +109,13 @@ def parse_operator(w, p, d, hm, jg) -> OperatorConfig:
                                          f"tip_min {tmin[i]}")
     mfo = p.getfloat("max_feed_override", 2.0, minval=1.0, maxval=2.0)
     ostop = p.getbool("optional_stop", True)
+    bdel = p.getbool("block_delete", True)
     sdir = d.getstr("state_dir", "")
     return OperatorConfig(homing=homing, jog=jog, pivot_mm=None if pivot is None else _frozen(pivot),
                           tip_min=None if tmin is None else _frozen(tmin),
                           tip_max=None if tmax is None else _frozen(tmax),
-                          max_feed_override=mfo, state_dir=sdir, optional_stop=ostop)
+                          max_feed_override=mfo, state_dir=sdir, optional_stop=ostop,
+                          block_delete=bdel)
 
 
 def tip_box(cfg) -> tuple[np.ndarray, np.ndarray]:

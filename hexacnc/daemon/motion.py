@@ -97,13 +97,15 @@ class MotionMixin:
         job, info = self.load_streamed(text, name, stops=stops)
         return info
 
-    def load_streamed(self, text, name: str, state=None, on_valid=None, accept=None, stops: int | None = None):
+    def load_streamed(self, text, name: str, state=None, on_valid=None, accept=None, stops: int | None = None,
+                      cfg=None):
         """The streamed program path of :meth:`load_program` (also the operator's, which interprets from
         its persistent ``state``; ``on_valid(stream_plan)`` once the whole program is validated; ``accept
         (stream_plan, info, source)`` before the job is queued: False leaves it unqueued, e.g. a program without
         motion).  Returns ``(job or None, info)``.  A ``stop`` (or reset) that comes while the program is
         interpreted, validated or planned kills its children and the program is refused; ``stops``: the count of
-        stops (``_stops``) when the caller took the program (default: now), a stop after it refuses it."""
+        stops (``_stops``) when the caller took the program (default: now), a stop after it refuses it; ``cfg``:
+        the description to interpret and plan it with (default the daemon's; the operator's switches)."""
         from .planstream import StreamPlan
         from .program import program_source
         with self.lock:
@@ -114,7 +116,8 @@ class MotionMixin:
             start = self._planned_start()
         # interpreted, validated and planned in children with bounded memory and time (started outside
         # the lock: stop/pause never wait for them); a stop kills them
-        sp = StreamPlan(self.cfg, text, name, start, self.period_s, state=state, on_valid=on_valid, start=False)
+        sp = StreamPlan(cfg if cfg is not None else self.cfg, text, name, start, self.period_s, state=state,
+                        on_valid=on_valid, start=False)
         with self.lock:
             self._planning.add(sp)
             if self._stops != stops:        # a stop came meanwhile

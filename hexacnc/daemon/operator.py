@@ -58,6 +58,7 @@ class Operator:
         self.feed = 1.0
         self.rapid = 1.0
         self.optional_stop = bool(self.cfg.operator.optional_stop)    #: the M1 switch
+        self.block_delete = bool(self.cfg.operator.block_delete)      #: skip '/' lines of programs taken
         self.max_feed = float(self.cfg.operator.max_feed_override)
         hm = self.cfg.operator.homing
         self.ref = ReferenceWatch(hm.method, hm.method == "absolute")
@@ -129,6 +130,14 @@ class Operator:
         return tool_point_platform(self.cfg, self.tool_length_mm())
 
     # ------------------------------------------------------------------ programs and MDI
+    def run_cfg(self):
+        """The machine description programs are interpreted with: the daemon's, with the operator's
+        block-delete switch (it acts on the programs taken after it, which are interpreted whole)."""
+        cfg = self.cfg
+        if bool(cfg.operator.block_delete) == self.block_delete:
+            return cfg
+        return cfg.replace(operator=replace(cfg.operator, block_delete=self.block_delete))
+
     def load_program(self, text, name: str, mdi: bool = False, stops: int | None = None) -> dict:
         """Interpret from the persistent state, plan, check and queue; commit the new state.  ``text``: str,
         or the chunks of an upload (list of str); ``stops``: the daemon's stop count when the program was
@@ -160,7 +169,8 @@ class Operator:
         # interpreted and planned in a child with bounded memory and time ([daemon] max_plan_memory_mb,
         # max_plan_s), started outside the lock; a stop kills it (issue 13: the control path never waits)
         from .planproc import PlanJob
-        pj = PlanJob(self.cfg, text, name, start, d.period_s, work=interpret_and_plan, work_args=(tip0, state, mdi))
+        pj = PlanJob(self.run_cfg(), text, name, start, d.period_s, work=interpret_and_plan,
+                     work_args=(tip0, state, mdi))
         with d.lock:
             d._planning.add(pj)
             if d._stops != stops:
@@ -225,7 +235,8 @@ class Operator:
                 commit(sp)
             return moves
 
-        job, info = d.load_streamed(text, name, state=state, on_valid=commit, accept=accept, stops=stops)
+        job, info = d.load_streamed(text, name, state=state, on_valid=commit, accept=accept, stops=stops,
+                                    cfg=self.run_cfg())
         if job is None:
             return {"blocks": info["blocks"], "duration_s": 0.0, "moved": False}
         with lock:
@@ -245,7 +256,7 @@ class Operator:
 
     # ------------------------------------------------------------------ overrides
     def set_override(self, feed: float | None = None, rapid: float | None = None,
-                     optional_stop: bool | None = None) -> dict:
+                     optional_stop: bool | None = None, block_delete: bool | None = None) -> dict:
         if feed is not None:
             f = float(feed)
             if not (math.isfinite(f) and 0.0 <= f <= self.max_feed):
@@ -263,6 +274,8 @@ class Operator:
                 self.rapid = float(rapid)
             job = d.current
             src = getattr(job, "source", None) if job is not None else None
+            if block_delete is not None:             # programs taken from now on
+                self.block_delete = bool(block_delete)
             if optional_stop is not None:
                 self.optional_stop = on = bool(optional_stop)
                 for j in d.queue:                    # queued programs: from their start
@@ -281,7 +294,7 @@ class Operator:
             elif src is not None and feed is not None:
                 d._command(lambda: src.set_feed_override(self.feed))
         return {"feed": self.feed, "rapid": self.rapid, "max_feed_override": self.max_feed,
-                "optional_stop": self.optional_stop}
+                "optional_stop": self.optional_stop, "block_delete": self.block_delete}
 
     # ------------------------------------------------------------------ drives
     def enable(self, timeout_s: float = 10.0) -> dict:

@@ -53,13 +53,14 @@ def _inline(server, conn, req, call) -> None:
 
 def op_override(server, conn, req) -> None:
     f = req.fields
-    if "feed" not in f and "rapid" not in f and "optional_stop" not in f:
+    if not any(k in f for k in ("feed", "rapid", "optional_stop", "block_delete")):
         op = _op(server)
         server._send(conn, P.ok_reply(req.id, feed=op.feed, rapid=op.rapid, max_feed_override=op.max_feed,
-                                      optional_stop=op.optional_stop))
+                                      optional_stop=op.optional_stop, block_delete=op.block_delete))
         return
     op = _op(server)
-    _motion(server, conn, req, lambda: op.set_override(f.get("feed"), f.get("rapid"), f.get("optional_stop")))
+    _motion(server, conn, req, lambda: op.set_override(f.get("feed"), f.get("rapid"), f.get("optional_stop"),
+                                                       f.get("block_delete")))
 
 
 def op_enable(server, conn, req) -> None:

@@ -123,7 +123,7 @@ class OperatorStatus:
         st["block"] = block
         st["feed"] = {"programmed_mm_min": fprog, "actual_mm_s": round(self._speed, 3) if running else 0.0}
         st["overrides"] = {"feed": op.feed, "rapid": op.rapid, "max_feed": op.max_feed,
-                           "optional_stop": op.optional_stop}
+                           "optional_stop": op.optional_stop, "block_delete": op.block_delete}
         st["modal"] = modal_text(ms, ms.modal)
         st["message"] = msg
         st["elapsed_s"] = None if elapsed is None else round(elapsed, 3)

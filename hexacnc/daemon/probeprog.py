@@ -134,7 +134,8 @@ class _Run:
     def _plan(self):
         from .planproc import PlanJob
         d = self.d
-        pj = PlanJob(d.cfg, self.text, self.name, self.start, d.period_s, work=plan_segment,
+        cfg = self.op.run_cfg() if self.op is not None else d.cfg
+        pj = PlanJob(cfg, self.text, self.name, self.start, d.period_s, work=plan_segment,
                      work_args=(self.tip0, self.state, tuple(self.known), self.tip_check))
         with d.lock:
             d._planning.add(pj)

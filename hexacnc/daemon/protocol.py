@@ -82,7 +82,8 @@ OPS: dict[str, dict[str, tuple[tuple[type, ...], bool]]] = {
     "release": {},
     "temperatures": {"probes_C": ((list, tuple, dict), True), "spindle_C": (_NUM, False), "time_s": (_NUM, False)},
     # operator control (hexacnc/daemon/ops_operator.py)
-    "override": {"feed": (_NUM, False), "rapid": (_NUM, False), "optional_stop": ((bool,), False)},
+    "override": {"feed": (_NUM, False), "rapid": (_NUM, False), "optional_stop": ((bool,), False),
+                 "block_delete": ((bool,), False)},
     "enable": {},
     "disable": {},
     "take": {},

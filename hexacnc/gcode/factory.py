@@ -20,6 +20,7 @@ def machine_defaults(cfg) -> dict:
     * G28 and G30 positions: the start pose (the tool reference point at home).
     * no-op M-codes: ``[planner] noop_m_codes``.
     * subroutine files: ``[gcode] subroutine_path``; ``[gcode] require_end``.
+    * block delete (skip ``/`` lines): ``[planner] block_delete`` (the operator's switch, default on).
     """
     home = np.asarray(cfg.home_pose, dtype=float)
     R = matrix_from_euler(*(math.radians(float(v)) for v in home[3:6]))
@@ -36,7 +37,8 @@ def machine_defaults(cfg) -> dict:
             "g28_pose": list(start), "g30_pose": list(start),
             "noop_m_codes": tuple(getattr(cfg.planner, "noop_m_codes", ())),
             "subroutine_path": tuple(getattr(gc_cfg, "subroutine_path", ())),
-            "require_end": bool(getattr(gc_cfg, "require_end", False))}
+            "require_end": bool(getattr(gc_cfg, "require_end", False)),
+            "block_delete": bool(getattr(getattr(cfg, "operator", None), "block_delete", True))}
 
 
 def program_from_config(text: str, name: str, cfg, **overrides) -> Program:
