@@ -329,6 +329,7 @@ class StreamPlan:
         self.planned_s = 0.0            #: planned seconds of the windows received so far
         self.planned_nominal_s = 0.0    #: their blocks' nominal seconds at the programmed feeds
         self.planned_blocks = 0         #: their blocks
+        self.planned_last_line = 0      #: the last program line they reach
         self._cv = threading.Condition()
         self._have: dict = {}
         self._granted = 0
@@ -428,6 +429,7 @@ class StreamPlan:
                 self.planned_s += float(w.plan.duration_s)
                 self.planned_nominal_s += float(getattr(w, "nominal_s", 0.0))
                 self.planned_blocks += int(w.blocks)
+                self.planned_last_line = max(self.planned_last_line, int(w.last_line))
                 self.finished = self.finished or w.last
             elif msg is not None and msg[0] == "done":
                 self.finished = True
@@ -446,11 +448,15 @@ class StreamPlan:
         far: by the validation's nominal seconds (at the programmed feeds) where those explain the planned
         time, by the count of blocks where the machine's dynamics set it (3D_Chips.ngc's F4.5e6 gives 0.6 s
         nominal for 87 s planned), mixed by the share ``w = nominal / planned`` (clipped to 0..1) of the
-        windows planned.  0 once every window is planned, and before the validation has counted the program."""
+        windows planned.  Before the validation has counted the program (``start_before_validated``): by the
+        program's lines.  0 once every window is planned."""
         with self._cv:
             val = self.validation
-            if self.finished or val.get("state") != "valid" or self.planned_s <= 0.0 or self.planned_blocks <= 0:
+            if self.finished or self.planned_s <= 0.0 or self.planned_blocks <= 0:
                 return 0.0
+            if val.get("state") != "valid":
+                done = max(1, self.planned_last_line)
+                return self.planned_s * max(0, self.total_lines - done) / done
             by_nominal = max(0.0, float(val.get("estimate_s", 0.0)) - self.planned_nominal_s) / max(
                 self.planned_nominal_s, 1e-9)
             by_blocks = max(0, int(val.get("blocks", 0)) - self.planned_blocks) / self.planned_blocks
