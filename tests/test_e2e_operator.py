@@ -225,9 +225,9 @@ def test_m1_pauses_only_with_the_optional_stop_switch_on(sock, capsys):
         assert c.call("status")["overrides"]["optional_stop"] is True
         c.call("program", text=prog, name="m1-on", reply_timeout_s=60.0)
         assert "paused" in _states_until_idle(c, resume_paused=True)
-        # switched on while the program runs: 4 s of motion before the M1
+        # switched on while the program runs: 2 s of motion before the M1
         c.call("override", optional_stop=False)
-        c.call("program", text="G21 G90 G1 X4 F60\nM1\nG1 X0 F600\nM2\n", name="m1-live", reply_timeout_s=60.0)
+        c.call("program", text="G21 G90 G1 X2 F60\nM1\nG1 X0 F600\nM2\n", name="m1-live", reply_timeout_s=60.0)
         t_end = time.monotonic() + 10.0
         while c.call("status")["state"] != "running" and time.monotonic() < t_end:
             time.sleep(0.02)
