@@ -130,6 +130,13 @@ class Operator:
         return tool_point_platform(self.cfg, self.tool_length_mm())
 
     # ------------------------------------------------------------------ programs and MDI
+    def carry_overrides(self, src) -> None:
+        """The overrides and the M1 switch in force, on a new whole-plan :class:`ProgramSource` (from its
+        first row: it has not run)."""
+        src.sampler.user = src.sampler.f = min(self.feed, 2.0)
+        src.sampler.set_rapid_override(self.rapid)
+        src.set_optional_stop(self.optional_stop)
+
     def run_cfg(self):
         """The machine description programs are interpreted with: the daemon's, with the operator's
         block-delete switch (it acts on the programs taken after it, which are interpreted whole)."""
@@ -188,9 +195,7 @@ class Operator:
         if float(np.max(np.abs(p0 - np.asarray(start, dtype=float)))) > 1e-6:
             raise PlanError(f"{what} does not start where the machine is", limit="start")
         src = ProgramSource(plan, d.period_s, name)
-        src.sampler.user = src.sampler.f = min(self.feed, 2.0)
-        src.sampler.set_rapid_override(self.rapid)
-        src.set_optional_stop(self.optional_stop)
+        self.carry_overrides(src)
         job = Job(name=name, source=src, start_rad=start, end_rad=np.asarray(plan.end_pose_platform, dtype=float),
                   blocks=len(prog.blocks), duration_s=float(plan.duration_s))
         with d.lock:
@@ -557,6 +562,7 @@ def interpret_and_plan(cfg, text: str, name: str, start_rad, period_s: float, ti
     """The operator's program path, run in the bounded planning child (:mod:`.planproc`): interpret
     from the persistent ``state`` at tool tip ``tip0`` (mm, deg), the tool tip's soft limits for MDI,
     plan. Returns ``(plan or None without motion, program without its blocks, state after it)``."""
+    from ..gcode import blocks as B
     from ..kinematics import Hexapod
     from ..planner import plan_program as planner_plan
     prog, new_state = interpret(text, name, cfg, tip0, state)
@@ -566,16 +572,11 @@ def interpret_and_plan(cfg, text: str, name: str, start_rad, period_s: float, ti
     from .program import tool_tip_pose_deg
     check_io(cfg, prog.blocks)      # I/O the machine does not map: refused before motion, with the line
     plan = None
-    if prog.motion_blocks or any(_takes_time(b) for b in prog.blocks):   # outputs, dwells, M0/M1: a standstill
+    # outputs, dwells or M0/M1 without motion: a standstill plan
+    if prog.motion_blocks or any(b.kind == B.IO or B.holds_still(b) for b in prog.blocks):
         plan = plan_with_io(prog.blocks, cfg, planner_plan, hexapod=Hexapod(cfg), period_s=period_s,
                             start_pose=tool_tip_pose_deg(cfg, start_rad))
     return plan, prog, new_state
-
-
-def _takes_time(b) -> bool:
-    """An output (M62-M68, M66), a dwell of more than 0 s or a pause (M0/M1): planned even without motion."""
-    from ..gcode import blocks as B
-    return b.kind in (B.IO, B.PAUSE, B.OPTIONAL_PAUSE) or (b.kind == B.DWELL and (b.seconds or 0.0) > 0.0)
 
 
 def _check_tip_limits(cfg, prog) -> None:

@@ -120,8 +120,7 @@ class _Counted:
     def __init__(self, blocks):
         from ..gcode import blocks as B
         self._it = iter(blocks)
-        self._motion, self._io = B.MOTION_KINDS, B.IO
-        self._dwell, self._pauses = B.DWELL, (B.PAUSE, B.OPTIONAL_PAUSE)
+        self._motion, self._io, self._still = B.MOTION_KINDS, B.IO, B.holds_still
         self.motion = 0
         self.io = 0
         self.timed = 0
@@ -136,7 +135,7 @@ class _Counted:
             self.motion += 1
         elif k == self._io:
             self.io += 1
-        elif k in self._pauses or (k == self._dwell and (b.seconds or 0.0) > 0.0):
+        elif self._still(b):
             self.timed += 1
         return b
 

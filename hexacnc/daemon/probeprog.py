@@ -156,9 +156,7 @@ class _Run:
             raise PlanError(f"{self.name} does not continue where the machine is", limit="start")
         src = ProgramSource(plan, d.period_s, self.name)
         if self.op is not None:
-            src.sampler.user = src.sampler.f = min(self.op.feed, 2.0)
-            src.sampler.set_rapid_override(self.op.rapid)
-            src.set_optional_stop(self.op.optional_stop)
+            self.op.carry_overrides(src)
         job = Job(name=self.name, source=src, start_rad=self.start,
                   end_rad=np.asarray(plan.end_pose_platform, dtype=float), blocks=nblocks,
                   duration_s=float(plan.duration_s))

@@ -39,6 +39,13 @@ IO = "io"
 MOTION_KINDS = (RAPID, LINE, ARC)
 
 
+def holds_still(blk) -> bool:
+    """A block that takes time standing still: a G4 of more than 0 s, M0 or M1 (it needs a plan even in a
+    program without motion)."""
+    k = blk.kind
+    return k == PAUSE or k == OPTIONAL_PAUSE or (k == DWELL and (blk.seconds or 0.0) > 0.0)
+
+
 @dataclass
 class Block:
     kind: str
