@@ -29,6 +29,7 @@ import threading
 import time
 
 from ..errors import HexacncError, PlanError
+from ..planner.timefit import add_sums, rest_s
 from .progtext import count_lines, pieces
 from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reached, refusal
 
@@ -329,6 +330,7 @@ class StreamPlan:
         self.planned_nominal_s = 0.0    #: their blocks' nominal seconds at the programmed feeds
         self.planned_blocks = 0         #: their blocks
         self.planned_last_line = 0      #: the last program line they reach
+        self.planned_sums: tuple = ()   #: their per-line time sums (:func:`hexacnc.planner.timefit.line_sums`)
         self._cv = threading.Condition()
         self._have: dict = {}
         self._granted = 0
@@ -428,6 +430,7 @@ class StreamPlan:
                 self.planned_s += float(w.plan.duration_s)
                 self.planned_nominal_s += float(getattr(w, "nominal_s", 0.0))
                 self.planned_blocks += int(w.blocks)
+                self.planned_sums = add_sums(self.planned_sums, getattr(w, "time_sums", ()))
                 self.planned_last_line = max(self.planned_last_line, int(w.last_line))
                 self.finished = self.finished or w.last
             elif msg is not None and msg[0] == "done":
@@ -443,12 +446,11 @@ class StreamPlan:
             self._plan.send(("grant", n))
 
     def unplanned_s(self) -> float:
-        """Estimated seconds of the program's part not planned yet, extrapolated from the windows planned so
-        far: by the validation's nominal seconds (at the programmed feeds) where those explain the planned
-        time, by the count of blocks where the machine's dynamics set it (3D_Chips.ngc's F4.5e6 gives 0.6 s
-        nominal for 87 s planned), mixed by the share ``w = nominal / planned`` (clipped to 0..1) of the
-        windows planned.  Before the validation has counted the program (``start_before_validated``): by the
-        program's lines.  0 once every window is planned."""
+        """Estimated seconds of the program's part not planned yet, learnt from the windows planned so far
+        (:mod:`hexacnc.planner.timefit`: per line, planned seconds against nominal seconds at the programmed
+        feeds and blocks; 3D_Chips.ngc's F4.5e6 gives 0.6 s nominal for 87 s planned) and applied to the
+        validation's totals.  Before the validation has counted the program (``start_before_validated``): by
+        the program's lines.  0 once every window is planned."""
         with self._cv:
             val = self.validation
             if self.finished or self.planned_s <= 0.0 or self.planned_blocks <= 0:
@@ -456,11 +458,10 @@ class StreamPlan:
             if val.get("state") != "valid":
                 done = max(1, self.planned_last_line)
                 return self.planned_s * max(0, self.total_lines - done) / done
-            by_nominal = max(0.0, float(val.get("estimate_s", 0.0)) - self.planned_nominal_s) / max(
-                self.planned_nominal_s, 1e-9)
-            by_blocks = max(0, int(val.get("blocks", 0)) - self.planned_blocks) / self.planned_blocks
-            w = min(1.0, max(0.0, self.planned_nominal_s / self.planned_s))
-            return self.planned_s * (w * by_nominal + (1.0 - w) * by_blocks)
+            blocks_rest = max(0, int(val.get("blocks", 0)) - self.planned_blocks)
+            rest = rest_s(self.planned_sums, float(val.get("estimate_s", 0.0)) - self.planned_nominal_s,
+                          blocks_rest)
+            return self.planned_s * blocks_rest / self.planned_blocks if rest is None else rest
 
     # -- window feed ----------------------------------------------------------------------------
     def window(self, i: int):

@@ -157,9 +157,9 @@ def program_source(sp, name: str, start_rad, period_s: float):
     (``wait_ready``); returns
     (ProgramSource, info: blocks, duration_s, duration_exact, validated, end_rad or None).  ``duration_s``
     is the planned duration for a program of one window, else an estimate (``duration_exact`` false): the
-    windows planned so far and the rest extrapolated from them by nominal seconds and blocks
-    (:meth:`~hexacnc.daemon.planstream.StreamPlan.unplanned_s`; by lines before the validation has counted
-    the program)."""
+    windows planned so far and the rest extrapolated from them by a fit of planned to nominal seconds and
+    blocks (:meth:`~hexacnc.daemon.planstream.StreamPlan.unplanned_s`; by lines before the validation has
+    counted the program)."""
     from ..planner.chain import ChainSampler
     try:
         first = sp.wait_ready()

@@ -24,6 +24,7 @@ from ..pose import matrix_from_euler
 from . import path as P
 from .blocktime import block_seconds as _seconds, plain_floats as _floats
 from .plan import Plan, plan_program
+from .timefit import line_sums
 
 #: motion blocks of the first window when motion starts before the validation ends (then 2x, 4x, ...)
 FIRST_WINDOW_BLOCKS = 100
@@ -43,6 +44,7 @@ class Window:
     blocks: int
     forced_stop: bool = False  #: ends at a stop the program does not have (no rest point in the window)
     nominal_s: float = 0.0     #: its blocks' nominal seconds at their programmed feeds (blocktime)
+    time_sums: tuple = ()      #: per-line sums of nominal s, blocks and planned s (timefit.line_sums)
 
 
 def tool_tip_pose_deg(cfg, platform_rad) -> list[float]:
@@ -106,7 +108,7 @@ class _Splitter:
         self.feed = pc.default_feed_mm_min / 60.0
 
     def windows(self, blocks):
-        """Yields (blocks, forced_stop, last, nominal seconds of the blocks); a window is yielded once a
+        """Yields (blocks, forced_stop, last, nominal seconds of each block); a window is yielded once a
         block after it arrived (or the stream ended), so that ``last`` is known."""
         buf: list = []
         sec: list = []              # nominal seconds of each block in buf
@@ -134,7 +136,7 @@ class _Splitter:
             if nmot >= self.grow or secs >= self.ws:
                 self.grow = min(self.wb, 2 * self.grow)
                 cut, forced = self._cut(buf, rests)
-                pending = (buf[:cut + 1], forced, sum(sec[:cut + 1]))
+                pending = (buf[:cut + 1], forced, sec[:cut + 1])
                 buf, sec = buf[cut + 1:], sec[cut + 1:]
                 rests = [i - cut - 1 for i in rests if i > cut]
                 nmot = sum(1 for b in buf if b.kind in B.MOTION_KINDS)
@@ -144,7 +146,7 @@ class _Splitter:
         if pending is not None:
             yield pending[0], pending[1], not buf, pending[2]
         if buf or pending is None:
-            yield buf, False, True, sum(sec)
+            yield buf, False, True, sec
 
     def _cut(self, buf: list, rests: list) -> tuple[int, bool]:
         """Index of the last block of the window, and whether the window forces a stop there."""
@@ -178,10 +180,11 @@ def plan_windows(blocks, cfg, hexapod=None, period_s: float | None = None, start
     wb = int(window_blocks if window_blocks is not None else pc.window_blocks)
     ws = float(window_s if window_s is not None else pc.window_s)
     start = start_pose
-    for i, (blks, forced, last, nominal) in enumerate(_Splitter(cfg, wb, ws, first_blocks).windows(blocks)):
+    for i, (blks, forced, last, secs) in enumerate(_Splitter(cfg, wb, ws, first_blocks).windows(blocks)):
         plan = plan_program(blks, cfg, hexapod=hx, period_s=period_s, start_pose=start)
         lines = [int(b.line) for b in blks] or [0]
-        yield Window(i, plan, last, min(lines), max(lines), len(blks), forced, float(nominal))
+        sums = line_sums(lines, secs, plan.line_tab, plan.dt) if blks else ()
+        yield Window(i, plan, last, min(lines), max(lines), len(blks), forced, float(sum(secs)), sums)
         start = tool_tip_pose_deg(cfg, plan.end_pose_platform)
 
 
@@ -196,11 +199,11 @@ def validate_windows(blocks, cfg, hexapod=None, start_rad=None):
     sp = _Splitter(cfg, cfg.planner.window_blocks, cfg.planner.window_s)
     nb, est = 0, 0.0
     end = None if start_rad is None else np.asarray(start_rad, dtype=float)
-    for blks, _forced, _last, nominal in sp.windows(blocks):
+    for blks, _forced, _last, secs in sp.windows(blocks):
         path, events = P.build_path(blks, cfg)
         if path.n:
             check_path(path, hx, cfg, events)
             end = path.platform(np.array([path.n - 1]), np.array([path.total]))[0]
         nb += len(blks)
-        est += nominal
+        est += sum(secs)
         yield nb, est, int(max((b.line for b in blks), default=0)), end
