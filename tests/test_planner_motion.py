@@ -5,6 +5,7 @@ Utilisation is measured independently here: the sampler's platform rows go throu
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,6 +21,12 @@ from hexacnc.planner import FLAG_PROGRAM_PAUSE, plan_program
 @pytest.fixture(scope="module")
 def cfg():
     return load_config(None)
+
+
+def rapid_lifted(cfg):
+    """``cfg`` with ``[planner] rapid_feed_mm_min`` far above what the struts allow: the rapid feed caps every
+    feed (as LinuxCNC's maximum velocity), so a plan at the strut limits needs it lifted."""
+    return cfg.replace(planner=dataclasses.replace(cfg.planner, rapid_feed_mm_min=1e9))
 
 
 def tip_of(cfg, P):
@@ -289,6 +296,7 @@ def test_pause_on_a_plan_at_the_strut_limits(cfg, seed):
     """Pause while the nominal plan uses ~99 % velocity / ~93 % acceleration: still within limits, on
     the path, and at rest within half a second."""
     from hexacnc.bench.toppra_peer import topp_path_blocks
+    cfg = rapid_lifted(cfg)
     plan = plan_program(topp_path_blocks(cfg), cfg)
     assert plan.utilisation["velocity"] > 0.9
     tp = np.random.default_rng(seed).uniform(0.3, plan.duration_s - 0.5)

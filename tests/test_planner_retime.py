@@ -11,7 +11,7 @@ from hexacnc.planner import plan as PL
 from hexacnc.planner import plan_program
 from hexacnc.planner.retime import retime
 
-from test_planner_motion import utilisation
+from test_planner_motion import rapid_lifted, utilisation
 from test_planner_sections import exact_stop_moves
 
 TARGETS = (0.995, 0.95, 0.95)
@@ -19,7 +19,7 @@ TARGETS = (0.995, 0.95, 0.95)
 
 @pytest.fixture(scope="module")
 def cfg():
-    return load_config(None)
+    return rapid_lifted(load_config(None))        # the time scaling knows the strut limits only
 
 
 def _rows(plan, s):

@@ -17,15 +17,14 @@ from ..gcode import blocks as B
 
 def block_seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
     """Nominal seconds of a block at its programmed feed (a lower bound of its planned time): dwell seconds,
-    G93 time, or length / feed (tool-tip mm, or the rotation in deg where the tip does not move).  Plain
+    or length / feed (tool-tip mm, or the rotation in deg where the tip does not move) with the feed (or a
+    G93 move's length / time) at most the rapid feed, as the planner caps it (:mod:`.rawmoves`).  Plain
     floats: the window splitter looks at every block (and :func:`check_blocks`, which
     :func:`~hexacnc.planner.path.build_path` runs on every block it plans or checks, once they are valid)."""
     if blk.kind == B.DWELL:
         return max(0.0, float(blk.seconds or 0.0))
     if blk.kind not in B.MOTION_KINDS:
         return 0.0
-    if blk.inverse_time_s is not None:
-        return max(0.0, float(blk.inverse_time_s))
     s, e = plain_floats(blk.start), plain_floats(blk.end)
     d0, d1, d2 = e[0] - s[0], e[1] - s[1], e[2] - s[2]
     length = math.sqrt(d0 ** 2 + d1 ** 2 + d2 ** 2)
@@ -36,8 +35,12 @@ def block_seconds(blk, rapid_mm_s: float, default_mm_s: float) -> float:
         c = plain_floats(blk.center)
         r = math.sqrt((s[0] - c[0]) ** 2 + (s[1] - c[1]) ** 2 + (s[2] - c[2]) ** 2)
         length += 2 * math.pi * r * (int(blk.turns or 0) + (1 if length < 1e-9 else 0))
-    feed = rapid_mm_s if blk.kind == B.RAPID else (blk.feed_mm_s or default_mm_s)
-    return length / max(float(feed), 1e-9)
+    rapid = max(float(rapid_mm_s), 1e-9)
+    if blk.kind == B.RAPID:
+        return length / rapid
+    if blk.inverse_time_s is not None:
+        return max(0.0, float(blk.inverse_time_s), length / rapid)
+    return length / max(min(float(blk.feed_mm_s or default_mm_s), rapid), 1e-9)
 
 
 def check_block_seconds(blk, seconds: float, max_block_s: float) -> None:

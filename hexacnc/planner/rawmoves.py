@@ -144,6 +144,7 @@ def raw_moves(blocks, cfg) -> tuple[list, list]:
                 if not f > 0 or not math.isfinite(f):
                     raise PlanError(f"feed must be positive, got {f!r} mm/s", line=line, limit="feed", code="gcode")
                 feed = float(f)
+            feed = min(feed, rapid_feed)
             tol = blk.blend_tolerance_mm if blk.blend_tolerance_mm is not None else pc.path_tolerance_mm
             raws.append(Raw(k, line, slen, coef, float(blk.tool_length_mm or 0.0), feed,
                             kind == B.RAPID, bool(blk.exact_stop), float(tol)))
@@ -247,6 +248,7 @@ def raw_arrays(blocks, cfg) -> tuple[RawArrays, list]:
     inv = ~rapid & np.isfinite(inv_t)
     with np.errstate(divide="ignore", invalid="ignore"):
         feed = np.where(rapid, pc.rapid_feed_mm_min / 60.0, np.where(inv, slen / np.where(inv, inv_t, 1.0), feed_in))
+        feed = np.minimum(feed, pc.rapid_feed_mm_min / 60.0)
     check = keep & ~rapid
     if not (np.all((inv_t[check & inv] > 0)) and np.all(np.isfinite(inv_t[check & inv]))
             and np.all(feed_in[check & ~inv] > 0) and np.all(np.isfinite(feed_in[check & ~inv]))):

@@ -1,0 +1,52 @@
+"""The rapid feed caps every feed (hexacnc/planner/rawmoves.py, blocktime.py), as LinuxCNC's maximum velocity
+caps every move: a G1 or G93 move asking more than ``[planner] rapid_feed_mm_min`` runs no faster than a G0
+over the same path (before, ``G1 X100 F2400000`` planned 0.221 s against 0.450 s for ``G0 X100``); feeds
+below it are untouched; the nominal seconds that bound ``max_block_s`` and feed the time estimates agree."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from hexacnc.config import load_config
+from hexacnc.gcode.factory import program_from_config
+from hexacnc.planner import plan_program
+from hexacnc.planner.blocktime import block_seconds
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return load_config(None)
+
+
+def _plan(cfg, move):
+    prog = program_from_config(f"G21 G90 G64 P0.01\n{move}\nM2\n", "cap.ngc", cfg)
+    moves = [b for b in prog.blocks if b.line == 2]
+    return plan_program(prog.blocks, cfg), moves
+
+
+def _tip_speed_mm_s(plan) -> float:
+    tip = plan.path.tip(plan.path.piece_at(plan.s_tab), plan.s_tab)[:, :3]
+    return float(np.max(np.linalg.norm(np.diff(tip, axis=0), axis=1)) / plan.dt)
+
+
+def test_no_feed_runs_faster_than_the_rapid_feed(cfg):
+    rapid_mm_s = cfg.planner.rapid_feed_mm_min / 60.0
+    g0, _ = _plan(cfg, "G0 X100")
+    for move in ("G1 X100 F2400000", "G93 G1 X100 F1000"):        # 40 m/s; 100 mm in 0.06 s
+        p, (blk,) = _plan(cfg, move)
+        assert p.duration_s >= g0.duration_s - 2 * p.dt, (move, p.duration_s, g0.duration_s)
+        assert _tip_speed_mm_s(p) <= rapid_mm_s * 1.001, move
+        assert block_seconds(blk, rapid_mm_s, 1.0) == pytest.approx(100.0 / rapid_mm_s)
+    assert _tip_speed_mm_s(g0) > 0.9 * rapid_mm_s           # the struts let this path reach the rapid feed
+
+
+def test_feeds_below_the_rapid_feed_are_kept(cfg):
+    rapid_mm_s = cfg.planner.rapid_feed_mm_min / 60.0
+    g0, _ = _plan(cfg, "G0 X100")
+    p, (blk,) = _plan(cfg, "G1 X100 F3000")                  # 50 mm/s
+    assert 2.0 <= p.duration_s < 2.0 + 1.0 and p.duration_s > 3 * g0.duration_s
+    assert _tip_speed_mm_s(p) == pytest.approx(50.0, rel=0.01)
+    assert block_seconds(blk, rapid_mm_s, 1.0) == pytest.approx(2.0)
+    p, (blk,) = _plan(cfg, "G93 G1 X100 F30")                # 2 s
+    assert 2.0 <= p.duration_s < 3.0
+    assert block_seconds(blk, rapid_mm_s, 1.0) == pytest.approx(2.0)
