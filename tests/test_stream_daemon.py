@@ -56,9 +56,10 @@ def test_default_validates_the_whole_program_before_any_motion():
 
 def test_the_estimated_duration_follows_the_planned_windows_not_the_programmed_feeds():
     """A program of many windows at a feed the struts cannot follow (as 3D_Chips.ngc's F4.5e6): the
-    validation's nominal seconds at the programmed feeds are a small fraction of the planned time; the
-    answer's ``duration_s`` and the time left extrapolate the windows planned so far (by nominal seconds
-    and by blocks) and converge as the planner gets ahead."""
+    validation's nominal seconds at the programmed feeds (capped at the rapid feed) are a third of the
+    planned time; the answer's ``duration_s`` and the time left extrapolate the windows planned so far (a
+    fit to nominal seconds and blocks, however many windows are planned when the answer is given: the
+    bound holds after any prefix, tests/test_timefit.py) and converge as the planner gets ahead."""
     cfg = _cfg()
     dt = cfg.cycle.period_s
     text = cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
@@ -76,7 +77,7 @@ def test_the_estimated_duration_follows_the_planned_windows_not_the_programmed_f
         planned, nominal = sp.planned_s, sp.validation["estimate_s"]
     finally:
         src.close()
-    assert planned > 5.0 * nominal, (planned, nominal)           # the feeds say little about the time
+    assert planned > 2.5 * nominal, (planned, nominal)           # the feeds say little about the time
     # the first windows hold the approach from home (a rapid: more time per block than the raster)
     assert abs(info["duration_s"] - planned) <= 0.3 * planned, (info["duration_s"], planned, nominal)
     assert abs(totals[0][1] - planned) <= 0.3 * planned, (totals[0], planned)

@@ -53,12 +53,13 @@ def _windows(text):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("fast, bound", [(True, 0.15), (False, 0.10)])
+@pytest.mark.parametrize("fast, bound", [(True, 0.12), (False, 0.12)])
 def test_the_estimate_after_every_prefix_of_windows_is_near_the_planned_time(fast, bound):
     """A CAM raster in windows of 60 blocks whose first window holds the rapid approach from home, at its
     feeds and at feeds 1000x what the struts follow (as 3D_Chips.ngc): after each prefix of planned windows
     the planned seconds plus the fitted rest are within ``bound`` of the whole program's planned seconds (a
-    ratio of planned to nominal seconds was 39 % over after the first window of the fast raster)."""
+    mix of the ratios of planned to nominal seconds and to blocks was 37 % over after the first window of the
+    fast raster)."""
     text = cam_program(800)
     if fast:
         text = text.replace("F2400", "F2400000").replace("F600", "F600000")
@@ -67,7 +68,7 @@ def test_the_estimate_after_every_prefix_of_windows_is_near_the_planned_time(fas
     total_s = sum(w.plan.duration_s for w in ws)
     nominal_s, blocks = sum(w.nominal_s for w in ws), sum(w.blocks for w in ws)
     if fast:
-        assert total_s > 10 * nominal_s            # the feeds say next to nothing about the time
+        assert total_s > 2.5 * nominal_s           # the feeds (capped at the rapid feed) say little of the time
     done_s = done_nominal_s = 0.0
     done_blocks, sums = 0, ()
     errs = []
