@@ -448,10 +448,9 @@ class StreamPlan:
     def unplanned_s(self) -> float:
         """Estimated seconds of the program's part not planned yet, learnt from the windows planned so far
         (:mod:`hexacnc.planner.timefit`: per line, planned seconds against nominal seconds at the programmed
-        feeds and blocks; 3D_Chips.ngc's F4.5e6, capped at the rapid feed, gives 24 s nominal for 89 s planned) and
-        applied to the
-        validation's totals.  Before the validation has counted the program (``start_before_validated``): by
-        the program's lines.  0 once every window is planned."""
+        feeds and blocks; 3D_Chips.ngc's F4.5e6, capped at the rapid feed, gives 24 s nominal for 89 s
+        planned) and applied to the validation's totals.  Before the validation has counted the program
+        (``start_before_validated``): by the program's lines.  0 once every window is planned."""
         with self._cv:
             val = self.validation
             if self.finished or self.planned_s <= 0.0 or self.planned_blocks <= 0:

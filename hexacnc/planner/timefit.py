@@ -1,12 +1,12 @@
 """How long the unplanned rest of a streamed program takes, learnt from the windows planned so far.
 
 A program's nominal seconds (each block at its programmed feed, :mod:`.blocktime`) explain its planned time
-where the machine can follow the feeds; where it cannot (3D_Chips.ngc's F4.5e6, capped at the rapid feed: 24 s
-nominal, 89 s planned) the time is set per block by the struts' dynamics.  Each planned window adds, per program line, the line's
-nominal seconds ``n``, its blocks ``m`` and its planned seconds ``t`` (its rows, counted) to six sums; the
-model ``t = alpha n + beta m`` (``alpha``, ``beta`` >= 0) is their least-squares fit, and the rest of the
-program is ``alpha (N - N_planned) + beta (M - M_planned)`` with the validation's whole-program totals ``N``,
-``M``.
+where the machine can follow the feeds; where it cannot (3D_Chips.ngc's F4.5e6, capped at the rapid feed:
+24 s nominal, 89 s planned) the time is set per block by the struts' dynamics.  Each planned window adds, per
+program line, the line's nominal seconds ``n``, its blocks ``m`` and its planned seconds ``t`` (its rows,
+counted) to six sums; the model ``t = alpha n + beta m`` (``alpha``, ``beta`` >= 0) is their least-squares
+fit, and the rest of the program is ``alpha (N - N_planned) + beta (M - M_planned)`` with the validation's
+whole-program totals ``N``, ``M``.
 
 On a CAM raster at a feed the struts cannot follow (``hexacnc.bench.camgen`` at F2.4e6, windows of 60
 blocks) the estimate after the first window (which holds the rapid approach from home) is 6 % over the
