@@ -1,7 +1,8 @@
 """The rapid feed caps every feed (hexacnc/planner/rawmoves.py, blocktime.py), as LinuxCNC's maximum velocity
 caps every move: a G1 or G93 move asking more than ``[planner] rapid_feed_mm_min`` runs no faster than a G0
 over the same path (before, ``G1 X100 F2400000`` planned 0.221 s against 0.450 s for ``G0 X100``); feeds
-below it are untouched; the nominal seconds that bound ``max_block_s`` and feed the time estimates agree."""
+below it are untouched; the nominal seconds that bound ``max_block_s`` and feed the time estimates agree; a
+feed override above 100 % stops at the rapid feed too (the sampler's override cap)."""
 from __future__ import annotations
 
 import numpy as np
@@ -50,3 +51,32 @@ def test_feeds_below_the_rapid_feed_are_kept(cfg):
     p, (blk,) = _plan(cfg, "G93 G1 X100 F30")                # 2 s
     assert 2.0 <= p.duration_s < 3.0
     assert block_seconds(blk, rapid_mm_s, 1.0) == pytest.approx(2.0)
+
+
+def _tip_speeds_at_override(cfg, plan, feed_override: float) -> np.ndarray:
+    """Tool-tip speeds (mm/s) of the sampler's rows at a feed override, from the platform rows."""
+    from hexacnc.pose import matrix_from_euler
+    s = plan.sampler()
+    s.set_override(feed_override)
+    out, rows = np.empty((4000, 8)), []
+    while not s.done:
+        n = s.next_rows(out)
+        rows.append(out[:n].copy())
+    X = np.vstack(rows)
+    tip_platform = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
+    tip = np.array([x[:3] + matrix_from_euler(*x[3:6]) @ tip_platform for x in X])
+    return np.linalg.norm(np.diff(tip, axis=0), axis=1) / plan.dt
+
+
+@pytest.mark.parametrize("move, at_2x_mm_s", [
+    ("G2 X0 Y0 I50 J0 P10 F9000", 250.0),   # 10 circles at 150 mm/s: 300 mm/s at 200 % before the cap
+    ("G0 X100", 250.0),
+    ("G1 X100 F600", 20.0)])                # far below the rapid feed: twice as fast
+def test_a_feed_override_above_100_percent_stops_at_the_rapid_feed(cfg, move, at_2x_mm_s):
+    """At 200 % feed override no move runs faster than the rapid feed (the cap's ramp may pass it by a little
+    for a few cycles); below it the override still doubles the speed where the plan has headroom."""
+    rapid_mm_s = cfg.planner.rapid_feed_mm_min / 60.0
+    plan, _ = _plan(cfg, move)
+    v2 = _tip_speeds_at_override(cfg, plan, 2.0)
+    assert v2.max() <= rapid_mm_s * 1.01
+    assert v2.max() == pytest.approx(at_2x_mm_s, rel=0.01), v2.max()

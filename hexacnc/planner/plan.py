@@ -189,7 +189,8 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
     util = {"velocity": float(uv.max()), "acceleration": float(ua.max()), "jerk": float(uj.max())}
     # governor data for the sampler: block maxima (GOV samples) looking ahead
     from .sampler import governor_tables
-    gov = governor_tables(uv, ua, uj, va, ajr, vjr, dt)
+    speed_share = np.abs(np.diff(s_f, append=s_f[-1])) / (dt * cfg.planner.rapid_feed_mm_min / 60.0)
+    gov = governor_tables(uv, ua, uj, va, ajr, vjr, dt, speed_share)
     return Plan(
         cfg=cfg, hexapod=hx, path=path, dt=dt, s_tab=s_f, line_tab=line_tab, flag_tab=flag_tab,
         duration_s=(s_f.shape[0] - 1) * dt, utilisation=util, min_joint_margin_deg=jmarg,

@@ -36,6 +36,9 @@ TRANSITION_BLOCKS = 4
 CAP_LOOKAHEAD_S = 4.0
 #: override range accepted by set_override (the plan's headroom may cap it further)
 MAX_OVERRIDE = 2.0
+#: look-ahead (s) of the rapid-feed cap on the override: no limit of the machine's, the ramp down to it (~30 ms
+#: at A_MAX, J_MAX) may pass the rapid feed briefly where the struts' headroom makes the ramp slower
+SPEED_CAP_LOOKAHEAD_S = 0.25
 #: caps on the rate's derivatives (1/s, 1/s^2): 0 -> 1 in no less than ~40 ms
 A_MAX = 50.0
 J_MAX = 5000.0
@@ -44,10 +47,12 @@ RUN, PAUSING, PAUSED, PROGRAM_PAUSED, STOPPING, DONE = "running", "pausing", "pa
     "stopping", "done"
 
 
-def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
+def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float, speed_share=None) -> dict:
     """Block maxima of the nominal utilisations (each block with the one before it).  A rate transition takes
     the maxima over the blocks it runs through (:meth:`PlanSampler._transition_limits`), and the override cap
-    the maxima over CAP_LOOKAHEAD_S."""
+    the maxima over CAP_LOOKAHEAD_S.  ``speed_share`` (N,): the path speed of each row over the rapid feed;
+    the override is capped at its inverse (maxima over SPEED_CAP_LOOKAHEAD_S), so that no override runs a
+    move faster than the rapid feed, as LinuxCNC's maximum velocity caps every move."""
     N = uv.shape[0]
     nb = (N + GOV_BLOCK - 1) // GOV_BLOCK
     pad = nb * GOV_BLOCK - N
@@ -62,18 +67,28 @@ def governor_tables(uv, ua, uj, va, ajr, vjr, dt: float) -> dict:
     Wc = max(1, int(math.ceil(CAP_LOOKAHEAD_S / (GOV_BLOCK * dt))))
     mx = {}
     for name in ("uv", "ua", "uj"):
-        w = out[name].copy()
-        k = 1
-        while k <= Wc:                               # doubling: max over [b, b + Wc]
-            step = min(k, Wc + 1 - k)
-            w[:-step] = np.maximum(w[:-step], w[step:])
-            k += step
-        mx[name] = w
+        mx[name] = _ahead_max(out[name], Wc)
     with np.errstate(divide="ignore"):
         cap = np.minimum(0.99 / np.maximum(mx["uv"], 1e-12), np.sqrt(0.85 / np.maximum(mx["ua"], 1e-12)))
         cap = np.minimum(cap, np.cbrt(0.85 / np.maximum(mx["uj"], 1e-12)))
+        if speed_share is not None and N:
+            sh = np.concatenate([speed_share, np.full(pad, speed_share[-1])]).reshape(nb, GOV_BLOCK).max(axis=1)
+            sh[1:] = np.maximum(sh[1:], sh[:-1])
+            Ws = max(1, int(math.ceil(SPEED_CAP_LOOKAHEAD_S / (GOV_BLOCK * dt))))
+            cap = np.minimum(cap, 1.0 / np.maximum(_ahead_max(sh, Ws), 1e-12))
     out["cap"] = np.clip(cap, 1.0, MAX_OVERRIDE)
     return out
+
+
+def _ahead_max(a: np.ndarray, W: int) -> np.ndarray:
+    """``out[b] = max(a[b .. b + W])`` (clipped at the end), by doubling."""
+    w = a.copy()
+    k = 1
+    while k <= W:
+        step = min(k, W + 1 - k)
+        w[:-step] = np.maximum(w[:-step], w[step:])
+        k += step
+    return w
 
 
 def _rest_and_rapid_rows(s_tab: np.ndarray, flags: np.ndarray) -> tuple:
