@@ -41,6 +41,17 @@ def test_no_feed_runs_faster_than_the_rapid_feed(cfg):
     assert _tip_speed_mm_s(g0) > 0.9 * rapid_mm_s           # the struts let this path reach the rapid feed
 
 
+def test_the_plan_summary_names_the_moves_the_rapid_feed_caps(cfg):
+    text = "G21 G90\nG1 X10 F3000\nG1 X20 F2400000\nG93 G1 X30 F100000\nG93 G1 X40 F60\nG94 G0 X0\nM2\n"
+    s = plan_program(program_from_config(text, "cap.ngc", cfg).blocks, cfg).summary()
+    assert (s["feed_capped_moves"], s["feed_capped_first_line"]) == (2, 3)      # lines 3 and 4; not 2, 5, 6
+    s = plan_program(program_from_config("G21 G90\nG1 X10 F3000\nG0 X0\nM2\n", "ok.ngc", cfg).blocks,
+                     cfg).summary()
+    assert (s["feed_capped_moves"], s["feed_capped_first_line"]) == (0, None)
+    s = plan_program(program_from_config("G4 P0.1\nM2\n", "dwell.ngc", cfg).blocks, cfg).summary()
+    assert s["feed_capped_moves"] == 0
+
+
 def test_feeds_below_the_rapid_feed_are_kept(cfg):
     rapid_mm_s = cfg.planner.rapid_feed_mm_min / 60.0
     g0, _ = _plan(cfg, "G0 X100")

@@ -72,6 +72,10 @@ def main(args: argparse.Namespace) -> int:
     smoothed = f" ({s['smoothed']} smoothed)" if s.get("smoothed") else ""
     print(f"  {s['segments']} segments{smoothed}, {s['blends']} blends, {s['stops']} stops, "
           f"path {s['path_length']:.1f}, planned in {s['planning_s']:.2f} s")
+    if s.get("feed_capped_moves"):
+        print(f"  {s['feed_capped_moves']} moves ask more than the rapid feed (first at line "
+              f"{s['feed_capped_first_line']}): they run at most at [planner] rapid_feed_mm_min = "
+              f"{cfg.planner.rapid_feed_mm_min:g} mm/min")
     if args.lines:
         for ln, (a, b) in s["lines"].items():
             print(f"  line {ln}: {a:.4f} .. {b:.4f} s")

@@ -60,6 +60,25 @@ def check_blocks(blocks, cfg) -> None:
         check_block_seconds(blk, block_seconds(blk, rapid, feed), pc.max_block_s)
 
 
+def feeds_above_rapid(blocks, cfg) -> tuple[int, int | None]:
+    """(count, first line) of the feed moves (G1/G2/G3, G93 included) that ask more than the rapid feed, which
+    caps them (:mod:`.rawmoves`): the plan summary says so, as a program's CAM time may assume them."""
+    pc = cfg.planner
+    rapid, feed = pc.rapid_feed_mm_min / 60.0, pc.default_feed_mm_min / 60.0
+    n, first = 0, None
+    for blk in blocks:
+        if blk.kind not in B.MOTION_KINDS or blk.kind == B.RAPID:
+            continue
+        if blk.inverse_time_s is not None:
+            over = block_seconds(blk, rapid, feed) > float(blk.inverse_time_s) * (1.0 + 1e-9)
+        else:
+            over = float(blk.feed_mm_s or feed) > rapid
+        if over:
+            n += 1
+            first = int(blk.line) if first is None else first
+    return n, first
+
+
 def plain_floats(a) -> list:
     """A pose or point as plain floats (no numpy scalars: the window splitter looks at every block)."""
     return a.tolist() if isinstance(a, np.ndarray) else [float(v) for v in a]

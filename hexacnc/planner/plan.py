@@ -44,6 +44,7 @@ from . import rawmoves as R
 from .consts import (ACC_SHARE, CAP_JERK_SPEED, CAP_ROUNDS, ETA_V, FD_MIN_STEP, FD_PIECE_STEPS,  # noqa: F401
                      FILTER_JERK_SHARE, GRADE_MM, MODEL_SCREEN, REST_PIECE_INTERVALS, RHO_J, RHO_STEP, SCREEN,
                      SPREAD_REACH)
+from .blocktime import feeds_above_rapid
 from .grid import build_grid, check_grid, derivatives
 from .holds import Hold, rests  # noqa: F401 (Hold re-exported)
 from .limits import _check_limits
@@ -71,7 +72,8 @@ class Plan:
 
     Attributes: ``duration_s``, ``utilisation`` (dict of peak strut velocity,
     acceleration and jerk as fractions of each limit), ``min_joint_margin_deg``,
-    ``min_length_margin_mm``, ``line_times`` {line: (start_s, end_s)},
+    ``min_length_margin_mm``, ``line_times`` {line: (start_s, end_s)}, ``feed_capped`` (count, first line)
+    of the feed moves that ask more than the rapid feed, which caps them,
     ``events`` [(time_s, line, kind, value)], ``planning_s``.
     """
 
@@ -120,6 +122,8 @@ class Plan:
             "sample_bound_mm": self.sample_bound_mm,
             "planning_s": round(self.planning_s, 4),
             "iterations": int(self.iterations),
+            "feed_capped_moves": int(self.feed_capped[0]),
+            "feed_capped_first_line": self.feed_capped[1],
             "lines": {str(k): [round(a, 4), round(b, 4)] for k, (a, b) in sorted(self.line_times.items())},
         }
 
@@ -197,6 +201,7 @@ def plan_program(blocks, cfg, hexapod: Hexapod | None = None, period_s: float | 
         min_length_margin_mm=lmmarg, line_times=line_times, events=ev_out, pause_idx=pause_idx, gov=gov,
         filter_s=nf * dt, n_segments=int(np.sum(path.kind != P.BLEND)), n_blends=int(np.sum(path.kind == P.BLEND)),
         n_smoothed=int(np.sum(path.kind == P.SPLINE)), n_stops=len(rs.stop_idx), grid_points=g.n,
+        feed_capped=feeds_above_rapid(blocks, cfg),
         sample_bound_mm=cfg.planner.sample_bound_mm, iterations=prof.iterations,
         grid_s=g.sg, grid_x=prof.x, grid_h=g.h, grid_stops=rs.stop_all, grid_L1=dv.Lp, grid_L2=dv.Lpp,
         grid_L3=dv.Lppp, planning_s=time.perf_counter() - t_start,
@@ -242,6 +247,7 @@ def _standstill(cfg, hx, dt: float, events, start_pose, t_start: float) -> Plan:
         line_times=({line0: (0.0, n * dt)} if events else {}), events=ev_out, pause_idx=pause_idx,
         gov=governor_tables(z, z, z, z, z, z, dt), filter_s=0.0, n_segments=0, n_blends=0, n_smoothed=0,
         n_stops=1, grid_points=1, sample_bound_mm=cfg.planner.sample_bound_mm, iterations=0,
+        feed_capped=(0, None),
         grid_s=np.zeros(1), grid_x=np.zeros(1), grid_h=np.zeros(0), grid_stops=np.zeros(1, dtype=np.int64),
         grid_L1=np.zeros((1, 6)), grid_L2=np.zeros((1, 6)), grid_L3=np.zeros((1, 6)),
         planning_s=time.perf_counter() - t_start)
