@@ -70,6 +70,17 @@ def fit(sums: tuple) -> tuple[float, float] | None:
     return None if best is None else best[1]
 
 
+def rest_from_counted(sums: tuple, planned_nominal_s: float, planned_blocks: int, counted_line: int,
+                      counted_nominal_s: float, counted_blocks: int, total_lines: int) -> float | None:
+    """Before the validation has counted the whole program: its counts up to ``counted_line`` (nominal seconds,
+    blocks) scaled to the program's ``total_lines``, less what is planned, through :func:`rest_s`.  None where
+    there is no count or no fit."""
+    if counted_line <= 0 or counted_blocks <= 0:
+        return None
+    k = float(total_lines) / counted_line
+    return rest_s(sums, counted_nominal_s * k - planned_nominal_s, int(round(counted_blocks * k)) - planned_blocks)
+
+
 def rest_s(sums: tuple, nominal_rest_s: float, blocks_rest: int) -> float | None:
     """Estimated seconds of the unplanned rest (its nominal seconds and blocks, clipped at 0); None where
     the sums hold no fit."""
