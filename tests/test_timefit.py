@@ -11,7 +11,8 @@ import pytest
 from hexacnc.bench.camgen import cam_program
 from hexacnc.config import load_config
 from hexacnc.gcode import program_from_config
-from hexacnc.planner.timefit import add_sums, fit, line_sums, rest_from_counted, rest_s
+from hexacnc.bench.estimate import measure, replay
+from hexacnc.planner.timefit import Counted, Planned, add_sums, fit, line_sums, rest_from_counted, rest_s, unplanned_s
 from hexacnc.planner.window import FIRST_WINDOW_BLOCKS, plan_windows, tool_tip_pose_deg, validate_windows
 
 
@@ -44,15 +45,26 @@ def test_the_fit_recovers_both_terms_and_never_goes_negative():
     assert fit(()) is None and rest_s((), 1.0, 1) is None and fit((0.0,) * 6) is None
 
 
-def _windows(text, first_blocks=0, counts=False):
+def _windows(text, first_blocks=0):
     base = load_config(None)
     cfg = base.replace(planner=dataclasses.replace(base.planner, window_blocks=60))
     prog = program_from_config(text, "cam.ngc", cfg)
     home = np.array([*cfg.home_pose[:3], *np.radians(cfg.home_pose[3:])])
     ws = list(plan_windows(prog.blocks, cfg, start_pose=tool_tip_pose_deg(cfg, home), first_blocks=first_blocks))
-    if not counts:
-        return ws
-    return ws, [(line, est, nb) for nb, est, line, _end in validate_windows(prog.blocks, cfg, start_rad=home)]
+    counts = [(line, est, nb) for nb, est, line, _end in validate_windows(prog.blocks, cfg, start_rad=home)]
+    return ws, counts, text.count("\n") + 1
+
+
+def _fast_raster():
+    return cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
+
+
+def test_the_estimate_of_nothing_planned_is_zero_and_by_lines_without_counts():
+    assert unplanned_s(Planned(), 100, None) == 0.0
+    p = Planned(seconds=2.0, nominal_s=1.0, blocks=10, last_line=20, sums=())
+    assert unplanned_s(p, 100, None) == pytest.approx(8.0)                      # 2 s per 20 lines
+    assert unplanned_s(p, 100, Counted(10, 0.5, 5, False)) == pytest.approx(8.0)   # the validator behind
+    assert unplanned_s(p, 100, Counted(100, 5.0, 50, True)) == pytest.approx(8.0)  # no fit: by blocks
 
 
 @pytest.mark.slow
@@ -60,57 +72,43 @@ def _windows(text, first_blocks=0, counts=False):
 def test_the_estimate_after_every_prefix_of_windows_is_near_the_planned_time(fast, bound):
     """A CAM raster in windows of 60 blocks whose first window holds the rapid approach from home, at its
     feeds and at feeds 1000x what the struts follow (as 3D_Chips.ngc): after each prefix of planned windows
-    the planned seconds plus the fitted rest are within ``bound`` of the whole program's planned seconds (a
-    mix of the ratios of planned to nominal seconds and to blocks was 37 % over after the first window of the
-    fast raster)."""
-    text = cam_program(800)
-    if fast:
-        text = text.replace("F2400", "F2400000").replace("F600", "F600000")
-    ws = _windows(text)
+    the planned seconds plus the estimate the daemon gives (:func:`unplanned_s`, validated program) are
+    within ``bound`` of the whole program's planned seconds (the older mix of the ratios of planned to
+    nominal seconds and to blocks was 37 % over after the first window of the fast raster)."""
+    text = _fast_raster() if fast else cam_program(800)
+    ws, counts, total_lines = _windows(text)
     assert len(ws) > 10
     total_s = sum(w.plan.duration_s for w in ws)
-    nominal_s, blocks = sum(w.nominal_s for w in ws), sum(w.blocks for w in ws)
     if fast:
-        assert total_s > 2.5 * nominal_s           # the feeds (capped at the rapid feed) say little of the time
-    done_s = done_nominal_s = 0.0
-    done_blocks, sums = 0, ()
-    errs = []
-    for w in ws:
-        done_s += w.plan.duration_s
-        done_nominal_s += w.nominal_s
-        done_blocks += w.blocks
-        sums = add_sums(sums, w.time_sums)
-        est = done_s + rest_s(sums, nominal_s - done_nominal_s, blocks - done_blocks)
-        errs.append(est / total_s - 1.0)
-    assert abs(errs[-1]) < 1e-9
+        assert total_s > 2.5 * counts[-1][1]          # the feeds (capped at the rapid feed) say little of the time
+    errs = replay(ws, counts, total_lines, validated=True)
     assert max(abs(e) for e in errs) <= bound, np.round(errs, 3).tolist()
+    # the sums of all windows, fitted: the rest of nothing is nothing
+    p = Planned()
+    for w in ws:
+        p.add(w)
+    assert p.seconds == pytest.approx(total_s) and unplanned_s(p, total_lines, Counted(*counts[-1], True)) < 1e-9
 
 
 @pytest.mark.slow
 def test_before_the_validation_ends_the_validators_counts_beat_the_lines():
     """``start_before_validated`` (a first window of FIRST_WINDOW_BLOCKS, then doubling): after the first
     window the rest by the program's lines is 84 % over on the fast raster (the approach from home counts as
-    typical); the fit applied to the validator's counts when it is 4x as far is within 30 %, and within 12 %
-    from the second window on."""
-    text = cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
-    ws, counted = _windows(text, FIRST_WINDOW_BLOCKS, counts=True)
-    total_lines = text.count("\n") + 1
-    total_s = sum(w.plan.duration_s for w in ws)
-    done_s = done_nominal_s = 0.0
-    done_blocks, sums, last_line = 0, (), 0
-    by_lines, by_counts = [], []
-    for w in ws[:-1]:
-        done_s += w.plan.duration_s
-        done_nominal_s += w.nominal_s
-        done_blocks += w.blocks
-        last_line = max(last_line, w.last_line)
-        sums = add_sums(sums, w.time_sums)
-        line, est, nb = [c for c in counted if c[0] <= min(4 * last_line, total_lines)][-1]
-        assert line > last_line
-        rest = rest_from_counted(sums, done_nominal_s, done_blocks, line, est, nb, total_lines)
-        by_counts.append((done_s + rest) / total_s - 1.0)
-        by_lines.append(done_s * total_lines / last_line / total_s - 1.0)
+    typical); with the validator's counts where it is 4x as far: within 30 %, and within 12 % from the second
+    window on."""
+    ws, counts, total_lines = _windows(_fast_raster(), FIRST_WINDOW_BLOCKS)
+    by_lines = replay(ws, counts, total_lines, validated=False, ahead=1.0)
+    by_counts = replay(ws, counts, total_lines, validated=False, ahead=4.0)
     assert by_lines[0] > 0.5                             # the estimate this replaces
     assert abs(by_counts[0]) <= 0.30, np.round(by_counts, 3).tolist()
     assert max(abs(e) for e in by_counts[1:]) <= 0.12, np.round(by_counts, 3).tolist()
-    assert rest_from_counted(sums, 1.0, 1, 0, 0.0, 0, 100) is None
+    assert rest_from_counted((1.0,) * 6, 1.0, 1, 0, 0.0, 0, 100) is None
+
+
+def test_the_bench_reports_both_modes_for_a_small_program():
+    cfg = load_config(None)
+    r = measure(cam_program(200), "r.ngc", cfg, 60, [1.0, 4.0])
+    assert r["windows"] >= 3 and r["blocks"] > 150 and r["planned_s"] > r["nominal_s"] > 0
+    assert set(r["validated"]) == {"after_first_pct", "worst_from_second_pct", "worst_from_half_pct"}
+    assert set(r["before_validated"]) == {"ahead_1x", "ahead_4x"}
+    assert abs(r["validated"]["after_first_pct"]) < 50

@@ -22,6 +22,7 @@ BENCHES: dict[str, str] = {
     "calib-cycle": "hexacnc.bench.calibcycle",
     "faults": "hexacnc.bench.faults",
     "stream": "hexacnc.bench.stream",
+    "estimate": "hexacnc.bench.estimate",
 }
 
 

@@ -29,7 +29,7 @@ import threading
 import time
 
 from ..errors import HexacncError, PlanError
-from ..planner.timefit import add_sums, rest_from_counted, rest_s
+from ..planner.timefit import Counted, Planned, unplanned_s
 from .progtext import count_lines, pieces
 from .planproc import PlanLimit, _context, _error_fields, _innermost, line_reached, refusal
 
@@ -326,11 +326,7 @@ class StreamPlan:
         self.io_blocks = None           #: M62-M68 / M66 blocks of the whole program, once valid
         self.timed_blocks = None        #: dwells (> 0 s) and M0/M1 of the whole program, once valid
         self.on_valid = on_valid
-        self.planned_s = 0.0            #: planned seconds of the windows received so far
-        self.planned_nominal_s = 0.0    #: their blocks' nominal seconds at the programmed feeds
-        self.planned_blocks = 0         #: their blocks
-        self.planned_last_line = 0      #: the last program line they reach
-        self.planned_sums: tuple = ()   #: their per-line time sums (:func:`hexacnc.planner.timefit.line_sums`)
+        self.planned = Planned()        #: the windows received so far (seconds, nominal seconds, blocks, ...)
         self._checked_nominal_s = None  #: the validator's nominal seconds so far (its last "checked" report)
         self._cv = threading.Condition()
         self._have: dict = {}
@@ -429,11 +425,7 @@ class StreamPlan:
             if msg is not None and msg[0] == "window":
                 w = msg[1]
                 self._have[w.index] = w
-                self.planned_s += float(w.plan.duration_s)
-                self.planned_nominal_s += float(getattr(w, "nominal_s", 0.0))
-                self.planned_blocks += int(w.blocks)
-                self.planned_sums = add_sums(self.planned_sums, getattr(w, "time_sums", ()))
-                self.planned_last_line = max(self.planned_last_line, int(w.last_line))
+                self.planned.add(w)
                 self.finished = self.finished or w.last
             elif msg is not None and msg[0] == "done":
                 self.finished = True
@@ -457,22 +449,19 @@ class StreamPlan:
         home: by lines alone the fast raster of tests/test_timefit.py is +84 % after it, +42 % / +26 % with
         the validator 2x / 4x as far); else by the program's lines.  0 once every window is planned."""
         with self._cv:
-            val = self.validation
-            if self.finished or self.planned_s <= 0.0 or self.planned_blocks <= 0:
+            if self.finished:
                 return 0.0
-            if val.get("state") != "valid":
-                done = max(1, self.planned_last_line)
-                line_v = int(val.get("line", 0))
-                if self._checked_nominal_s is not None and line_v > done:
-                    rest = rest_from_counted(self.planned_sums, self.planned_nominal_s, self.planned_blocks, line_v,
-                                             self._checked_nominal_s, int(val.get("blocks", 0)), self.total_lines)
-                    if rest is not None:
-                        return rest
-                return self.planned_s * max(0, self.total_lines - done) / done
-            blocks_rest = max(0, int(val.get("blocks", 0)) - self.planned_blocks)
-            rest = rest_s(self.planned_sums, float(val.get("estimate_s", 0.0)) - self.planned_nominal_s,
-                          blocks_rest)
-            return self.planned_s * blocks_rest / self.planned_blocks if rest is None else rest
+            val = self.validation
+            whole = val.get("state") == "valid"
+            nominal = float(val.get("estimate_s", 0.0)) if whole else self._checked_nominal_s
+            counted = None if nominal is None else Counted(int(val.get("line", 0)), nominal,
+                                                           int(val.get("blocks", 0)), whole)
+            return unplanned_s(self.planned, self.total_lines, counted)
+
+    @property
+    def planned_s(self) -> float:
+        """Planned seconds of the windows received so far."""
+        return self.planned.seconds
 
     # -- window feed ----------------------------------------------------------------------------
     def window(self, i: int):

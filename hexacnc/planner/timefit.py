@@ -15,6 +15,8 @@ second window on within 6.4 % (was 19 %).  At feeds the struts follow ``alpha`` 
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 #: the sums a window carries: sum n^2, n m, m^2, n t, m t, t^2 over its lines
@@ -68,6 +70,52 @@ def fit(sums: tuple) -> tuple[float, float] | None:
             if best is None or res < best[0]:
                 best = (res, pair(c))
     return None if best is None else best[1]
+
+
+@dataclass
+class Planned:
+    """What the windows planned so far add up to."""
+    seconds: float = 0.0        #: planned seconds
+    nominal_s: float = 0.0      #: their blocks' nominal seconds
+    blocks: int = 0
+    last_line: int = 0          #: the last program line they reach
+    sums: tuple = ()            #: :func:`line_sums`, added up
+
+    def add(self, window) -> None:
+        """Add a :class:`~hexacnc.planner.window.Window`."""
+        self.seconds += float(window.plan.duration_s)
+        self.nominal_s += float(window.nominal_s)
+        self.blocks += int(window.blocks)
+        self.last_line = max(self.last_line, int(window.last_line))
+        self.sums = add_sums(self.sums, window.time_sums)
+
+
+@dataclass(frozen=True)
+class Counted:
+    """The validator's count of the program so far (all of it once ``whole``)."""
+    line: int
+    nominal_s: float
+    blocks: int
+    whole: bool
+
+
+def unplanned_s(planned: Planned, total_lines: int, counted: Counted | None) -> float:
+    """Estimated seconds of the program's part not planned yet: the fit of the windows planned so far applied
+    to the validator's totals (``counted.whole``), or to its counts so far scaled to the program's lines where
+    it is ahead of the planner; else the planned seconds per program line.  0 before anything is planned."""
+    if planned.seconds <= 0.0 or planned.blocks <= 0:
+        return 0.0
+    done = max(1, planned.last_line)
+    if counted is not None and counted.whole:
+        blocks_rest = max(0, counted.blocks - planned.blocks)
+        rest = rest_s(planned.sums, counted.nominal_s - planned.nominal_s, blocks_rest)
+        return planned.seconds * blocks_rest / planned.blocks if rest is None else rest
+    if counted is not None and counted.line > done:
+        rest = rest_from_counted(planned.sums, planned.nominal_s, planned.blocks, counted.line, counted.nominal_s,
+                                 counted.blocks, total_lines)
+        if rest is not None:
+            return rest
+    return planned.seconds * max(0, total_lines - done) / done
 
 
 def rest_from_counted(sums: tuple, planned_nominal_s: float, planned_blocks: int, counted_line: int,
