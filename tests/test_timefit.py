@@ -24,6 +24,10 @@ def test_line_sums_count_the_rows_of_each_line_and_sum_its_blocks():
     want = (0.5, 1.5, 6.0, 0.5 * 0.010 + 0.5 * 0.030, 0.010 + 2 * 0.030, 0.010 ** 2 + 0.030 ** 2)
     assert np.allclose(s, want, rtol=1e-12, atol=0)
     assert add_sums((), s) == s and np.allclose(add_sums(s, s), 2 * np.array(want))
+    # a line far from the others (a subroutine's body called from the top): the same counts
+    far = line_sums([3, 4, 4, 7, 10 ** 7], [0.5, 0.25, 0.25, 0.0, 1.0], np.concatenate([line_tab, [10 ** 7] * 7]), dt)
+    assert np.allclose(far, np.array(want) + [1.0, 1.0, 1.0, 0.007, 0.007, 0.007 ** 2], rtol=1e-12, atol=0)
+    assert line_sums([], [], np.zeros(0, dtype=np.int32), dt) == (0.0,) * 6
 
 
 def test_the_fit_recovers_both_terms_and_never_goes_negative():

