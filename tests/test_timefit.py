@@ -11,9 +11,9 @@ import pytest
 from hexacnc.bench.camgen import cam_program
 from hexacnc.config import load_config
 from hexacnc.gcode import program_from_config
-from hexacnc.bench.estimate import measure, replay
+from hexacnc.bench.estimate import measure, planned_windows, replay, validator_counts
 from hexacnc.planner.timefit import Counted, Planned, add_sums, fit, line_sums, rest_from_counted, rest_s, unplanned_s
-from hexacnc.planner.window import FIRST_WINDOW_BLOCKS, plan_windows, tool_tip_pose_deg, validate_windows
+from hexacnc.planner.window import FIRST_WINDOW_BLOCKS
 
 
 def test_line_sums_count_the_rows_of_each_line_and_sum_its_blocks():
@@ -53,10 +53,7 @@ def _windows(text, first_blocks=0):
     base = load_config(None)
     cfg = base.replace(planner=dataclasses.replace(base.planner, window_blocks=60))
     prog = program_from_config(text, "cam.ngc", cfg)
-    home = np.array([*cfg.home_pose[:3], *np.radians(cfg.home_pose[3:])])
-    ws = list(plan_windows(prog.blocks, cfg, start_pose=tool_tip_pose_deg(cfg, home), first_blocks=first_blocks))
-    counts = [(line, est, nb) for nb, est, line, _end in validate_windows(prog.blocks, cfg, start_rad=home)]
-    return ws, counts, text.count("\n") + 1
+    return planned_windows(prog, cfg, first_blocks), validator_counts(prog, cfg), text.count("\n") + 1
 
 
 def _fast_raster():

@@ -20,8 +20,6 @@ import dataclasses
 import json
 from pathlib import Path
 
-import numpy as np
-
 HELP = "time-left estimate of streamed programs against the planned time, after every prefix of windows"
 
 #: corpus files measured where present
@@ -58,22 +56,36 @@ def replay(windows, counts, total_lines: int, validated: bool, ahead: float = 1.
     return errs
 
 
+def planned_windows(prog, cfg, first_blocks: int = 0) -> list:
+    """The program's windows as the daemon plans them from home (``first_blocks``: start_before_validated)."""
+    from ..pose import pose_to_rad
+    from ..planner.window import plan_windows, tool_tip_pose_deg
+    start = tool_tip_pose_deg(cfg, pose_to_rad(cfg.home_pose))
+    return list(plan_windows(prog.blocks, cfg, start_pose=start, first_blocks=first_blocks))
+
+
+def validator_counts(prog, cfg) -> list:
+    """The validator's reports [(line, nominal s, blocks)] from home, the last one the whole program."""
+    from ..pose import pose_to_rad
+    from ..planner.window import validate_windows
+    home = pose_to_rad(cfg.home_pose)
+    return [(line, est, nb) for nb, est, line, _end in validate_windows(prog.blocks, cfg, start_rad=home)]
+
+
 def measure(text: str, name: str, cfg, window_blocks: int | None, aheads) -> dict:
     """Figures of one program: planned seconds, windows, and the errors of both modes."""
     from ..gcode import program_from_config
-    from ..planner.window import FIRST_WINDOW_BLOCKS, plan_windows, tool_tip_pose_deg, validate_windows
+    from ..planner.window import FIRST_WINDOW_BLOCKS
     if window_blocks is not None:
         cfg = cfg.replace(planner=dataclasses.replace(cfg.planner, window_blocks=int(window_blocks)))
     prog = program_from_config(text, name, cfg)
-    home = np.array([*cfg.home_pose[:3], *np.radians(cfg.home_pose[3:])])
-    start = tool_tip_pose_deg(cfg, home)
     total_lines = text.count("\n") + 1
-    counts = [(line, est, nb) for nb, est, line, _end in validate_windows(prog.blocks, cfg, start_rad=home)]
-    ws = list(plan_windows(prog.blocks, cfg, start_pose=start))
+    counts = validator_counts(prog, cfg)
+    ws = planned_windows(prog, cfg)
     out = {"planned_s": round(sum(w.plan.duration_s for w in ws), 3), "nominal_s": round(counts[-1][1], 3),
            "blocks": int(counts[-1][2]), "windows": len(ws), "validated": _summary(replay(ws, counts, total_lines,
                                                                                             True))}
-    ws = list(plan_windows(prog.blocks, cfg, start_pose=start, first_blocks=FIRST_WINDOW_BLOCKS))
+    ws = planned_windows(prog, cfg, FIRST_WINDOW_BLOCKS)
     out["before_validated"] = {f"ahead_{a:g}x": _summary(replay(ws, counts, total_lines, False, a)) for a in aheads}
     return out
 
