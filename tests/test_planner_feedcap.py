@@ -12,6 +12,7 @@ from hexacnc.config import load_config
 from hexacnc.gcode.factory import program_from_config
 from hexacnc.planner import plan_program
 from hexacnc.planner.blocktime import block_seconds
+from test_planner_motion import run
 
 
 @pytest.fixture(scope="module")
@@ -69,11 +70,7 @@ def _tip_speeds_at_override(cfg, plan, feed_override: float) -> np.ndarray:
     from hexacnc.pose import matrix_from_euler
     s = plan.sampler()
     s.set_override(feed_override)
-    out, rows = np.empty((4000, 8)), []
-    while not s.done:
-        n = s.next_rows(out)
-        rows.append(out[:n].copy())
-    X = np.vstack(rows)
+    X = run(s, chunk=4000)
     tip_platform = np.asarray(cfg.tool.tip_platform_mm, dtype=float)
     tip = np.array([x[:3] + matrix_from_euler(*x[3:6]) @ tip_platform for x in X])
     return np.linalg.norm(np.diff(tip, axis=0), axis=1) / plan.dt
