@@ -62,7 +62,7 @@ def test_the_estimated_duration_follows_the_planned_windows_not_the_programmed_f
     bound holds after any prefix, tests/test_timefit.py) and converge as the planner gets ahead."""
     cfg = _cfg()
     dt = cfg.cycle.period_s
-    text = cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
+    text = cam_program(800, feed_scale=1000)
     sp, (src, info) = _start(cfg, text)
     totals = []                                   # (elapsed s, elapsed + time left s)
     try:

@@ -57,7 +57,7 @@ def _windows(text, first_blocks=0):
 
 
 def _fast_raster():
-    return cam_program(800).replace("F2400", "F2400000").replace("F600", "F600000")
+    return cam_program(800, feed_scale=1000)
 
 
 def test_the_estimate_of_nothing_planned_is_zero_and_by_lines_without_counts():

@@ -105,7 +105,7 @@ def main(args: argparse.Namespace) -> int:
     cfg = load_config(args.config)
     aheads = [float(a) for a in str(args.ahead).split(",") if a.strip()]
     raster = cam_program(800)
-    fast = raster.replace("F2400", "F2400000").replace("F600", "F600000")
+    fast = cam_program(800, feed_scale=1000)
     res = {"note": "estimate / planned - 1 after each prefix of planning windows (the last prefix is exact); "
                    "deterministic, no timing",
            "raster_800_fast_feeds": measure(fast, "raster_fast.ngc", cfg, args.raster_window_blocks, aheads),
