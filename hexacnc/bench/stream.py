@@ -113,11 +113,11 @@ def _run(mode: str, path: Path, args, source: str) -> dict:
 def first_motion(path: Path, args, source: str) -> dict:
     """StreamPlan from the program text to its first window (start_before_validated) and to ready (default)."""
     import dataclasses
-    import numpy as np
     from ..daemon.planproc import warm
     from ..daemon.planstream import StreamPlan
+    from ..pose import pose_to_rad
     cfg = bench_config(args.config, args.smooth_mm, source, str(path))
-    home = np.array([*cfg.home_pose[:3], *np.radians(cfg.home_pose[3:])])
+    home = pose_to_rad(cfg.home_pose)
     text = path.read_text(encoding="utf-8")
     t0 = time.perf_counter()
     warm()
